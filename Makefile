@@ -1,0 +1,34 @@
+# Every target only calls pip, pytest or the spiral CLI. The virtualenv lives in .venv.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+TORCH_VERSION := 2.13.0
+
+.PHONY: install run test smoke bench lint clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --disable-pip-version-check "torch==$(TORCH_VERSION)"
+	$(BIN)/python -m pip install -q --disable-pip-version-check -e ".[test]"
+	touch $(STAMP)
+
+run: install
+	$(BIN)/spiral run pipelines/full.yaml
+
+test: install
+	$(BIN)/python -m pytest
+
+smoke: install
+	$(BIN)/spiral run pipelines/smoke.yaml
+
+bench: install
+	$(BIN)/spiral bench sim --device cpu --worlds 1,64,1024,4096,16384 --json docs/bench_sim.json
+
+lint: install
+	$(BIN)/ruff check spiral tests
+
+clean:
+	rm -rf $(VENV) runs

@@ -1,0 +1,34 @@
+"""Typed, strict specs for tracks, airframes, the simulator and pipelines."""
+
+from __future__ import annotations
+
+from spiral.config.airframe import AIRFRAMES, AirframeCfg, AirframeSel, PIDCfg, resolve_airframe
+from spiral.config.base import StrictModel
+from spiral.config.errors import SpecError
+from spiral.config.load import KINDS, load_pipeline, load_spec, load_track
+from spiral.config.pipeline import PipelineSpec
+from spiral.config.sim import SimCfg
+from spiral.config.stage import StageSpec
+from spiral.config.track import BoundsCfg, GateSpec, StartCfg, TrackSpec, gate_rotation
+
+__all__ = [
+    "AIRFRAMES",
+    "KINDS",
+    "AirframeCfg",
+    "AirframeSel",
+    "BoundsCfg",
+    "GateSpec",
+    "PIDCfg",
+    "PipelineSpec",
+    "SimCfg",
+    "SpecError",
+    "StageSpec",
+    "StartCfg",
+    "StrictModel",
+    "TrackSpec",
+    "gate_rotation",
+    "load_pipeline",
+    "load_spec",
+    "load_track",
+    "resolve_airframe",
+]

@@ -1,0 +1,40 @@
+"""Pipeline spec (``kind: pipeline``): track, airframe, device, seed and the curriculum's stages."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from spiral.config.airframe import AirframeSel
+from spiral.config.base import StrictModel
+from spiral.config.sim import SimCfg
+from spiral.config.stage import StageSpec
+
+__all__ = ["PIPELINE_VERSION", "PipelineSpec"]
+
+PIPELINE_VERSION = 1
+"""Schema version of pipeline files; older versions are migrated on load, newer ones refused."""
+
+
+class PipelineSpec(StrictModel):
+    """A training and evaluation pipeline."""
+
+    kind: Literal["pipeline"]
+    version: Literal[1] = Field(default=PIPELINE_VERSION, description="Schema version of this file")
+    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$", description="Pipeline name (run folder name)")
+    track: Path = Field(description="Track file, relative to this pipeline file")
+    airframe: AirframeSel = Field(default_factory=AirframeSel)
+    device: str = Field(default="cpu", pattern=r"^(cpu|cuda(:\d+)?)$", description="cpu or cuda:N")
+    seed: int = Field(default=0, ge=0, description="Base seed")
+    sim: SimCfg = Field(default_factory=SimCfg)
+    stages: list[StageSpec] = Field(min_length=1, description="Training stages in curriculum order")
+
+    @model_validator(mode="after")
+    def _unique_stage_names(self) -> PipelineSpec:
+        names = [s.name for s in self.stages]
+        for i, name in enumerate(names):
+            if name in names[:i]:
+                raise ValueError(f"stages.{i}.name: duplicate stage name {name!r}")
+        return self

@@ -1,0 +1,130 @@
+"""Race track spec: gates, start region, arena bounds."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from spiral.config.base import PosFloat, StrictModel, Vec3
+
+__all__ = ["BoundsCfg", "GateSpec", "StartCfg", "TrackSpec", "gate_rotation"]
+
+
+def gate_rotation(rpy_deg: Vec3) -> np.ndarray:
+    """Rotation matrix R = Rz(yaw)·Ry(pitch)·Rx(roll) of a gate, angles in degrees."""
+    r, p, y = np.deg2rad(rpy_deg)
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
+    ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+    rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
+    return rz @ ry @ rx
+
+
+class GateSpec(StrictModel):
+    """One square gate. Its opening lies in the local y-z plane; the local x axis is its normal."""
+
+    position: Vec3 = Field(description="Centre of the opening [m]")
+    rpy_deg: Vec3 = Field(default=(0.0, 0.0, 0.0), description="Roll, pitch, yaw of the frame [deg]")
+    direction: Literal[1, -1] | None = Field(
+        default=None, description="Passing direction along the normal; inferred from the gate order when absent"
+    )
+    opening: PosFloat | None = Field(default=None, description="Override of the track's opening [m]")
+    bar: PosFloat | None = Field(default=None, description="Override of the track's bar thickness [m]")
+
+
+class StartCfg(StrictModel):
+    """Axis-aligned box in which drones are placed at the start of a race."""
+
+    center: Vec3 = Field(description="Box centre [m]")
+    size: tuple[PosFloat, PosFloat, PosFloat] = Field(description="Box side lengths [m]")
+    min_separation: PosFloat = Field(default=0.3, description="Minimum distance between start positions [m]")
+    yaw_deg: float = Field(default=0.0, description="Initial heading of the drones [deg]")
+
+
+class BoundsCfg(StrictModel):
+    """Axis-aligned arena; leaving it is a collision."""
+
+    min: Vec3 = Field(description="Lower corner [m]")
+    max: Vec3 = Field(description="Upper corner [m]")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> BoundsCfg:
+        if any(lo >= hi for lo, hi in zip(self.min, self.max, strict=True)):
+            raise ValueError("bounds.min must be below bounds.max on every axis")
+        return self
+
+
+class TrackSpec(StrictModel):
+    """A gated race track (``kind: track``)."""
+
+    kind: Literal["track"]
+    name: str = Field(min_length=1, description="Track name")
+    gates: list[GateSpec] = Field(min_length=2, description="Gates in racing order")
+    opening: PosFloat = Field(default=0.6, description="Inner side of the square opening [m]")
+    bar: PosFloat = Field(default=0.05, description="Bar thickness of the frame [m]")
+    start: StartCfg
+    bounds: BoundsCfg
+    laps: Annotated[int, Field(ge=1)] = Field(default=1, description="Laps in a race")
+    time_limit_s: PosFloat = Field(default=20.0, description="Race time limit [s]")
+
+    def gate_opening(self, i: int) -> float:
+        """Opening of gate ``i`` after its override [m]."""
+        return self.gates[i].opening or self.opening
+
+    def gate_bar(self, i: int) -> float:
+        """Bar thickness of gate ``i`` after its override [m]."""
+        return self.gates[i].bar or self.bar
+
+    def gate_size(self, i: int) -> float:
+        """Outer side of gate ``i``'s frame [m]."""
+        return self.gate_opening(i) + 2.0 * self.gate_bar(i)
+
+    def gate_centers(self) -> np.ndarray:
+        """Gate centres, shape ``(G, 3)`` [m]."""
+        return np.array([g.position for g in self.gates], dtype=np.float64)
+
+    def gate_rotations(self) -> np.ndarray:
+        """Gate rotation matrices, shape ``(G, 3, 3)``; columns are the local x (normal), y and z axes."""
+        return np.stack([gate_rotation(g.rpy_deg) for g in self.gates])
+
+    def gate_directions(self) -> np.ndarray:
+        """Passing sign of each gate along its normal: given, or sign of n·(c[i+1] − c[i−1])."""
+        c = self.gate_centers()
+        n = self.gate_rotations()[:, :, 0]
+        inferred = np.sign(np.einsum("gi,gi->g", n, np.roll(c, -1, axis=0) - np.roll(c, 1, axis=0)))
+        given = [g.direction for g in self.gates]
+        return np.array([d if d is not None else (s if s != 0 else 1.0) for d, s in zip(given, inferred, strict=True)])
+
+    def gate_forward(self) -> np.ndarray:
+        """Unit passing direction of each gate (normal times direction), shape ``(G, 3)``."""
+        return self.gate_rotations()[:, :, 0] * self.gate_directions()[:, None]
+
+    def gate_corners(self, i: int) -> np.ndarray:
+        """The four outer corners of gate ``i``'s frame, shape ``(4, 3)`` [m]."""
+        rot = gate_rotation(self.gates[i].rpy_deg)
+        h = self.gate_size(i) / 2.0
+        local = np.array([[0.0, sy * h, sz * h] for sy in (-1, 1) for sz in (-1, 1)])
+        return np.asarray(self.gates[i].position) + local @ rot.T
+
+    @model_validator(mode="after")
+    def _geometry(self) -> TrackSpec:
+        lo, hi = np.asarray(self.bounds.min), np.asarray(self.bounds.max)
+        for i in range(len(self.gates)):
+            corners = self.gate_corners(i)
+            if (corners < lo).any() or (corners > hi).any():
+                raise ValueError(f"gates.{i}.position: gate frame leaves the arena bounds")
+        s_lo = np.asarray(self.start.center) - np.asarray(self.start.size) / 2
+        s_hi = np.asarray(self.start.center) + np.asarray(self.start.size) / 2
+        if (s_lo < lo).any() or (s_hi > hi).any():
+            raise ValueError("start: start box leaves the arena bounds")
+        c = self.gate_centers()
+        for i in range(len(c)):
+            for j in range(i + 1, len(c)):
+                if np.linalg.norm(c[i] - c[j]) < max(self.gate_size(i), self.gate_size(j)):
+                    raise ValueError(f"gates.{j}.position: closer to gates.{i} than the gate size")
+            corners = self.gate_corners(i)
+            if (corners.max(0) > s_lo).all() and (corners.min(0) < s_hi).all():
+                raise ValueError(f"start: start box intersects gates.{i}")
+        return self
