@@ -1,0 +1,8 @@
+"""Batched quadrotor racing simulator in Warp kernels (no torch here)."""
+
+from __future__ import annotations
+
+from spiral.sim.state import COLLISION_KINDS, QuadParams, QuadState, RaceState, TrackArrays
+from spiral.sim.world import World
+
+__all__ = ["COLLISION_KINDS", "QuadParams", "QuadState", "RaceState", "TrackArrays", "World"]

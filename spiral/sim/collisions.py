@@ -1,0 +1,103 @@
+"""Contacts of each drone's sphere with the ground, the arena bounds, the gate bars and the other drones."""
+
+from __future__ import annotations
+
+import warp as wp
+
+from spiral.sim.state import (
+    COLLISION_BOUNDS,
+    COLLISION_DRONE,
+    COLLISION_GATE,
+    COLLISION_GROUND,
+    QuadParams,
+    TrackArrays,
+)
+
+__all__ = ["apply_contacts", "detect_collisions", "sphere_box_overlap", "sphere_gate_overlap"]
+
+
+@wp.func
+def sphere_box_overlap(center: wp.vec3, radius: wp.float32, box_center: wp.vec3, half: wp.vec3) -> wp.bool:
+    """Whether a sphere overlaps an axis-aligned box (both in the same frame)."""
+    d = center - box_center
+    closest = wp.min(wp.max(d, -half), half)
+    return wp.length_sq(d - closest) < radius * radius
+
+
+@wp.func
+def sphere_gate_overlap(p: wp.vec3, radius: wp.float32, g: wp.int32, track: TrackArrays) -> wp.bool:
+    """Whether a sphere touches one of the four bars of gate ``g``.
+
+    In the gate frame (x normal, opening in y-z) each bar is a box of cross-section bar × bar: the top and bottom
+    bars span the full outer width, the side bars the opening's height.
+    """
+    h = track.gate_half_opening[g]
+    b = track.gate_bar[g]
+    reach = h + b + radius
+    rel = p - track.gate_center[g]
+    if wp.length_sq(rel) > 2.0 * reach * reach:  # outside the frame's bounding sphere
+        return False
+    local = wp.transpose(track.gate_rot[g]) * rel
+    if wp.abs(local[0]) > b + radius or wp.abs(local[1]) > reach or wp.abs(local[2]) > reach:
+        return False
+    mid = h + 0.5 * b
+    flat = wp.vec3(0.5 * b, h + b, 0.5 * b)
+    tall = wp.vec3(0.5 * b, 0.5 * b, h)
+    return (
+        sphere_box_overlap(local, radius, wp.vec3(0.0, 0.0, mid), flat)
+        or sphere_box_overlap(local, radius, wp.vec3(0.0, 0.0, -mid), flat)
+        or sphere_box_overlap(local, radius, wp.vec3(0.0, mid, 0.0), tall)
+        or sphere_box_overlap(local, radius, wp.vec3(0.0, -mid, 0.0), tall)
+    )
+
+
+@wp.kernel
+def detect_collisions(
+    pos: wp.array[wp.vec3],
+    crashed: wp.array[wp.int32],
+    track: TrackArrays,
+    params: QuadParams,
+    drones_per_world: wp.int32,
+    contact: wp.array[wp.int32],
+):
+    """Write this substep's collision bits of each flying drone; crashed drones are out of the race."""
+    tid = wp.tid()
+    bits = wp.int32(0)
+    if crashed[tid] == 0:
+        p = pos[tid]
+        r = params.radius
+        if p[2] < r:
+            bits = bits | COLLISION_GROUND
+        lo = track.bounds_min
+        hi = track.bounds_max
+        if p[0] < lo[0] or p[1] < lo[1] or p[2] < lo[2] or p[0] > hi[0] or p[1] > hi[1] or p[2] > hi[2]:
+            bits = bits | COLLISION_BOUNDS
+        for g in range(track.gate_count):
+            if sphere_gate_overlap(p, r, g, track):
+                bits = bits | COLLISION_GATE
+        first = (tid / drones_per_world) * drones_per_world
+        for j in range(first, first + drones_per_world):
+            if j != tid and crashed[j] == 0 and wp.length_sq(pos[j] - p) < 4.0 * r * r:
+                bits = bits | COLLISION_DRONE
+    contact[tid] = bits
+
+
+@wp.kernel
+def apply_contacts(
+    contact: wp.array[wp.int32],
+    world_substeps: wp.array[wp.int32],
+    drones_per_world: wp.int32,
+    substep: wp.int32,
+    dt: wp.float32,
+    step_collision: wp.array[wp.int32],
+    crashed: wp.array[wp.int32],
+    crash_time: wp.array[wp.float32],
+):
+    """Record the substep's contacts: any collision crashes the drone (after every drone's contacts are known)."""
+    tid = wp.tid()
+    bits = contact[tid]
+    if bits != 0:
+        step_collision[tid] = step_collision[tid] | bits
+        if crashed[tid] == 0:
+            crashed[tid] = 1
+            crash_time[tid] = wp.float32(world_substeps[tid / drones_per_world] + substep + 1) * dt

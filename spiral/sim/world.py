@@ -1,0 +1,189 @@
+"""A batch of race worlds: ``world_count`` worlds × ``drones_per_world`` drones, stepped by Warp kernels."""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from spiral.config.airframe import AirframeCfg
+from spiral.config.sim import SimCfg
+from spiral.config.track import TrackSpec
+from spiral.sim.collisions import apply_contacts, detect_collisions
+from spiral.sim.dynamics import control_and_integrate, drone_downwash
+from spiral.sim.gates import detect_gate_crossing
+from spiral.sim.rotations import quat_to_rpy, yaw_quat
+from spiral.sim.state import QuadParams, QuadState, RaceState, make_quad_params, make_track_arrays
+
+__all__ = ["World"]
+
+wp.config.quiet = True
+
+
+@wp.kernel
+def reset_drones(
+    world_mask: wp.array[wp.int32],
+    init_pos: wp.array[wp.vec3],
+    init_vel: wp.array[wp.vec3],
+    init_yaw: wp.array[wp.float32],
+    init_next_gate: wp.array[wp.int32],
+    params: QuadParams,
+    drones_per_world: wp.int32,
+    pos: wp.array[wp.vec3],
+    vel: wp.array[wp.vec3],
+    quat: wp.array[wp.quat],
+    omega: wp.array[wp.vec3],
+    rpm: wp.array[wp.vec4],
+    prev_pos: wp.array[wp.vec3],
+    integral: wp.array[wp.vec3],
+    next_gate: wp.array[wp.int32],
+    gates_passed: wp.array[wp.int32],
+    crashed: wp.array[wp.int32],
+    world_substeps: wp.array[wp.int32],
+    world_nonfinite: wp.array[wp.int32],
+):
+    """Put every drone of a masked world at its initial state, level, at hover rpm, with a fresh race."""
+    tid = wp.tid()
+    w = tid / drones_per_world
+    if world_mask[w] == 0:
+        return
+    pos[tid] = init_pos[tid]
+    prev_pos[tid] = init_pos[tid]
+    vel[tid] = init_vel[tid]
+    quat[tid] = yaw_quat(init_yaw[tid])
+    omega[tid] = wp.vec3(0.0)
+    rpm[tid] = wp.vec4(params.hover_rpm)
+    integral[tid] = wp.vec3(0.0)
+    next_gate[tid] = init_next_gate[tid]
+    gates_passed[tid] = 0
+    crashed[tid] = 0
+    if tid % drones_per_world == 0:
+        world_substeps[w] = 0
+        world_nonfinite[w] = 0
+
+
+@wp.kernel
+def advance_clocks(substeps: wp.int32, world_substeps: wp.array[wp.int32]):
+    """Count the substeps of the control step just taken."""
+    w = wp.tid()
+    world_substeps[w] = world_substeps[w] + substeps
+
+
+@wp.kernel
+def euler_angles(quat: wp.array[wp.quat], rpy: wp.array[wp.vec3]):
+    """Roll, pitch and yaw of every drone, for observers."""
+    tid = wp.tid()
+    rpy[tid] = quat_to_rpy(quat[tid])
+
+
+class World:
+    """Batched race worlds on one Warp device.
+
+    Drone ``i`` belongs to world ``i // drones_per_world``. Write commands into :attr:`cmd` (target position and
+    yaw in ``pid`` mode, four motor speeds in ``rpm`` mode), then call :meth:`step` for one control step of
+    ``sim.substeps`` physics steps. Per-step events are in :attr:`race` (``step_passes``, ``step_collision``).
+    """
+
+    def __init__(
+        self,
+        track: TrackSpec,
+        airframe: AirframeCfg,
+        sim: SimCfg,
+        *,
+        world_count: int,
+        drones_per_world: int,
+        device: str = "cpu",
+    ) -> None:
+        if world_count < 1 or drones_per_world < 1:
+            raise ValueError("world_count and drones_per_world must be positive")
+        self.track_spec, self.airframe, self.sim = track, airframe, sim
+        self.world_count, self.drones_per_world = world_count, drones_per_world
+        self.drone_count = world_count * drones_per_world
+        self.device = str(wp.get_device(device))
+        self.params = make_quad_params(airframe, sim)
+        self.track = make_track_arrays(track, self.device)
+        self.state = QuadState(self.drone_count, self.device)
+        self.race = RaceState(world_count, self.drone_count, self.device)
+        n = self.drone_count
+        self.cmd = wp.zeros(n, dtype=wp.vec4, device=self.device)
+        """Command of the next control step (pid: x, y, z [m], yaw [rad]; rpm: four motor speeds)."""
+        self.integral = wp.zeros(n, dtype=wp.vec3, device=self.device)
+        self.ext_force = wp.zeros(n, dtype=wp.vec3, device=self.device)
+        self.rpy = wp.zeros(n, dtype=wp.vec3, device=self.device)
+        """Roll, pitch, yaw [rad] after the last step."""
+        self._reset_mask = wp.zeros(world_count, dtype=wp.int32, device=self.device)
+        self._graph = None
+        self.use_graph = wp.get_device(self.device).is_cuda
+
+    @property
+    def time_step(self) -> float:
+        """Duration of one control step [s]."""
+        return self.sim.substeps * self.sim.dt
+
+    def step(self) -> None:
+        """Advance every world one control step."""
+        if self.use_graph:
+            if self._graph is None:
+                with wp.ScopedCapture(device=self.device) as capture:
+                    self._simulate()
+                self._graph = capture.graph
+            wp.capture_launch(self._graph)
+        else:
+            self._simulate()
+
+    def _simulate(self) -> None:
+        s, r, n, d = self.state, self.race, self.drone_count, self.drones_per_world
+        dt = float(self.sim.dt)
+        r.step_passes.zero_()
+        r.step_collision.zero_()
+        mode = 0 if self.sim.control_mode == "pid" else 1
+        for k in range(self.sim.substeps):
+            if self.sim.downwash:
+                wp.launch(drone_downwash, n, inputs=[s.pos, r.crashed, self.params, d], outputs=[self.ext_force],
+                          device=self.device)
+            wp.launch(control_and_integrate, n,
+                      inputs=[s.pos, s.vel, s.quat, s.omega, s.rpm, self.cmd, self.integral, r.crashed,
+                              self.ext_force, self.params, mode, d, dt],
+                      outputs=[s.prev_pos, r.world_nonfinite], device=self.device)
+            wp.launch(detect_collisions, n, inputs=[s.pos, r.crashed, self.track, self.params, d],
+                      outputs=[r.contact], device=self.device)
+            wp.launch(detect_gate_crossing, n,
+                      inputs=[s.prev_pos, s.pos, self.track, r.world_substeps, d, k, dt, r.crashed],
+                      outputs=[r.next_gate, r.gates_passed, r.step_passes, r.pass_time], device=self.device)
+            wp.launch(apply_contacts, n, inputs=[r.contact, r.world_substeps, d, k, dt],
+                      outputs=[r.step_collision, r.crashed, r.crash_time], device=self.device)
+        wp.launch(advance_clocks, self.world_count, inputs=[self.sim.substeps], outputs=[r.world_substeps],
+                  device=self.device)
+        wp.launch(euler_angles, n, inputs=[s.quat], outputs=[self.rpy], device=self.device)
+
+    def reset(
+        self,
+        world_mask: wp.array,
+        init_pos: wp.array,
+        init_yaw: wp.array,
+        *,
+        init_vel: wp.array | None = None,
+        init_next_gate: wp.array | None = None,
+    ) -> None:
+        """Reset the worlds whose ``world_mask`` entry is non-zero; per-drone initial values for all drones."""
+        s, r = self.state, self.race
+        zeros_v = init_vel if init_vel is not None else wp.zeros(self.drone_count, dtype=wp.vec3, device=self.device)
+        gates = init_next_gate if init_next_gate is not None else wp.zeros(self.drone_count, dtype=wp.int32,
+                                                                           device=self.device)
+        wp.launch(reset_drones, self.drone_count,
+                  inputs=[world_mask, init_pos, zeros_v, init_yaw, gates, self.params, self.drones_per_world],
+                  outputs=[s.pos, s.vel, s.quat, s.omega, s.rpm, s.prev_pos, self.integral, r.next_gate,
+                           r.gates_passed, r.crashed, r.world_substeps, r.world_nonfinite],
+                  device=self.device)
+        wp.launch(euler_angles, self.drone_count, inputs=[s.quat], outputs=[self.rpy], device=self.device)
+
+    def reset_all(self, init_pos: np.ndarray, init_yaw: np.ndarray | None = None) -> None:
+        """Reset every world from numpy arrays (convenience for tests and tools): positions ``(N, 3)``."""
+        n = self.drone_count
+        yaw = np.zeros(n, np.float32) if init_yaw is None else np.asarray(init_yaw, np.float32)
+        self._reset_mask.fill_(1)
+        self.reset(self._reset_mask, wp.array(np.asarray(init_pos, np.float32), dtype=wp.vec3, device=self.device),
+                   wp.array(yaw, dtype=wp.float32, device=self.device))
+
+    def world_time(self) -> np.ndarray:
+        """Simulated time since each world's reset [s] (numpy copy)."""
+        return self.race.world_substeps.numpy() * self.sim.dt
