@@ -19,7 +19,7 @@ GRAVITY = 9.81
 class PIDCfg(StrictModel):
     """Cascaded controller gains in SI units (accelerations per metre, angular accelerations per radian)."""
 
-    pos_p: Vec3 = Field(default=(6.0, 6.0, 8.0), description="Position gain [1/s²]")
+    pos_p: Vec3 = Field(default=(8.0, 8.0, 10.0), description="Position gain [1/s²]")
     pos_i: Vec3 = Field(default=(1.0, 1.0, 2.0), description="Position integral gain [1/s³]")
     pos_d: Vec3 = Field(default=(4.0, 4.0, 5.0), description="Velocity gain [1/s]")
     pos_i_limit: PosFloat = Field(default=0.5, description="Clip of each position-integral component [m·s]")
