@@ -4,22 +4,32 @@ from __future__ import annotations
 
 from spiral.config.airframe import AIRFRAMES, AirframeCfg, AirframeSel, PIDCfg, resolve_airframe
 from spiral.config.base import StrictModel
+from spiral.config.env import ActionCfg, EnvCfg, EpisodeCfg, ObsCfg, RewardCfg
 from spiral.config.errors import SpecError
 from spiral.config.load import KINDS, load_pipeline, load_spec, load_track
 from spiral.config.pipeline import PipelineSpec
+from spiral.config.ppo import PPOCfg
 from spiral.config.sim import SimCfg
-from spiral.config.stage import StageSpec
+from spiral.config.stage import SCENARIO_DRONES, SelectionCfg, StageSpec
 from spiral.config.track import BoundsCfg, GateSpec, StartCfg, TrackSpec, gate_rotation
 
 __all__ = [
     "AIRFRAMES",
     "KINDS",
+    "SCENARIO_DRONES",
+    "ActionCfg",
     "AirframeCfg",
     "AirframeSel",
     "BoundsCfg",
+    "EnvCfg",
+    "EpisodeCfg",
     "GateSpec",
+    "ObsCfg",
     "PIDCfg",
+    "PPOCfg",
     "PipelineSpec",
+    "RewardCfg",
+    "SelectionCfg",
     "SimCfg",
     "SpecError",
     "StageSpec",

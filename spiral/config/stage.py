@@ -1,14 +1,26 @@
-"""Stage spec: one step of the curriculum (solo, 1v1, 2v2)."""
+"""Stage spec: one step of the curriculum (solo, 1v1, 2v2) with its PPO, environment and budget."""
 
 from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from spiral.config.base import PosInt, StrictModel
+from spiral.config.env import EnvCfg
+from spiral.config.ppo import PPOCfg
 
-__all__ = ["StageSpec"]
+__all__ = ["SCENARIO_DRONES", "SelectionCfg", "StageSpec"]
+
+SCENARIO_DRONES: dict[str, int] = {"solo": 1, "1v1": 2, "2v2": 4}
+"""Drones per world of each race format."""
+
+
+class SelectionCfg(StrictModel):
+    """Periodic evaluation during training that keeps the best checkpoint (success first, then lap time)."""
+
+    interval: PosInt = Field(default=25, description="Iterations between evaluations")
+    races: PosInt = Field(default=64, description="Seeded races from the start box per evaluation")
 
 
 class StageSpec(StrictModel):
@@ -16,4 +28,32 @@ class StageSpec(StrictModel):
 
     name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$", description="Stage name")
     scenario: Literal["solo", "1v1", "2v2"] = Field(default="solo", description="Race format")
-    iterations: PosInt = Field(default=100, description="PPO iterations")
+    worlds: PosInt = Field(default=1024, description="Parallel worlds (races) in training")
+    iterations: PosInt | None = Field(default=None, description="Budget in PPO iterations")
+    env_steps: PosInt | None = Field(default=None, description="Budget in learner env steps (sets iterations)")
+    seed: int | None = Field(default=None, ge=0, description="Seed of this stage; the pipeline's when absent")
+    env: EnvCfg = Field(default_factory=EnvCfg)
+    ppo: PPOCfg = Field(default_factory=PPOCfg)
+    selection: SelectionCfg = Field(default_factory=SelectionCfg)
+
+    @model_validator(mode="after")
+    def _one_budget(self) -> StageSpec:
+        if (self.iterations is None) == (self.env_steps is None):
+            raise ValueError("iterations: give exactly one of iterations and env_steps")
+        return self
+
+    @property
+    def drones_per_world(self) -> int:
+        """Drones in each world of this stage's race format."""
+        return SCENARIO_DRONES[self.scenario]
+
+    def learner_slots(self) -> list[int]:
+        """Drone slots driven by the learner (team A); the other slots are opponents."""
+        return [0, 1] if self.scenario == "2v2" else [0]
+
+    def iteration_budget(self) -> int:
+        """PPO iterations of this stage, from ``iterations`` or ``env_steps``."""
+        if self.iterations is not None:
+            return self.iterations
+        per_iteration = self.worlds * len(self.learner_slots()) * self.ppo.num_steps_per_env
+        return max(1, -(-(self.env_steps or 0) // per_iteration))

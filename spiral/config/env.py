@@ -1,0 +1,65 @@
+"""Race environment settings: observation layout, action mapping, reward weights and episodes."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from spiral.config.base import NonNegFloat, PosFloat, PosInt, StrictModel
+
+__all__ = ["ActionCfg", "EnvCfg", "EpisodeCfg", "ObsCfg", "RewardCfg"]
+
+
+class ObsCfg(StrictModel):
+    """Observation layout: 12-D ego state plus a history of [2 nearest drones, next 2 gates, own action].
+
+    The paper's layout is ``history_len: 50`` (12 + 50·16 = 812 inputs). A short history with gate normals and
+    the controller's integral state is far cheaper for PPO on a CPU and learns faster; both are reported.
+    """
+
+    history_len: PosInt = Field(default=50, description="Control steps K kept in the history buffer")
+    history_stride: PosInt = Field(default=1, description="Control steps between stored history entries")
+    gate_normals: bool = Field(default=False, description="Add the passing direction of the next 2 gates")
+    pid_integral: bool = Field(default=False, description="Add the position controller's integral state")
+    opponent_velocity: bool = Field(default=False, description="Add the relative velocity of the 2 nearest drones")
+
+
+class ActionCfg(StrictModel):
+    """How a 4-D action in [−1, 1] becomes a PID target (position and yaw)."""
+
+    mode: Literal["relative", "absolute"] = Field(
+        default="relative", description="relative: offset from the drone; absolute: point in the arena (paper)"
+    )
+    pos_scale: PosFloat = Field(default=2.0, description="Target offset at action 1 in relative mode [m]")
+    yaw_scale_deg: PosFloat = Field(default=45.0, description="Yaw offset at action 1 in relative mode [deg]")
+
+
+class RewardCfg(StrictModel):
+    """Weights of the paper's reward terms; each term is logged as ``Episode_Reward/<term>``."""
+
+    progress: NonNegFloat = Field(default=1.0, description="Per metre of progress towards the next gate")
+    gate: NonNegFloat = Field(default=1.0, description="Per gate passed in order")
+    collision: NonNegFloat = Field(default=10.0, description="Penalty C once, at the step of a collision")
+    alignment: NonNegFloat = Field(default=0.02, description="Weight ζ of max(0, cos θ − cos θ_th) per step")
+    alignment_threshold_deg: float = Field(default=60.0, gt=0, le=180, description="θ_th [deg]")
+    lap: NonNegFloat = Field(default=1.0, description="Weight of 100 / lap_time at a completed lap")
+
+
+class EpisodeCfg(StrictModel):
+    """Episode starts and limits in training (evaluation always starts in the start box)."""
+
+    track_start_prob: float = Field(
+        default=0.5, ge=0, le=1, description="Share of episodes started at a random point along the track"
+    )
+    track_start_speed: NonNegFloat = Field(default=1.0, description="Largest initial speed of a track start [m/s]")
+    time_limit_s: PosFloat | None = Field(default=None, description="Episode time limit; the track's when absent")
+
+
+class EnvCfg(StrictModel):
+    """Everything the race environment needs besides the track, airframe and simulator."""
+
+    obs: ObsCfg = Field(default_factory=ObsCfg)
+    action: ActionCfg = Field(default_factory=ActionCfg)
+    reward: RewardCfg = Field(default_factory=RewardCfg)
+    episode: EpisodeCfg = Field(default_factory=EpisodeCfg)

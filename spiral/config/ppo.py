@@ -1,0 +1,75 @@
+"""PPO hyperparameters (rsl-rl's names) and the network; ``to_rsl_rl`` is the only place emitting class names."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from spiral.config.base import NonNegFloat, PosFloat, PosInt, StrictModel
+
+__all__ = ["PPOCfg"]
+
+
+class PPOCfg(StrictModel):
+    """rsl-rl PPO settings, actor-critic sizes and checkpointing."""
+
+    num_steps_per_env: PosInt = Field(default=24, description="Rollout length per iteration")
+    num_learning_epochs: PosInt = Field(default=5)
+    num_mini_batches: PosInt = Field(default=4)
+    clip_param: PosFloat = Field(default=0.2)
+    gamma: float = Field(default=0.99, gt=0, le=1)
+    lam: float = Field(default=0.95, gt=0, le=1)
+    value_loss_coef: NonNegFloat = Field(default=1.0)
+    entropy_coef: NonNegFloat = Field(default=0.005)
+    learning_rate: PosFloat = Field(default=1.0e-3)
+    max_grad_norm: PosFloat = Field(default=1.0)
+    schedule: Literal["adaptive", "fixed"] = Field(default="adaptive")
+    desired_kl: PosFloat = Field(default=0.01)
+    actor_hidden_dims: list[PosInt] = Field(default=[128, 128], min_length=1)
+    critic_hidden_dims: list[PosInt] = Field(default=[128, 128], min_length=1)
+    activation: Literal["elu", "relu", "tanh", "selu", "lrelu"] = Field(default="elu")
+    init_noise_std: PosFloat = Field(default=1.0)
+    min_noise_std: PosFloat = Field(default=0.05, description="Lower clamp of the action noise")
+    obs_normalization: bool = Field(default=True)
+    save_interval: PosInt = Field(default=50, description="Iterations between periodic checkpoints")
+
+    def to_rsl_rl(self) -> dict:
+        """The ``train_cfg`` dictionary of rsl-rl's ``OnPolicyRunner``."""
+
+        def model(hidden: list[int], distribution: bool) -> dict:
+            cfg: dict = {
+                "class_name": "rsl_rl.models.MLPModel",
+                "hidden_dims": list(hidden),
+                "activation": self.activation,
+                "obs_normalization": self.obs_normalization,
+            }
+            if distribution:
+                cfg["distribution_cfg"] = {
+                    "class_name": "rsl_rl.modules.distribution.GaussianDistribution",
+                    "init_std": self.init_noise_std,
+                    "std_range": (self.min_noise_std, 10.0),
+                }
+            return cfg
+
+        return {
+            "num_steps_per_env": self.num_steps_per_env,
+            "save_interval": self.save_interval,
+            "obs_groups": {"actor": ["policy"], "critic": ["critic"]},
+            "actor": model(self.actor_hidden_dims, distribution=True),
+            "critic": model(self.critic_hidden_dims, distribution=False),
+            "algorithm": {
+                "class_name": "rsl_rl.algorithms.PPO",
+                "num_learning_epochs": self.num_learning_epochs,
+                "num_mini_batches": self.num_mini_batches,
+                "clip_param": self.clip_param,
+                "gamma": self.gamma,
+                "lam": self.lam,
+                "value_loss_coef": self.value_loss_coef,
+                "entropy_coef": self.entropy_coef,
+                "learning_rate": self.learning_rate,
+                "max_grad_norm": self.max_grad_norm,
+                "schedule": self.schedule,
+                "desired_kl": self.desired_kl,
+            },
+        }

@@ -1,0 +1,75 @@
+"""The paper's reward terms, one function each; ``compute_rewards`` weights them from ``RewardCfg``."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from spiral.config.env import RewardCfg
+
+__all__ = ["REWARD_TERMS", "StepOutcome", "compute_rewards"]
+
+
+@dataclass
+class StepOutcome:
+    """What happened to every drone during one control step (all tensors shaped (N,) or (N, 3))."""
+
+    dist_before: torch.Tensor
+    """Distance to the step's target gate before the step [m]."""
+    dist_after: torch.Tensor
+    """Distance to the same gate after the step [m]."""
+    gates_passed: torch.Tensor
+    """Gates passed in order during the step."""
+    crashed_now: torch.Tensor
+    """Whether the drone collided during the step (bool)."""
+    heading: torch.Tensor
+    """Body x axis in the world frame (N, 3)."""
+    to_gate: torch.Tensor
+    """Vector from the drone to its next gate (N, 3) [m]."""
+    lap_time: torch.Tensor
+    """Lap time for drones that completed their lap during the step, else 0 [s]."""
+
+
+def _reward_progress(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
+    """Δd: metres gained towards the gate targeted at the start of the step (the centreline's next vertex)."""
+    return o.dist_before - o.dist_after
+
+
+def _reward_gate(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
+    """G_t: gates passed in order during the step."""
+    return o.gates_passed.float()
+
+
+def _reward_collision(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
+    """−1 once, at the step of the collision (the weight is the paper's C)."""
+    return -o.crashed_now.float()
+
+
+def _reward_alignment(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
+    """max(0, cos θ − cos θ_th), θ the angle between the heading and the direction to the next gate."""
+    cos = torch.nn.functional.cosine_similarity(o.heading, o.to_gate, dim=-1)
+    return (cos - math.cos(math.radians(cfg.alignment_threshold_deg))).clamp(min=0.0)
+
+
+def _reward_lap(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
+    """100 / T_lap at the step a lap is completed."""
+    done = o.lap_time > 0
+    return torch.where(done, 100.0 / o.lap_time.clamp(min=1e-3), torch.zeros_like(o.lap_time))
+
+
+REWARD_TERMS = {
+    "progress": _reward_progress,
+    "gate": _reward_gate,
+    "collision": _reward_collision,
+    "alignment": _reward_alignment,
+    "lap": _reward_lap,
+}
+"""Reward term functions by the name of their weight in ``RewardCfg``."""
+
+
+def compute_rewards(outcome: StepOutcome, cfg: RewardCfg) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Total reward per drone and each weighted term."""
+    terms = {name: fn(outcome, cfg) * getattr(cfg, name) for name, fn in REWARD_TERMS.items()}
+    return torch.stack(list(terms.values())).sum(0), terms
