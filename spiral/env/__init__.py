@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from spiral.env.observations import HISTORY_FEATURES, ObservationBuilder
 from spiral.env.race_env import OpponentPolicy, RaceEnv
+from spiral.env.racing import RaceResults, run_races
 from spiral.env.rewards import REWARD_TERMS, StepOutcome, compute_rewards
 
 __all__ = [
@@ -12,6 +13,8 @@ __all__ = [
     "ObservationBuilder",
     "OpponentPolicy",
     "RaceEnv",
+    "RaceResults",
     "StepOutcome",
     "compute_rewards",
+    "run_races",
 ]

@@ -1,0 +1,170 @@
+"""Atomic, checksummed checkpoints with metadata, and loading a frozen policy from one."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import tempfile
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import torch
+from rsl_rl.models import MLPModel
+from tensordict import TensorDict
+
+__all__ = [
+    "CheckpointError",
+    "FrozenPolicy",
+    "atomic_write_bytes",
+    "file_sha256",
+    "list_checkpoints",
+    "load_checkpoint",
+    "load_policy",
+    "newest_valid_checkpoint",
+    "save_checkpoint",
+]
+
+FORMAT = "spiral-checkpoint-1"
+
+
+class CheckpointError(Exception):
+    """A checkpoint is missing, truncated, corrupt or of an incompatible layout."""
+
+
+def file_sha256(path: Path) -> str:
+    """SHA-256 of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file, fsync and rename, so readers never see half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _versions() -> dict[str, str]:
+    out = {}
+    for pkg in ("spiral", "torch", "rsl-rl-lib", "warp-lang"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            out[pkg] = "unknown"
+    return out
+
+
+def save_checkpoint(path: Path, state: dict[str, Any], meta: dict[str, Any]) -> None:
+    """Save rsl-rl's ``state`` dict plus spiral ``meta`` atomically; a ``.json`` sidecar holds the checksum.
+
+    The sidecar is written after the checkpoint, so a checkpoint without a matching sidecar is incomplete.
+    """
+    import io
+
+    meta = {"format": FORMAT, "versions": _versions(), **meta}
+    buf = io.BytesIO()
+    torch.save({**state, "spiral": meta}, buf)
+    atomic_write_bytes(path, buf.getvalue())
+    side = {"sha256": hashlib.sha256(buf.getvalue()).hexdigest(), "size": len(buf.getvalue()), **meta}
+    atomic_write_bytes(path.with_suffix(".json"), json.dumps(side, indent=2, default=str).encode())
+
+
+def load_checkpoint(path: Path, *, map_location: str = "cpu") -> dict[str, Any]:
+    """Load a checkpoint after verifying its checksum against the sidecar.
+
+    Raises:
+        CheckpointError: naming the file and what is wrong.
+    """
+    path = Path(path)
+    side_path = path.with_suffix(".json")
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint")
+    if not side_path.is_file():
+        raise CheckpointError(f"{path}: missing checksum file {side_path.name} (incomplete save?)")
+    try:
+        side = json.loads(side_path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise CheckpointError(f"{side_path}: unreadable checksum file: {exc}") from exc
+    if file_sha256(path) != side.get("sha256"):
+        raise CheckpointError(f"{path}: checksum mismatch (truncated or corrupt file)")
+    try:
+        data = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as exc:  # torch raises many kinds for bad pickles
+        raise CheckpointError(f"{path}: cannot be read by torch: {exc}") from exc
+    if not isinstance(data, dict) or data.get("spiral", {}).get("format") != FORMAT:
+        raise CheckpointError(f"{path}: not a spiral checkpoint")
+    return data
+
+
+def list_checkpoints(ckpt_dir: Path) -> list[tuple[int, Path]]:
+    """``(iteration, path)`` of every ``model_<it>.pt`` in ``ckpt_dir``, newest first."""
+    found = []
+    for p in Path(ckpt_dir).glob("model_*.pt"):
+        m = re.fullmatch(r"model_(\d+)\.pt", p.name)
+        if m:
+            found.append((int(m.group(1)), p))
+    return sorted(found, reverse=True)
+
+
+def newest_valid_checkpoint(ckpt_dir: Path, *, warn: Any = None) -> Path | None:
+    """The newest checkpoint whose checksum verifies; broken newer ones are reported through ``warn(msg)``."""
+    for _, path in list_checkpoints(ckpt_dir):
+        try:
+            load_checkpoint(path)
+        except CheckpointError as exc:
+            if warn is not None:
+                warn(f"skipping {exc}")
+            continue
+        return path
+    return None
+
+
+class FrozenPolicy(torch.nn.Module):
+    """A trained actor for inference: observation TensorDict -> deterministic actions."""
+
+    def __init__(self, actor: MLPModel, meta: dict[str, Any]) -> None:
+        super().__init__()
+        self.actor = actor.eval()
+        self.meta = meta
+
+    @property
+    def obs_layout(self) -> dict[str, Any]:
+        """Observation layout the policy was trained with."""
+        return self.meta["obs_layout"]
+
+    @torch.no_grad()
+    def forward(self, obs: TensorDict) -> torch.Tensor:
+        """Mean action of the policy."""
+        return self.actor(obs)
+
+
+def load_policy(path: Path, *, device: str = "cpu") -> FrozenPolicy:
+    """Rebuild the actor of a checkpoint for inference (its normaliser included)."""
+    data = load_checkpoint(path, map_location=device)
+    meta = data["spiral"]
+    ppo = meta["ppo"]
+    dim = meta["obs_layout"]["obs_dim"]
+    dummy = TensorDict({"policy": torch.zeros(1, dim), "critic": torch.zeros(1, dim)}, batch_size=[1])
+    actor = MLPModel(dummy, {"actor": ["policy"], "critic": ["critic"]}, "actor", 4,
+                     hidden_dims=ppo["actor_hidden_dims"], activation=ppo["activation"],
+                     obs_normalization=ppo["obs_normalization"],
+                     distribution_cfg={"class_name": "rsl_rl.modules.distribution.GaussianDistribution"})
+    try:
+        actor.load_state_dict(data["actor_state_dict"])
+    except (RuntimeError, KeyError) as exc:
+        raise CheckpointError(f"{path}: actor weights do not match the stored layout: {exc}") from exc
+    return FrozenPolicy(actor.to(device), meta)

@@ -1,0 +1,250 @@
+"""Stage training: rsl-rl PPO over a RaceEnv with atomic checkpoints, resume, selection by evaluation, progress."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+import random
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rsl_rl.runners import OnPolicyRunner
+from torch.utils.tensorboard import SummaryWriter
+
+from spiral.config.airframe import AirframeCfg
+from spiral.config.sim import SimCfg
+from spiral.config.stage import StageSpec
+from spiral.config.track import TrackSpec
+from spiral.env.race_env import OpponentPolicy, RaceEnv
+from spiral.env.racing import run_races
+from spiral.env.vec_env import RaceVecEnv
+from spiral.train.checkpoint import load_checkpoint, newest_valid_checkpoint, save_checkpoint
+
+__all__ = ["EvalScore", "StageTrainer", "TrainResult", "seed_everything"]
+
+
+def seed_everything(seed: int) -> None:
+    """Seed Python, numpy and torch (CPU and CUDA)."""
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+@dataclass(order=True)
+class EvalScore:
+    """Selection key: a higher success ratio wins, then a shorter mean lap time."""
+
+    success: float
+    neg_lap_time: float
+    iteration: int = field(compare=False, default=-1)
+
+    @property
+    def lap_time(self) -> float | None:
+        """Mean lap time of the successful races [s]."""
+        return None if math.isinf(self.neg_lap_time) else -self.neg_lap_time
+
+
+@dataclass
+class TrainResult:
+    """What a stage's training produced."""
+
+    best_path: Path
+    last_path: Path
+    best: EvalScore
+    iterations: int
+    wall_time_s: float
+    env_steps: int
+    history: list[dict[str, float]]
+
+
+class StageTrainer:
+    """Trains one stage's learner with rsl-rl PPO.
+
+    Writes ``run_dir/ckpt/model_<it>.pt`` every ``save_interval`` iterations and at the end, ``run_dir/best.pt``
+    (the checkpoint that evaluated best), TensorBoard events in ``run_dir/tb`` and ``run_dir/train_log.jsonl``.
+    Resumes from the newest valid checkpoint in ``run_dir/ckpt``.
+    """
+
+    def __init__(
+        self,
+        track: TrackSpec,
+        airframe: AirframeCfg,
+        sim: SimCfg,
+        stage: StageSpec,
+        run_dir: Path,
+        *,
+        device: str = "cpu",
+        seed: int = 0,
+        init_checkpoint: Path | None = None,
+        opponent: OpponentPolicy | None = None,
+        log: Callable[[str], None] = print,
+        progress: bool = True,
+    ) -> None:
+        self.track, self.airframe, self.sim, self.stage = track, airframe, sim, stage
+        self.run_dir, self.device, self.seed, self.log, self.show_progress = Path(run_dir), device, seed, log, progress
+        seed_everything(seed)
+        d = stage.drones_per_world
+        self.env = RaceEnv(track, airframe, sim, stage.env, world_count=stage.worlds, drones_per_world=d,
+                           learner_slots=stage.learner_slots(), device=device, seed=seed)
+        self.env.set_opponent_policy(opponent)
+        self.eval_env = RaceEnv(track, airframe, sim, stage.env, world_count=stage.selection.races,
+                                drones_per_world=d, learner_slots=list(range(d)), device=device,
+                                seed=seed + 10_000, auto_reset=False)
+        self.vec_env = RaceVecEnv(self.env)
+        with contextlib.redirect_stdout(io.StringIO()):  # rsl-rl prints the model architecture
+            self.runner = OnPolicyRunner(self.vec_env, stage.ppo.to_rsl_rl(), log_dir=None, device=device)
+        self.start_iteration = 0
+        self.best = EvalScore(-1.0, -math.inf)
+        self._resume_or_init(init_checkpoint)
+
+    # Checkpoints
+
+    @property
+    def ckpt_dir(self) -> Path:
+        """Folder of the periodic checkpoints."""
+        return self.run_dir / "ckpt"
+
+    def _meta(self, iteration: int, score: EvalScore | None = None) -> dict[str, Any]:
+        meta = {
+            "iteration": iteration,
+            "stage": self.stage.name,
+            "scenario": self.stage.scenario,
+            "track": self.track.name,
+            "seed": self.seed,
+            "obs_layout": self.env.obs_builder.layout(),
+            "ppo": self.stage.ppo.model_dump(),
+            "env": self.stage.env.model_dump(),
+            "best": {"success": self.best.success, "lap_time": self.best.lap_time, "iteration": self.best.iteration},
+        }
+        if score is not None:
+            meta["eval"] = {"success": score.success, "lap_time": score.lap_time, "iteration": score.iteration}
+        return meta
+
+    def _save(self, path: Path, iteration: int, score: EvalScore | None = None) -> None:
+        state = self.runner.alg.save()
+        state["iter"] = iteration
+        state["infos"] = None
+        save_checkpoint(path, state, self._meta(iteration, score))
+
+    def _resume_or_init(self, init_checkpoint: Path | None) -> None:
+        newest = newest_valid_checkpoint(self.ckpt_dir, warn=lambda m: self.log(f"warning: {m}"))
+        if newest is not None:
+            data = load_checkpoint(newest, map_location=self.device)
+            self._check_layout(data, newest)
+            self.runner.alg.load(data, None, strict=True)
+            self.start_iteration = data["iter"] + 1  # rsl-rl stores the last completed iteration
+            best = data["spiral"].get("best", {})
+            if best.get("iteration", -1) >= 0:
+                lap = best.get("lap_time")
+                self.best = EvalScore(best["success"], -lap if lap is not None else -math.inf, best["iteration"])
+            self.log(f"resuming stage '{self.stage.name}' from {newest.name} (iteration {self.start_iteration})")
+        elif init_checkpoint is not None:
+            data = load_checkpoint(init_checkpoint, map_location=self.device)
+            self._check_layout(data, init_checkpoint)
+            self.runner.alg.load(data, {"actor": True, "critic": True}, strict=True)
+            self.log(f"stage '{self.stage.name}' starts from {init_checkpoint}")
+
+    def _check_layout(self, data: dict[str, Any], path: Path) -> None:
+        from spiral.train.checkpoint import CheckpointError
+
+        stored = data["spiral"]["obs_layout"]
+        if stored != self.env.obs_builder.layout():
+            raise CheckpointError(f"{path}: observation layout {stored} differs from this stage's")
+
+    # Evaluation
+
+    def evaluate(self, iteration: int) -> EvalScore:
+        """Race the deterministic policy from seeded start-box placements (self-match in multi-drone stages)."""
+        policy = self.runner.get_inference_policy(device=self.device)
+        res = run_races(self.eval_env, policy)
+        self.runner.alg.train_mode()
+        ok = res.finished[res.present]
+        laps = res.lap_time[res.finished]
+        lap = float(laps.mean()) if laps.numel() else math.inf
+        return EvalScore(float(ok.float().mean()), -lap, iteration)
+
+    # Training loop
+
+    def train(self) -> TrainResult:
+        """Run the remaining iterations of the stage's budget and return where the best policy is."""
+        total = self.stage.iteration_budget()
+        alg, env, cfg = self.runner.alg, self.vec_env, self.runner.cfg
+        writer = SummaryWriter(log_dir=str(self.run_dir / "tb"), flush_secs=30)
+        history: list[dict[str, float]] = []
+        steps_per_it = cfg["num_steps_per_env"] * env.num_envs
+        t_start = time.perf_counter()
+        obs = env.get_observations().to(self.device)
+        alg.train_mode()
+        last_path = self.ckpt_dir / f"model_{max(self.start_iteration - 1, 0)}.pt"
+        with self._progress(total) as (progress, task):
+            for it in range(self.start_iteration, total):
+                t0 = time.perf_counter()
+                with torch.inference_mode():
+                    for _ in range(cfg["num_steps_per_env"]):
+                        actions = alg.act(obs)
+                        obs, rewards, dones, extras = env.step(actions.to(env.device))
+                        alg.process_env_step(obs, rewards, dones, extras)
+                    alg.compute_returns(obs)
+                t_collect = time.perf_counter() - t0
+                losses = alg.update()
+                self.runner.current_learning_iteration = it
+                row = {"iteration": it, "collect_s": t_collect, "learn_s": time.perf_counter() - t0 - t_collect,
+                       "fps": steps_per_it / (time.perf_counter() - t0),
+                       "action_std": float(alg.get_policy().output_std.detach().mean()),
+                       **{f"loss/{k}": float(v) for k, v in losses.items()}, **self.env.pop_stats()}
+                if (it + 1) % self.stage.selection.interval == 0 or it == total - 1:
+                    row.update(self._select(it))
+                if (it + 1) % self.stage.ppo.save_interval == 0 or it == total - 1:
+                    last_path = self.ckpt_dir / f"model_{it}.pt"
+                    self._save(last_path, it)
+                self._write_row(writer, row, it)
+                history.append(row)
+                progress.update(task, completed=it + 1, stats=self._status(row))
+        writer.close()
+        env_steps = (total - self.start_iteration) * steps_per_it
+        return TrainResult(self.run_dir / "best.pt", last_path, self.best, total, time.perf_counter() - t_start,
+                           env_steps, history)
+
+    def _select(self, it: int) -> dict[str, float]:
+        score = self.evaluate(it)
+        if score > self.best or not (self.run_dir / "best.pt").exists():
+            self.best = score if score > self.best else self.best
+            self._save(self.run_dir / "best.pt", it, score)
+        lap = score.lap_time
+        return {"eval/success": score.success, "eval/lap_time": lap if lap is not None else float("nan"),
+                "eval/best_success": self.best.success}
+
+    def _write_row(self, writer: SummaryWriter, row: dict[str, float], it: int) -> None:
+        for key, value in row.items():
+            if key != "iteration" and isinstance(value, float) and math.isfinite(value):
+                writer.add_scalar(key if "/" in key else f"train/{key}", value, it)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        with open(self.run_dir / "train_log.jsonl", "a") as f:
+            f.write(json.dumps(row) + "\n")
+
+    @staticmethod
+    def _status(row: dict[str, float]) -> str:
+        lap = row.get("lap_time", float("nan"))
+        text = f"success {row.get('success', 0):.2f} lap {lap:.2f}s fps {row['fps']:.0f}"
+        if "eval/success" in row:
+            text += f" | eval {row['eval/success']:.2f} @ {row['eval/lap_time']:.2f}s"
+        return text
+
+    @contextlib.contextmanager
+    def _progress(self, total: int):
+        progress = Progress(
+            TextColumn(f"[bold]{self.stage.name}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+            TimeElapsedColumn(), TimeRemainingColumn(), TextColumn("{task.fields[stats]}"),
+            disable=not self.show_progress,
+        )
+        with progress:
+            task = progress.add_task(self.stage.name, total=total, completed=self.start_iteration, stats="")
+            yield progress, task

@@ -1,0 +1,186 @@
+"""RaceEnv: observation layout and masking, reward terms, laps, resets and health."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from spiral.config import AIRFRAMES, EnvCfg, ObsCfg, RewardCfg, SimCfg, TrackSpec
+from spiral.env import HISTORY_FEATURES, RaceEnv, compute_rewards, run_races
+from spiral.env.rewards import StepOutcome
+
+CF2X = AIRFRAMES["cf2x"]
+
+
+def make_env(track: TrackSpec, *, worlds: int = 2, drones: int = 1, learners=(0,), auto_reset: bool = True,
+             obs: ObsCfg | None = None, **env_kw) -> RaceEnv:
+    env_kw.setdefault("episode", {"track_start_prob": 0.0})
+    cfg = EnvCfg(obs=obs or ObsCfg(history_len=3), **env_kw)
+    return RaceEnv(track, CF2X, SimCfg(), cfg, world_count=worlds, drones_per_world=drones, learner_slots=learners,
+                   seed=3, auto_reset=auto_reset)
+
+
+def place(env: RaceEnv, positions: list[list[float]]) -> None:
+    """Put the drones of world 0 at ``positions``, at rest, and rebuild the observations."""
+    env.pos[: len(positions)] = torch.tensor(positions)
+    env.vel.zero_()
+    env.get_observations()
+
+
+def waypoint_policy(env: RaceEnv):
+    """Line up 0.5 m in front of the next gate, then fly 0.6 m past its centre."""
+    def act(obs):
+        idx = env.learner_idx
+        gate = env.next_gate.long()[idx]
+        center, forward = env.gate_center[gate], env.gate_forward[gate]
+        rel_gate = env.pos[idx] - center
+        along = (rel_gate * forward).sum(-1, keepdim=True)
+        lateral = (rel_gate - along * forward).norm(dim=-1, keepdim=True)
+        lined_up = (along > -0.2) | (lateral < 0.1)
+        target = torch.where(lined_up, center + 0.6 * forward, center - 0.5 * forward)
+        rel = (target - env.pos[idx]) / env.cfg.action.pos_scale
+        return torch.cat([rel.clamp(-1, 1), torch.zeros(len(idx), 1)], dim=-1)
+    return act
+
+
+def test_observation_dimension_matches_the_paper_layout(oval2):
+    """Give 12 ego + 2 presence + K·16 history inputs for the paper layout, K = 50."""
+    env = make_env(oval2, obs=ObsCfg(history_len=50))
+    assert env.obs_dim == 12 + 2 + 50 * HISTORY_FEATURES == 814
+    assert env.get_observations()["policy"].shape == (2, 814)
+
+
+def test_solo_observation_masks_absent_opponents(oval2):
+    """Zero the opponent slots and presence flags when a drone races alone."""
+    env = make_env(oval2, obs=ObsCfg(history_len=1))
+    obs = env.get_observations()["policy"]
+    assert torch.all(obs[:, 12:14] == 0)
+    assert torch.all(obs[:, 14:20] == 0)
+
+
+def test_observation_lists_nearest_present_drones_first(oval2):
+    """Order the other drones by distance and drop crashed ones from a 4-drone scene."""
+    env = make_env(oval2, worlds=1, drones=4, learners=(0, 1, 2, 3), obs=ObsCfg(history_len=1))
+    place(env, [[-1.0, -1.0, 1.0], [-1.0, -0.5, 1.0], [-1.0, -1.0, 1.8], [-1.0, -2.5, 1.0]])
+    obs = env.get_observations()["policy"]
+    assert torch.allclose(obs[0, 14:17], torch.tensor([0.0, 0.5, 0.0]), atol=1e-6)
+    assert torch.allclose(obs[0, 17:20], torch.tensor([0.0, 0.0, 0.8]), atol=1e-6)
+    env.out[1] = 1  # drone 1 leaves the race
+    obs = env.get_observations()["policy"]
+    assert torch.allclose(obs[0, 14:17], torch.tensor([0.0, 0.0, 0.8]), atol=1e-6)
+    assert torch.allclose(obs[0, 17:20], torch.tensor([0.0, -1.5, 0.0]), atol=1e-6)
+    assert obs[0, 12:14].tolist() == [1.0, 1.0]
+
+
+def test_observation_gives_next_two_gates_relative_to_the_drone(oval2):
+    """Report gate 0 then gate 1 relative to the drone's position."""
+    env = make_env(oval2, worlds=1, obs=ObsCfg(history_len=1))
+    place(env, [[-1.0, -1.0, 1.0]])
+    obs = env.get_observations()["policy"]
+    assert torch.allclose(obs[0, 20:23], torch.tensor([1.0, 0.0, 0.0]), atol=1e-6)
+    assert torch.allclose(obs[0, 23:26], torch.tensor([1.0, 2.0, 0.0]), atol=1e-6)
+
+
+def test_history_keeps_the_last_k_entries_oldest_first(oval2):
+    """Shift the history by one entry per step; the newest entry holds the last action."""
+    env = make_env(oval2, worlds=1, obs=ObsCfg(history_len=3))
+    actions = [torch.full((1, 4), v) for v in (0.1, 0.2, 0.3)]
+    for a in actions:
+        obs, *_ = env.step(a)
+    hist = obs["policy"][0, 14:].view(3, HISTORY_FEATURES)
+    expected = torch.tensor([[0.1] * 4, [0.2] * 4, [0.3] * 4])
+    assert torch.allclose(hist[:, 12:], expected)
+
+
+def test_reward_terms_on_a_hand_made_transition():
+    """Weight each named term and sum them."""
+    cfg = RewardCfg(progress=2.0, gate=3.0, collision=10.0, alignment=1.0, alignment_threshold_deg=60.0, lap=1.0)
+    outcome = StepOutcome(
+        dist_before=torch.tensor([2.0, 1.0]), dist_after=torch.tensor([1.5, 1.0]),
+        gates_passed=torch.tensor([1, 0]), crashed_now=torch.tensor([False, True]),
+        heading=torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]), to_gate=torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
+        lap_time=torch.tensor([5.0, 0.0]))
+    total, terms = compute_rewards(outcome, cfg)
+    assert terms["progress"].tolist() == pytest.approx([1.0, 0.0])
+    assert terms["gate"].tolist() == pytest.approx([3.0, 0.0])
+    assert terms["collision"].tolist() == pytest.approx([0.0, -10.0])
+    assert terms["alignment"].tolist() == pytest.approx([0.5, 0.0])
+    assert terms["lap"].tolist() == pytest.approx([20.0, 0.0])
+    assert total.tolist() == pytest.approx([24.5, -10.0])
+
+
+def test_scripted_lap_pays_each_gate_once_and_the_lap_bonus_once(oval2):
+    """Fly gate 0, gate 1, gate 0 again: three gate bonuses, one lap bonus of 100 / lap time, success."""
+    env = make_env(oval2, worlds=1, auto_reset=False, reward=RewardCfg(progress=0.0, alignment=0.0))
+    policy = waypoint_policy(env)
+    obs = env.reset()
+    gate_total, lap_total, steps = 0.0, 0.0, 0
+    while not (env.finished | env.crashed).all() and steps < env.max_episode_length:
+        obs, reward, done, extras = env.step(policy(obs))
+        gate_total += float(env.term_sums["gate"][0] - gate_total)
+        steps += 1
+    assert bool(env.finished[0]) and not bool(env.crashed[0])
+    assert float(env.term_sums["gate"][0]) == pytest.approx(3.0)
+    lap = float(env.lap_time[0])
+    assert float(env.term_sums["lap"][0]) == pytest.approx(100.0 / lap, rel=1e-5)
+    assert (steps - 1) * env.dt < lap <= steps * env.dt + 1e-6
+
+
+def test_crash_pays_the_penalty_once_and_ends_the_episode(oval2):
+    """Dive into the ground: one collision penalty, done, then an automatic reset of that world only."""
+    env = make_env(oval2, worlds=2)
+    down = torch.tensor([[0.0, 0.0, -1.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    penalties, done_at = [], None
+    for step in range(120):
+        before = env.term_sums["collision"].clone()
+        _, _, done, extras = env.step(down)
+        penalties.append(float(env.term_sums["collision"][0] - before[0]) if not done[0] else None)
+        if done[0]:
+            done_at = step
+            break
+    assert done_at is not None
+    assert not bool(extras["time_outs"][0])
+    assert env.stats["crash_ground"] == 1.0
+    assert env.stats["term_collision"] == pytest.approx(-10.0)
+    assert float(env.world_time()[0]) == 0.0 and float(env.world_time()[1]) > 0.0
+
+
+def test_time_limit_is_a_time_out_not_a_termination(oval2):
+    """Mark a hovering drone's episode at the time limit as a time-out and reset its world."""
+    env = make_env(oval2, worlds=1, episode={"track_start_prob": 0.0, "time_limit_s": 0.5})
+    hover = torch.zeros(1, 4)
+    outs = [env.step(hover) for _ in range(math.ceil(0.5 / env.dt))]
+    _, _, done, extras = outs[-1]
+    assert bool(done[0]) and bool(extras["time_outs"][0])
+    assert all(not bool(o[2][0]) for o in outs[:-1])
+    assert float(env.world_time()[0]) == 0.0
+
+
+def test_nonfinite_state_resets_the_world_and_never_reaches_observations(oval2):
+    """Reset a world whose state went non-finite, count it, and keep observations finite."""
+    env = make_env(oval2, worlds=2)
+    env.omega[0] = float("nan")
+    obs, _, done, _ = env.step(torch.zeros(2, 4))
+    assert bool(done[0]) and not bool(done[1])
+    assert torch.isfinite(obs["policy"]).all()
+    assert env.pop_stats()["health/nonfinite_resets"] == 1.0
+
+
+def test_absent_opponent_slots_do_not_race(oval2):
+    """Park opponent slots out of the race when no opponent policy is set."""
+    env = make_env(oval2, worlds=2, drones=2, learners=(0,))
+    assert env.num_envs == 2
+    assert env.absent.view(2, 2)[:, 1].all() and not env.absent.view(2, 2)[:, 0].any()
+    res = run_races(make_env(oval2, worlds=2, drones=2, learners=(0,), auto_reset=False), lambda o: torch.zeros(2, 4))
+    assert not res.present[:, 1].any()
+
+
+def test_same_seed_gives_the_same_start_placements(oval2):
+    """Draw identical start positions for the same seed, different ones for another seed."""
+    a, b = make_env(oval2, worlds=4, drones=4, learners=(0, 1, 2, 3)), make_env(oval2, worlds=4, drones=4,
+                                                                               learners=(0, 1, 2, 3))
+    assert torch.equal(a.pos, b.pos)
+    d = torch.cdist(a.pos.view(4, 4, 3), a.pos.view(4, 4, 3)) + torch.eye(4) * 10
+    assert float(d.min()) >= 0.25
