@@ -105,7 +105,8 @@ def control_and_integrate(
     w_new = w + wp.cw_div(torque - wp.cross(w, wp.cw_mul(params.inertia, w)), params.inertia) * dt
     p_new = p0 + v_new * dt
     q_new = quat_integrate(q, w_new, dt)
-    ok = wp.isfinite(p_new) and wp.isfinite(v_new) and wp.isfinite(w_new) and wp.isfinite(q_new)
+    # a quaternion whose norm overflowed normalises to (0, 0, 0, 0), which is finite: count it as non-finite too
+    ok = wp.isfinite(p_new) and wp.isfinite(v_new) and wp.isfinite(w_new) and wp.length_sq(q_new) > 0.5
     if not ok:
         world_nonfinite[tid / drones_per_world] = 1
         return

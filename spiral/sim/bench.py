@@ -1,0 +1,287 @@
+"""Simulator throughput: Warp ``World`` against the numpy reference, on the same inputs, in the same run.
+
+Each row runs ``pid`` mode at 240 Hz physics and 48 Hz control (5 substeps) with gates and collisions on. Drones
+start at random points of the arena and chase random targets that are re-drawn every few control steps, so they
+keep moving. ``freeze_crashed`` is off and the crash flags are cleared before every control step: a crashed drone
+skips the gate and contact tests, and a benchmark in which drones drop out would flatter the figure.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+import os
+import platform
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from spiral.config.airframe import AIRFRAMES, AirframeCfg
+from spiral.config.load import load_track
+from spiral.config.sim import SimCfg
+from spiral.config.track import TrackSpec
+from spiral.sim.reference import ReferenceSim
+from spiral.sim.world import World
+
+__all__ = ["format_bench_table", "machine_info", "run_sim_bench", "run_sim_bench_two_process"]
+
+TARGET_REDRAW_STEPS = 10
+"""Control steps between two draws of the random targets (about 0.2 s at 48 Hz)."""
+WARMUP_STEPS = 5
+"""Untimed control steps before timing (compiles and loads kernels, fills caches)."""
+DEFAULT_TRACK = Path(__file__).resolve().parents[2] / "tracks" / "circuit6.yaml"
+"""Track of the benchmark: the paper's 6-gate circuit."""
+
+
+def machine_info() -> dict[str, Any]:
+    """CPU model, core count, load, Python, numpy and Warp versions of this machine."""
+    model = platform.processor() or "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {
+        "cpu": model,
+        "cores": os.cpu_count(),
+        "load_avg_1min": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,
+        "os": platform.platform(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "warp": wp.config.version,
+    }
+
+
+def _bench_cfg() -> SimCfg:
+    return SimCfg(physics_hz=240, ctrl_hz=48, control_mode="pid", freeze_crashed=False)
+
+
+def _draw_inputs(track: TrackSpec, drone_count: int, draws: int,
+                 seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Start positions ``(n, 3)``, start yaws ``(n,)`` and ``draws`` target sets ``(draws, n, 4)``, in the arena."""
+    rng = np.random.default_rng(seed)
+    lo = np.asarray(track.bounds.min) + 0.5
+    hi = np.asarray(track.bounds.max) - 0.5
+    start = rng.uniform(lo, hi, (drone_count, 3)).astype(np.float32)
+    yaw = rng.uniform(-math.pi, math.pi, drone_count).astype(np.float32)
+    targets = np.concatenate(
+        [rng.uniform(lo, hi, (draws, drone_count, 3)), rng.uniform(-math.pi, math.pi, (draws, drone_count, 1))], axis=2
+    ).astype(np.float32)
+    return start, yaw, targets
+
+
+def _time_warp(world: World, targets: list[wp.array], steps: int, first: int) -> float:
+    """Seconds for ``steps`` control steps, from step index ``first`` of the target schedule."""
+    device = world.device
+    wp.synchronize_device(device)
+    start = time.perf_counter()
+    for i in range(first, first + steps):
+        if i % TARGET_REDRAW_STEPS == 0:
+            wp.copy(world.cmd, targets[(i // TARGET_REDRAW_STEPS) % len(targets)])
+        world.race.crashed.zero_()
+        world.step()
+    wp.synchronize_device(device)
+    return time.perf_counter() - start
+
+
+def _time_numpy(ref: ReferenceSim, targets: np.ndarray, steps: int, first: int) -> float:
+    """Seconds for ``steps`` control steps of the numpy reference, on the same schedule as :func:`_time_warp`."""
+    start = time.perf_counter()
+    cmd = targets[(first // TARGET_REDRAW_STEPS) % len(targets)]
+    for i in range(first, first + steps):
+        if i % TARGET_REDRAW_STEPS == 0:
+            cmd = targets[(i // TARGET_REDRAW_STEPS) % len(targets)]
+        ref.crashed[:] = 0
+        ref.step(cmd)
+    return time.perf_counter() - start
+
+
+def _make_world(track: TrackSpec, airframe: AirframeCfg, world_count: int, drones: int, device: str,
+                seed: int) -> tuple[World, list[wp.array], np.ndarray, np.ndarray, np.ndarray]:
+    n = world_count * drones
+    draws = 8
+    start, yaw, targets = _draw_inputs(track, n, draws, seed)
+    world = World(track, airframe, _bench_cfg(), world_count=world_count, drones_per_world=drones, device=device)
+    world.reset_all(start, yaw)
+    targets_wp = [wp.array(t, dtype=wp.vec4, device=world.device) for t in targets]
+    return world, targets_wp, start, yaw, targets
+
+
+def _bench_row(track: TrackSpec, airframe: AirframeCfg, world_count: int, drones: int, *, device: str, steps: int,
+               seed: int, repeats: int, numpy_budget_s: float) -> dict[str, Any]:
+    """One row: Warp best of ``repeats`` over ``steps`` steps, then numpy on the same inputs."""
+    n = world_count * drones
+    world, targets_wp, start, yaw, targets = _make_world(track, airframe, world_count, drones, device, seed)
+    _time_warp(world, targets_wp, WARMUP_STEPS, 0)
+    warp_s = min(_time_warp(world, targets_wp, steps, WARMUP_STEPS + r * steps) for r in range(repeats))
+    speed = np.linalg.norm(world.state.vel.numpy(), axis=1)
+
+    ref = ReferenceSim(airframe, _bench_cfg(), n, track=track, drones_per_world=drones, dtype=np.float32)
+    ref.reset(start, yaw)
+    one = _time_numpy(ref, targets, 1, 0)  # untimed warm-up, also sizes the numpy run
+    np_steps = int(min(steps, max(3, numpy_budget_s / max(one, 1e-9))))
+    np_s = min(_time_numpy(ref, targets, np_steps, 1 + r * np_steps) for r in range(repeats))
+
+    warp_rate, np_rate = n * steps / warp_s, n * np_steps / np_s
+    return {
+        "worlds": world_count,
+        "drones": drones,
+        "drone_ctrl_steps_per_s": round(warp_rate),
+        "drone_substeps_per_s": round(warp_rate * world.sim.substeps),
+        "numpy_drone_ctrl_steps_per_s": round(np_rate),
+        "speedup_vs_numpy": round(warp_rate / np_rate, 2),
+        "steps": steps,
+        "numpy_steps": np_steps,
+        "mean_speed_m_s": round(float(speed.mean()), 3),
+    }
+
+
+def run_sim_bench(
+    worlds: Sequence[int],
+    *,
+    device: str = "cpu",
+    drones: Sequence[int] = (1, 4),
+    steps: int = 100,
+    seed: int = 0,
+    repeats: int = 3,
+    numpy_budget_s: float = 2.0,
+    two_process: bool = False,
+    track: TrackSpec | None = None,
+) -> dict[str, Any]:
+    """Measure drone-control-steps per second of Warp and of the numpy reference for each world count and layout.
+
+    Args:
+        worlds: World counts, one row per count and layout.
+        device: Warp device, ``cpu`` or ``cuda:N``; numpy always runs on the CPU.
+        drones: Drones per world; 4 is the racing layout.
+        steps: Timed control steps of Warp per repeat.
+        seed: Seed of start positions and targets.
+        repeats: Timed repeats; each row keeps the fastest (other processes may share the cores).
+        numpy_budget_s: About how long one numpy repeat may take; large rows time fewer numpy steps
+            (``numpy_steps`` in the row), never fewer than 3.
+        two_process: Also run the 4096 × 4 row in two processes side by side (``two_process`` entry).
+        track: Track of the run; the paper's circuit by default.
+
+    Returns:
+        ``{"device", "machine", "settings", "results": [row, ...]}`` and optionally ``"two_process"``.
+    """
+    wp.init()
+    track = track if track is not None else load_track(DEFAULT_TRACK)
+    airframe = AIRFRAMES["cf2x"]
+    cfg = _bench_cfg()
+    rows = [
+        _bench_row(track, airframe, w, d, device=device, steps=steps, seed=seed, repeats=repeats,
+                   numpy_budget_s=numpy_budget_s)
+        for w in worlds
+        for d in drones
+    ]
+    result: dict[str, Any] = {
+        "device": str(wp.get_device(device)),
+        "machine": machine_info(),
+        "settings": {
+            "track": track.name,
+            "airframe": airframe.name,
+            "control_mode": cfg.control_mode,
+            "physics_hz": cfg.physics_hz,
+            "ctrl_hz": cfg.ctrl_hz,
+            "substeps": cfg.substeps,
+            "gates": True,
+            "collisions": True,
+            "freeze_crashed": False,
+            "crash_flags_cleared_each_step": True,
+            "target_redraw_steps": TARGET_REDRAW_STEPS,
+            "warmup_steps": WARMUP_STEPS,
+            "repeats": repeats,
+            "seed": seed,
+            "numpy_dtype": "float32",
+        },
+        "results": rows,
+    }
+    if two_process:
+        result["two_process"] = run_sim_bench_two_process(4096, 4, device=device, steps=steps, seed=seed,
+                                                          repeats=repeats)
+    return result
+
+
+def _two_process_worker(world_count: int, drones: int, device: str, steps: int, seed: int, repeats: int,
+                        barrier: Any, queue: Any) -> None:
+    """Time ``repeats`` runs, each started together with the other process; report (start, end) of each."""
+    wp.config.quiet = True
+    wp.init()
+    track = load_track(DEFAULT_TRACK)
+    world, targets_wp, *_ = _make_world(track, AIRFRAMES["cf2x"], world_count, drones, device, seed)
+    _time_warp(world, targets_wp, WARMUP_STEPS, 0)
+    spans = []
+    for r in range(repeats):
+        barrier.wait()
+        begin = time.perf_counter()
+        _time_warp(world, targets_wp, steps, WARMUP_STEPS + r * steps)
+        spans.append((begin, time.perf_counter()))
+    queue.put(spans)
+
+
+def run_sim_bench_two_process(
+    world_count: int = 4096, drones: int = 4, *, device: str = "cpu", steps: int = 100, seed: int = 0,
+    repeats: int = 3
+) -> dict[str, Any]:
+    """Run one Warp row in two processes at once (a CPU launch uses one thread) and report their sum.
+
+    The aggregate of a repeat is both processes' drone-control-steps over the wall time from the first start
+    to the last end; the best repeat is kept.
+    """
+    ctx = mp.get_context("spawn")
+    barrier, queue = ctx.Barrier(2), ctx.Queue()
+    procs = [
+        ctx.Process(target=_two_process_worker,
+                    args=(world_count, drones, device, steps, seed + i, repeats, barrier, queue))
+        for i in range(2)
+    ]
+    for p in procs:
+        p.start()
+    spans = [queue.get() for _ in procs]
+    for p in procs:
+        p.join()
+    n = world_count * drones
+    aggregates, per_process = [], [[n * steps / (e - b) for b, e in s] for s in spans]
+    for r in range(repeats):
+        begin, end = min(s[r][0] for s in spans), max(s[r][1] for s in spans)
+        aggregates.append(2 * n * steps / (end - begin))
+    best = int(np.argmax(aggregates))
+    return {
+        "worlds": world_count,
+        "drones": drones,
+        "processes": 2,
+        "steps": steps,
+        "per_process_drone_ctrl_steps_per_s": [round(p[best]) for p in per_process],
+        "aggregate_drone_ctrl_steps_per_s": round(aggregates[best]),
+    }
+
+
+def format_bench_table(result: dict[str, Any]) -> str:
+    """Markdown table of a :func:`run_sim_bench` result, with the machine and the two-process row if present."""
+    m = result["machine"]
+    lines = [
+        f"device {result['device']} · {m['cpu']} · {m['cores']} cores · Python {m['python']} · "
+        f"Warp {m['warp']} · numpy {m['numpy']}",
+        "",
+        "| worlds | drones/world | drone-ctrl-steps/s | drone-substeps/s | numpy drone-ctrl-steps/s "
+        "(numpy steps) | speed-up |",
+        "|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in result["results"]:
+        lines.append(
+            f"| {r['worlds']} | {r['drones']} | {r['drone_ctrl_steps_per_s']:,} | {r['drone_substeps_per_s']:,} | "
+            f"{r['numpy_drone_ctrl_steps_per_s']:,} ({r['numpy_steps']}) | {r['speedup_vs_numpy']:.1f}× |"
+        )
+    two = result.get("two_process")
+    if two:
+        each = " + ".join(f"{v:,}" for v in two["per_process_drone_ctrl_steps_per_s"])
+        lines += ["", f"Two processes side by side, {two['worlds']} worlds × {two['drones']} drones each: "
+                      f"{two['aggregate_drone_ctrl_steps_per_s']:,} drone-ctrl-steps/s in aggregate ({each})."]
+    return "\n".join(lines)

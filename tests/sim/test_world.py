@@ -1,0 +1,132 @@
+"""World: batching invariants, determinism, partial resets, exact clocks and non-finite containment."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+from pydantic import ValidationError
+
+from spiral.config import SimCfg
+
+STATE = ("pos", "vel", "quat", "omega", "rpm")
+RACE = ("next_gate", "gates_passed", "crashed", "crash_time", "pass_time", "step_collision", "world_substeps")
+
+
+def snapshot(world) -> dict[str, np.ndarray]:
+    """Copies of every state, race and controller array of ``world``."""
+    out = {k: getattr(world.state, k).numpy().copy() for k in STATE}
+    out.update({k: getattr(world.race, k).numpy().copy() for k in RACE})
+    out["integral"] = world.integral.numpy().copy()
+    return out
+
+
+def starts(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Random start positions in open air of the gate track and random yaws."""
+    return rng.uniform([-3.0, -3.0, 0.8], [-1.0, 3.0, 2.5], (n, 3)), rng.uniform(-3, 3, n)
+
+
+def test_identical_worlds_stay_identical(make_world, run, targets):
+    """Keep four worlds given the same starts and commands equal within 1e-6 over 2 s."""
+    world = make_world(world_count=4, drones=2)
+    rng = np.random.default_rng(1)
+    pos, yaw = starts(rng, 2)
+    world.reset_all(np.tile(pos, (4, 1)), np.tile(yaw, 4))
+    out = run(world, np.tile(targets(rng, 96, 2), (1, 4, 1)))
+    for k in STATE:
+        per_world = out[k].reshape(96, 4, 2, -1)
+        np.testing.assert_allclose(per_world, np.broadcast_to(per_world[:, :1], per_world.shape), atol=1e-6, rtol=0)
+    assert np.abs(out["pos"][-1] - out["pos"][0]).max() > 0.1  # they did move
+
+
+def test_trajectory_does_not_depend_on_world_count(make_world, run, targets):
+    """Give world 0 the same trajectory, bit for bit, whether it runs alone or beside two other worlds."""
+    rng = np.random.default_rng(2)
+    pos, yaw = starts(rng, 6)
+    cmds = targets(rng, 96, 6)
+    alone, crowd = make_world(world_count=1, drones=2), make_world(world_count=3, drones=2)
+    alone.reset_all(pos[:2], yaw[:2])
+    crowd.reset_all(pos, yaw)
+    a, c = run(alone, cmds[:, :2]), run(crowd, cmds)
+    for k in STATE:
+        np.testing.assert_array_equal(a[k], c[k][:, :2])
+
+
+def test_same_seed_gives_bit_identical_runs(make_world, run, targets):
+    """Reproduce every state and race array bit for bit from the same seed (CPU)."""
+    results = []
+    for _ in range(2):
+        rng = np.random.default_rng(7)
+        world = make_world(world_count=3, drones=4, freeze_crashed=False)
+        world.reset_all(*starts(rng, 12))
+        run(world, targets(rng, 60, 12, lo=(-3.5, -3.5, 0.2), hi=(3.5, 5.5, 3.5)))
+        results.append(snapshot(world))
+    for k in results[0]:
+        np.testing.assert_array_equal(results[0][k], results[1][k], err_msg=k)
+    assert results[0]["crashed"].any() or results[0]["gates_passed"].any()  # the run had events to reproduce
+
+
+def test_reset_of_a_subset_leaves_other_worlds_untouched(make_world, run, targets):
+    """Reset world 1 only: worlds 0 and 2 keep every array bit for bit; world 1 restarts like a fresh world."""
+    rng = np.random.default_rng(4)
+    world = make_world(world_count=3, drones=2)
+    world.reset_all(*starts(rng, 6))
+    cmds = targets(rng, 40, 6)
+    run(world, cmds[:20])
+    before = snapshot(world)
+    new_pos, new_yaw = starts(rng, 6)
+    mask = np.array([0, 1, 0], np.int32)
+    world.reset(wp.array(mask, dtype=wp.int32), wp.array(new_pos.astype(np.float32), dtype=wp.vec3),
+                wp.array(new_yaw.astype(np.float32), dtype=wp.float32))
+    after = snapshot(world)
+    keep = np.array([0, 1, 4, 5])
+    for k in (*STATE, "integral", "next_gate", "gates_passed", "crashed"):
+        np.testing.assert_array_equal(after[k][keep], before[k][keep], err_msg=k)
+    assert after["world_substeps"].tolist() == [100, 0, 100]
+    np.testing.assert_allclose(after["pos"][2:4], new_pos[2:4].astype(np.float32))
+    np.testing.assert_array_equal(after["vel"][2:4], 0.0)
+    np.testing.assert_array_equal(after["integral"][2:4], 0.0)
+    # world 1 now evolves exactly as a fresh world started from the same state
+    fresh = make_world(world_count=1, drones=2)
+    fresh.reset_all(new_pos[2:4], new_yaw[2:4])
+    a, b = run(world, cmds[20:]), run(fresh, cmds[20:, 2:4])
+    for k in STATE:
+        np.testing.assert_array_equal(a[k][:, 2:4], b[k])
+
+
+def test_nonfinite_state_is_flagged_and_contained(make_world, run, targets):
+    """Flag only the world whose drone got a NaN velocity, keep its stored pose finite, leave other drones as before."""
+    rng = np.random.default_rng(9)
+    pos, yaw = starts(rng, 6)
+    cmds = targets(rng, 30, 6)
+    clean, hurt = make_world(world_count=3, drones=2), make_world(world_count=3, drones=2)
+    for w in (clean, hurt):
+        w.reset_all(pos, yaw)
+        run(w, cmds[:10])
+    vel = hurt.state.vel.numpy().copy()
+    vel[2] = [np.nan, 0.0, 0.0]  # drone 0 of world 1
+    hurt.state.vel.assign(vel)
+    frozen_pos = hurt.state.pos.numpy()[2].copy()
+    a, b = run(clean, cmds[10:]), run(hurt, cmds[10:])
+    assert hurt.race.world_nonfinite.numpy().tolist() == [0, 1, 0]
+    assert clean.race.world_nonfinite.numpy().tolist() == [0, 0, 0]
+    for k in ("pos", "quat", "omega", "rpm", "rpy"):
+        assert np.isfinite(b[k]).all(), k
+    np.testing.assert_array_equal(b["pos"][:, 2], np.broadcast_to(frozen_pos, (20, 3)))
+    others = [0, 1, 3, 4, 5]
+    for k in STATE:
+        np.testing.assert_array_equal(a[k][:, others], b[k][:, others], err_msg=k)
+
+
+def test_world_time_is_exact_at_48_hz(make_world):
+    """Take exactly 5 physics substeps per control step at 240/48 Hz, so 48 steps are 1 s; reject 50 Hz."""
+    world = make_world(world_count=2)
+    world.reset_all(np.array([[-2.0, 1.0, 1.0], [-2.0, 2.0, 1.0]]))
+    world.cmd.assign(np.float32([[-2.0, 1.0, 1.0, 0.0], [-2.0, 2.0, 1.0, 0.0]]))
+    for _ in range(48):
+        world.step()
+    assert world.sim.substeps == 5
+    assert world.race.world_substeps.numpy().tolist() == [240, 240]
+    assert world.world_time().tolist() == pytest.approx([1.0, 1.0], abs=1e-12)
+    with pytest.raises(ValidationError, match="ctrl_hz"):
+        SimCfg(physics_hz=240, ctrl_hz=50)
