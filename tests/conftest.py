@@ -31,3 +31,19 @@ def oval2() -> TrackSpec:
         "bounds": {"min": [-3.0, -3.0, 0.0], "max": [3.0, 3.0, 2.5]},
         "time_limit_s": 10.0,
     })
+
+
+@pytest.fixture(scope="session")
+def line2() -> TrackSpec:
+    """Two gates in a straight line ahead of the start box, both passed eastwards."""
+    return TrackSpec.model_validate({
+        "kind": "track",
+        "name": "line2",
+        "gates": [
+            {"position": [0.0, 0.0, 1.0], "rpy_deg": [0, 0, 0], "direction": 1},
+            {"position": [2.5, 0.0, 1.0], "rpy_deg": [0, 0, 0], "direction": 1},
+        ],
+        "start": {"center": [-1.0, 0.0, 1.0], "size": [0.3, 0.3, 0.2], "min_separation": 0.25},
+        "bounds": {"min": [-3.0, -3.0, 0.0], "max": [5.0, 3.0, 2.5]},
+        "time_limit_s": 6.0,
+    })

@@ -39,9 +39,11 @@ class RewardCfg(StrictModel):
     """Weights of the paper's reward terms; each term is logged as ``Episode_Reward/<term>``."""
 
     progress: NonNegFloat = Field(default=1.0, description="Per metre of progress towards the next gate")
-    gate: NonNegFloat = Field(default=1.0, description="Per gate passed in order")
-    collision: NonNegFloat = Field(default=10.0, description="Penalty C once, at the step of a collision")
-    alignment: NonNegFloat = Field(default=0.02, description="Weight ζ of max(0, cos θ − cos θ_th) per step")
+    gate: NonNegFloat = Field(default=2.0, description="Per gate passed in order")
+    collision: NonNegFloat = Field(
+        default=2.0, description="Penalty C once, at the step of a collision (a crash also forfeits the rest of the lap)"
+    )
+    alignment: NonNegFloat = Field(default=0.002, description="Weight ζ of max(0, cos θ − cos θ_th) per step")
     alignment_threshold_deg: float = Field(default=60.0, gt=0, le=180, description="θ_th [deg]")
     lap: NonNegFloat = Field(default=1.0, description="Weight of 100 / lap_time at a completed lap")
 

@@ -29,7 +29,7 @@ class PPOCfg(StrictModel):
     actor_hidden_dims: list[PosInt] = Field(default=[128, 128], min_length=1)
     critic_hidden_dims: list[PosInt] = Field(default=[128, 128], min_length=1)
     activation: Literal["elu", "relu", "tanh", "selu", "lrelu"] = Field(default="elu")
-    init_noise_std: PosFloat = Field(default=1.0)
+    init_noise_std: PosFloat = Field(default=0.5, description="Initial action noise (actions span [−1, 1])")
     min_noise_std: PosFloat = Field(default=0.05, description="Lower clamp of the action noise")
     obs_normalization: bool = Field(default=True)
     save_interval: PosInt = Field(default=50, description="Iterations between periodic checkpoints")

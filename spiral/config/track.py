@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -107,6 +107,46 @@ class TrackSpec(StrictModel):
         h = self.gate_size(i) / 2.0
         local = np.array([[0.0, sy * h, sz * h] for sy in (-1, 1) for sz in (-1, 1)])
         return np.asarray(self.gates[i].position) + local @ rot.T
+
+    def centreline_points(self) -> np.ndarray:
+        """Closed polyline through the gate centres in racing order, shape ``(G + 1, 3)``; last row = first [m]."""
+        c = self.gate_centers()
+        return np.concatenate([c, c[:1]], axis=0)
+
+    def centreline_length(self) -> float:
+        """Length of the closed centreline polyline (one lap through the gate centres) [m]."""
+        return float(np.linalg.norm(np.diff(self.centreline_points(), axis=0), axis=1).sum())
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready description of the track: gate count, centreline length, bounds, start and every gate.
+
+        Gates are numbered from 0, as in error messages (``gates.0.position``). Each gate lists its passing
+        direction (``+1``/``-1`` along its normal), whether that was inferred, and the resulting unit vector.
+        """
+        forward, signs = self.gate_forward(), self.gate_directions()
+        gates = [
+            {
+                "index": i,
+                "position": list(g.position),
+                "rpy_deg": list(g.rpy_deg),
+                "direction": int(signs[i]),
+                "direction_inferred": g.direction is None,
+                "forward": [round(float(v), 6) for v in forward[i]],
+                "opening": self.gate_opening(i),
+                "outer_size": self.gate_size(i),
+            }
+            for i, g in enumerate(self.gates)
+        ]
+        return {
+            "name": self.name,
+            "gate_count": len(self.gates),
+            "centreline_length_m": self.centreline_length(),
+            "bounds": {"min": list(self.bounds.min), "max": list(self.bounds.max)},
+            "start": {"center": list(self.start.center), "size": list(self.start.size)},
+            "laps": self.laps,
+            "time_limit_s": self.time_limit_s,
+            "gates": gates,
+        }
 
     @model_validator(mode="after")
     def _geometry(self) -> TrackSpec:

@@ -120,6 +120,8 @@ class StageTrainer:
             "track": self.track.name,
             "seed": self.seed,
             "obs_layout": self.env.obs_builder.layout(),
+            "airframe": self.airframe.model_dump(),
+            "sim": self.sim.model_dump(),
             "ppo": self.stage.ppo.model_dump(),
             "env": self.stage.env.model_dump(),
             "best": {"success": self.best.success, "lap_time": self.best.lap_time, "iteration": self.best.iteration},
@@ -187,17 +189,20 @@ class StageTrainer:
         with self._progress(total) as (progress, task):
             for it in range(self.start_iteration, total):
                 t0 = time.perf_counter()
+                reward_sum = torch.zeros((), device=env.device)
                 with torch.inference_mode():
                     for _ in range(cfg["num_steps_per_env"]):
                         actions = alg.act(obs)
                         obs, rewards, dones, extras = env.step(actions.to(env.device))
                         alg.process_env_step(obs, rewards, dones, extras)
+                        reward_sum += rewards.sum()
                     alg.compute_returns(obs)
                 t_collect = time.perf_counter() - t0
                 losses = alg.update()
                 self.runner.current_learning_iteration = it
                 row = {"iteration": it, "collect_s": t_collect, "learn_s": time.perf_counter() - t0 - t_collect,
                        "fps": steps_per_it / (time.perf_counter() - t0),
+                       "reward_per_step": float(reward_sum) / steps_per_it,
                        "action_std": float(alg.get_policy().output_std.detach().mean()),
                        **{f"loss/{k}": float(v) for k, v in losses.items()}, **self.env.pop_stats()}
                 if (it + 1) % self.stage.selection.interval == 0 or it == total - 1:

@@ -1,0 +1,90 @@
+"""Stage training: learning signal, checkpoints, resume and policy reload."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from spiral.config import AIRFRAMES, PPOCfg, SimCfg, StageSpec
+from spiral.eval.evaluate import evaluate_policy
+from spiral.train import CheckpointError, StageTrainer, load_checkpoint, load_policy
+from spiral.train.checkpoint import list_checkpoints, newest_valid_checkpoint
+
+CF2X = AIRFRAMES["cf2x"]
+
+
+def tiny_stage(iterations: int, *, worlds: int = 64) -> StageSpec:
+    return StageSpec.model_validate({
+        "name": "tiny", "worlds": worlds, "iterations": iterations,
+        "env": {"obs": {"history_len": 1, "gate_normals": True, "pid_integral": True}},
+        "ppo": {"num_steps_per_env": 16, "save_interval": 2, "actor_hidden_dims": [32, 32],
+                "critic_hidden_dims": [32, 32]},
+        "selection": {"interval": 4, "races": 4}})
+
+
+def test_short_training_improves_the_mean_reward(line2, tmp_path):
+    """Raise the mean per-step reward of a 2-gate track within a few dozen iterations."""
+    stage = tiny_stage(40, worlds=128).model_copy(update={"ppo": PPOCfg(
+        num_steps_per_env=24, actor_hidden_dims=[64, 64], critic_hidden_dims=[64, 64], save_interval=100)})
+    result = StageTrainer(line2, CF2X, SimCfg(), stage, tmp_path, seed=1, progress=False).train()
+    rows = [json.loads(line) for line in (tmp_path / "train_log.jsonl").read_text().splitlines()]
+    early = sum(r["reward_per_step"] for r in rows[:5]) / 5
+    late = sum(r["reward_per_step"] for r in rows[-5:]) / 5
+    assert late > early + 0.01
+    assert result.best_path.exists()
+
+
+def test_checkpoint_round_trip_and_resume_continue_the_iteration_count(oval2, tmp_path):
+    """Resume a stopped stage from its newest checkpoint and end at the full iteration count."""
+    StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(4), tmp_path, seed=2, progress=False).train()
+    assert [it for it, _ in list_checkpoints(tmp_path / "ckpt")] == [3, 1]
+    data = load_checkpoint(tmp_path / "ckpt" / "model_3.pt")
+    assert data["iter"] == 3 and data["spiral"]["stage"] == "tiny"
+    trainer = StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(6), tmp_path, seed=2, progress=False)
+    assert trainer.start_iteration == 4
+    result = trainer.train()
+    assert result.iterations == 6
+    assert load_checkpoint(tmp_path / "ckpt" / "model_5.pt")["iter"] == 5
+    lines = (tmp_path / "train_log.jsonl").read_text().splitlines()
+    assert [json.loads(x)["iteration"] for x in lines] == [0, 1, 2, 3, 4, 5]
+
+
+def test_corrupt_newest_checkpoint_falls_back_to_the_previous_one(oval2, tmp_path):
+    """Skip a truncated newest checkpoint with a warning and resume from the one before."""
+    StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(4), tmp_path, seed=2, progress=False).train()
+    newest = tmp_path / "ckpt" / "model_3.pt"
+    newest.write_bytes(newest.read_bytes()[:100])
+    with pytest.raises(CheckpointError, match="checksum"):
+        load_checkpoint(newest)
+    warnings: list[str] = []
+    assert newest_valid_checkpoint(tmp_path / "ckpt", warn=warnings.append) == tmp_path / "ckpt" / "model_1.pt"
+    assert "model_3.pt" in warnings[0]
+    trainer = StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(4), tmp_path, seed=2, progress=False, log=warnings.append)
+    assert trainer.start_iteration == 2
+
+
+def test_loaded_policy_reproduces_the_trained_actor(oval2, tmp_path):
+    """Give the same actions from a reloaded best.pt as from the trainer's inference policy."""
+    trainer = StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(4), tmp_path, seed=3, progress=False)
+    trainer.train()
+    data = load_checkpoint(tmp_path / "best.pt")
+    trainer.runner.alg.load(data, {"actor": True}, strict=True)
+    policy = load_policy(tmp_path / "best.pt")
+    obs = trainer.env.get_observations()
+    expected = trainer.runner.get_inference_policy()(obs)
+    assert torch.allclose(policy(obs), expected, atol=1e-6)
+    res = evaluate_policy(policy, oval2, "solo", 3, seed=0)
+    assert res.finished.shape == (3, 1)
+
+
+def test_same_seed_gives_the_same_training_on_cpu(oval2, tmp_path):
+    """Produce bit-identical weights from two runs with the same seed."""
+    a = StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(2), tmp_path / "a", seed=5, progress=False)
+    a.train()
+    b = StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(2), tmp_path / "b", seed=5, progress=False)
+    b.train()
+    wa = load_checkpoint(tmp_path / "a" / "ckpt" / "model_1.pt")["actor_state_dict"]
+    wb = load_checkpoint(tmp_path / "b" / "ckpt" / "model_1.pt")["actor_state_dict"]
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
