@@ -8,14 +8,21 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from spiral.config.airframe import AirframeSel
-from spiral.config.base import StrictModel
+from spiral.config.base import PosInt, StrictModel
 from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 
-__all__ = ["PIPELINE_VERSION", "PipelineSpec"]
+__all__ = ["PIPELINE_VERSION", "EvaluationCfg", "PipelineSpec"]
 
 PIPELINE_VERSION = 1
 """Schema version of pipeline files; older versions are migrated on load, newer ones refused."""
+
+
+class EvaluationCfg(StrictModel):
+    """Evaluation of every stage's best policy: seeded races from the start box, the same placements per method."""
+
+    runs: PosInt = Field(default=50, description="Races per scenario")
+    seed: int = Field(default=0, ge=0, description="Seed of the start placements")
 
 
 class PipelineSpec(StrictModel):
@@ -30,6 +37,7 @@ class PipelineSpec(StrictModel):
     seed: int = Field(default=0, ge=0, description="Base seed")
     sim: SimCfg = Field(default_factory=SimCfg)
     stages: list[StageSpec] = Field(min_length=1, description="Training stages in curriculum order")
+    evaluation: EvaluationCfg = Field(default_factory=EvaluationCfg)
 
     @model_validator(mode="after")
     def _unique_stage_names(self) -> PipelineSpec:

@@ -1,0 +1,123 @@
+"""Expand a pipeline spec into ordered steps: train, eval and promote per stage."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from spiral.config.airframe import resolve_airframe
+from spiral.config.pipeline import PipelineSpec
+from spiral.config.stage import StageSpec
+from spiral.config.track import TrackSpec
+from spiral.eval.evaluate import evaluate_methods
+from spiral.pipeline.step import Step, StepContext
+from spiral.train.checkpoint import atomic_write_bytes
+from spiral.train.runner import StageTrainer
+
+__all__ = ["PipelinePlan", "select_steps"]
+
+
+@dataclass
+class PipelinePlan:
+    """A pipeline's steps and where they write: ``runs/<name>/<step>/`` and ``checkpoints/<name>/<stage>/``."""
+
+    spec: PipelineSpec
+    track: TrackSpec
+    source: Path
+    runs_dir: Path
+    checkpoints_dir: Path
+
+    @property
+    def run_root(self) -> Path:
+        """Folder of this pipeline's step outputs."""
+        return self.runs_dir / self.spec.name
+
+    @property
+    def publish_root(self) -> Path:
+        """Folder of this pipeline's promoted policies."""
+        return self.checkpoints_dir / self.spec.name
+
+    def steps(self) -> list[Step]:
+        """Every step in dependency order."""
+        steps: list[Step] = []
+        previous: str | None = None
+        for stage in self.spec.stages:
+            train = Step(f"train:{stage.name}", self._train_fn(stage, previous), [previous] if previous else [],
+                         self._train_section(stage), resumable=True)
+            evaluate = Step(f"eval:{stage.name}", self._eval_fn(stage), [train.name],
+                            {"scenario": stage.scenario, **self.spec.evaluation.model_dump()})
+            promote = Step(f"promote:{stage.name}", self._promote_fn(stage), [train.name, evaluate.name],
+                           {"stage": stage.name, "dest": str(self.publish_root / stage.name)})
+            steps += [train, evaluate, promote]
+            previous = train.name
+        return steps
+
+    def _train_section(self, stage: StageSpec) -> dict[str, Any]:
+        return {"stage": stage.model_dump(), "track": self.track.model_dump(),
+                "airframe": resolve_airframe(self.spec.airframe, source=str(self.source)).model_dump(),
+                "sim": self.spec.sim.model_dump(), "device": self.spec.device,
+                "seed": stage.seed if stage.seed is not None else self.spec.seed}
+
+    def _train_fn(self, stage: StageSpec, previous: str | None):
+        def run(ctx: StepContext) -> tuple[dict[str, Path], dict[str, Any]]:
+            section = self._train_section(stage)
+            atomic_write_bytes(ctx.step_dir / "spec.json", json.dumps(section, indent=2).encode())
+            init = Path(ctx.inputs[previous]["outputs"]["best"]["path"]) if previous else None
+            trainer = StageTrainer(self.track, resolve_airframe(self.spec.airframe), self.spec.sim, stage,
+                                   ctx.step_dir, device=self.spec.device, seed=section["seed"],
+                                   init_checkpoint=init, log=ctx.log, progress=ctx.progress)
+            result = trainer.train()
+            info = {"iterations": result.iterations, "wall_time_s": result.wall_time_s, "env_steps": result.env_steps,
+                    "best": {"success": result.best.success, "lap_time": result.best.lap_time,
+                             "iteration": result.best.iteration}}
+            return {"best": result.best_path, "last": result.last_path}, info
+        return run
+
+    def _eval_fn(self, stage: StageSpec):
+        def run(ctx: StepContext) -> tuple[dict[str, Path], dict[str, Any]]:
+            best = Path(ctx.inputs[f"train:{stage.name}"]["outputs"]["best"]["path"])
+            ev = self.spec.evaluation
+            result = evaluate_methods(self.track, {"spiral": best}, scenario=stage.scenario, runs=ev.runs,
+                                      seed=ev.seed, device=self.spec.device)
+            out = ctx.step_dir / "eval.json"
+            atomic_write_bytes(out, json.dumps(result, indent=2).encode())
+            m = result["methods"]["spiral"]
+            ctx.log(f"eval:{stage.name}: success {m['success_ratio']:.2f}, lap {m['lap_time_mean']}")
+            return {"eval": out}, {"success_ratio": m["success_ratio"], "lap_time_mean": m["lap_time_mean"]}
+        return run
+
+    def _promote_fn(self, stage: StageSpec):
+        def run(ctx: StepContext) -> tuple[dict[str, Path], dict[str, Any]]:
+            dest = self.publish_root / stage.name
+            dest.mkdir(parents=True, exist_ok=True)
+            best = Path(ctx.inputs[f"train:{stage.name}"]["outputs"]["best"]["path"])
+            evaluation = Path(ctx.inputs[f"eval:{stage.name}"]["outputs"]["eval"]["path"])
+            outputs = {}
+            for key, src, name in (("best", best, "best.pt"), ("best_meta", best.with_suffix(".json"), "best.json"),
+                                   ("eval", evaluation, "eval.json")):
+                atomic_write_bytes(dest / name, src.read_bytes())
+                outputs[key] = dest / name
+            ctx.log(f"promote:{stage.name}: published {dest / 'best.pt'}")
+            return outputs, {"dest": str(dest)}
+        return run
+
+
+def select_steps(steps: list[Step], *, start: str | None = None, only: str | None = None) -> list[Step]:
+    """Steps to consider: all, from ``start`` on, or ``only`` one (unknown names raise ValueError)."""
+    names = [s.name for s in steps]
+    for name in (start, only):
+        if name is not None and name not in names:
+            raise ValueError(f"unknown step {name!r}; steps: {', '.join(names)}")
+    if only is not None:
+        return [s for s in steps if s.name == only]
+    if start is not None:
+        return steps[names.index(start):]
+    return steps
+
+
+def wipe(path: Path) -> None:
+    """Remove a step folder."""
+    shutil.rmtree(path, ignore_errors=True)

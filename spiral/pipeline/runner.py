@@ -1,0 +1,132 @@
+"""Run a pipeline's steps in order, skipping complete ones, resuming interrupted training, one run at a time."""
+
+from __future__ import annotations
+
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from spiral.config.load import load_pipeline
+from spiral.pipeline.graph import PipelinePlan, select_steps
+from spiral.pipeline.lock import PipelineLock
+from spiral.pipeline.manifest import StepState, fingerprint, read_manifest, step_state, write_manifest
+from spiral.pipeline.step import Step, StepContext
+from spiral.train.checkpoint import atomic_write_bytes, list_checkpoints
+
+__all__ = ["PipelineError", "PipelineRunner", "StepStatus"]
+
+FINGERPRINT_FILE = "fingerprint"
+
+
+class PipelineError(Exception):
+    """A step failed; the message names it and the command that resumes."""
+
+
+@dataclass
+class StepStatus:
+    """A step's state for ``spiral status``."""
+
+    name: str
+    status: str
+    reason: str
+    detail: str = ""
+
+
+class PipelineRunner:
+    """Loads a pipeline file and runs or reports its steps."""
+
+    def __init__(self, path: Path, *, runs_dir: Path = Path("runs"), checkpoints_dir: Path = Path("checkpoints"),
+                 log: Callable[[str], None] = print, progress: bool = True, device: str | None = None) -> None:
+        spec, track = load_pipeline(path)
+        if device is not None:
+            spec = spec.model_copy(update={"device": device})
+        self.path, self.log, self.progress = Path(path), log, progress
+        self.plan = PipelinePlan(spec, track, self.path, Path(runs_dir), Path(checkpoints_dir))
+        self.steps = self.plan.steps()
+
+    def _dir(self, step: Step) -> Path:
+        return self.plan.run_root / step.dirname
+
+    def _fingerprints(self) -> dict[str, str]:
+        fps: dict[str, str] = {}
+        for step in self.steps:
+            fps[step.name] = fingerprint(step.name, step.spec_section, [fps[i] for i in step.inputs])
+        return fps
+
+    def status(self) -> list[StepStatus]:
+        """Each step: complete, stale (why), partial (last checkpoint) or missing; stale inputs make steps stale."""
+        fps, out, stale_inputs = self._fingerprints(), [], set()
+        for step in self.steps:
+            state = step_state(self._dir(step), fps[step.name])
+            if state.status == "complete" and stale_inputs & set(step.inputs):
+                state = StepState("stale", "an input step is not complete")
+            if state.status != "complete":
+                stale_inputs.add(step.name)
+            detail = ""
+            ckpts = list_checkpoints(self._dir(step) / "ckpt")
+            if state.status == "partial" and ckpts:
+                detail = f"last checkpoint: iteration {ckpts[0][0]}"
+            out.append(StepStatus(step.name, state.status, state.reason, detail))
+        return out
+
+    def run(self, *, start: str | None = None, only: str | None = None, force: list[str] | None = None) -> list[str]:
+        """Run the selected steps; return the names of the steps that ran."""
+        selected = {s.name for s in select_steps(self.steps, start=start, only=only)}
+        forced = set(force or [])
+        unknown = forced - {s.name for s in self.steps}
+        if unknown:
+            raise ValueError(f"unknown step(s) {', '.join(sorted(unknown))}")
+        fps, ran = self._fingerprints(), []
+        with PipelineLock(self.plan.run_root / ".lock", log=self.log):
+            for step in self.steps:
+                if step.name not in selected:
+                    continue
+                must = step.name in forced or any(i in ran for i in step.inputs)
+                state = step_state(self._dir(step), fps[step.name])
+                if state.status == "complete" and not must and not (start and step.name == start):
+                    self.log(f"step '{step.name}' unchanged, skipping")
+                    continue
+                self._run_step(step, fps[step.name], state, fresh=step.name in forced)
+                ran.append(step.name)
+        return ran
+
+    def _run_step(self, step: Step, fp: str, state: StepState, *, fresh: bool) -> None:
+        step_dir = self._dir(step)
+        resume = step.resumable and not fresh and state.status == "partial" and self._started_as(step_dir, fp)
+        if not resume and step_dir.exists():
+            shutil.rmtree(step_dir)
+        step_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(step_dir / FINGERPRINT_FILE, fp.encode())
+        inputs = {name: read_manifest(self._dir(self._step(name))) or {} for name in step.inputs}
+        self.log(f"step '{step.name}' {'resuming' if resume else 'running'}")
+        t0 = time.perf_counter()
+        try:
+            outputs, info = step.fn(StepContext(step_dir, inputs, self.log, self.progress))
+        except KeyboardInterrupt:
+            raise PipelineError(self._resume_hint(step, "interrupted")) from None
+        except Exception as exc:
+            raise PipelineError(self._resume_hint(step, f"failed: {type(exc).__name__}: {exc}")) from exc
+        info = {"wall_time_s": time.perf_counter() - t0, **info}
+        write_manifest(step_dir, step.name, fp, outputs, info)
+        self.log(f"step '{step.name}' done in {info['wall_time_s']:.1f} s")
+
+    @staticmethod
+    def _started_as(step_dir: Path, fp: str) -> bool:
+        try:
+            return (step_dir / FINGERPRINT_FILE).read_text() == fp
+        except OSError:
+            return False
+
+    def _step(self, name: str) -> Step:
+        return next(s for s in self.steps if s.name == name)
+
+    def _resume_hint(self, step: Step, what: str) -> str:
+        return f"step '{step.name}' {what}\nresume with: spiral run {self.path} --from {step.name}"
+
+    def describe(self) -> dict[str, Any]:
+        """Machine-readable status."""
+        return {"pipeline": self.plan.spec.name, "file": str(self.path),
+                "steps": [s.__dict__ for s in self.status()]}
