@@ -10,7 +10,7 @@ from spiral.config.load import KINDS, load_pipeline, load_spec, load_track
 from spiral.config.pipeline import EvaluationCfg, PipelineSpec
 from spiral.config.ppo import PPOCfg
 from spiral.config.sim import SimCfg
-from spiral.config.stage import SCENARIO_DRONES, SelectionCfg, StageSpec
+from spiral.config.stage import SCENARIO_DRONES, PromotionCfg, SelectionCfg, SelfPlayCfg, StageSpec
 from spiral.config.track import BoundsCfg, GateSpec, StartCfg, TrackSpec, gate_rotation
 
 __all__ = [
@@ -29,8 +29,10 @@ __all__ = [
     "PIDCfg",
     "PPOCfg",
     "PipelineSpec",
+    "PromotionCfg",
     "RewardCfg",
     "SelectionCfg",
+    "SelfPlayCfg",
     "SimCfg",
     "SpecError",
     "StageSpec",

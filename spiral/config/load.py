@@ -47,6 +47,7 @@ def load_spec(path: str | Path, spec_type: type[BaseModel] | None = None) -> Bas
     data = _read_yaml(path)
     if not isinstance(data, dict):
         raise SpecError([f"{path}: expected a mapping with a 'kind' field, got {type(data).__name__}"])
+    data = {k: v for k, v in data.items() if not (isinstance(k, str) and k.startswith("x-"))}  # YAML anchors
     kind = data.get("kind")
     if kind not in KINDS:
         raise SpecError([f"{path}: kind: expected one of {', '.join(KINDS)}, got {kind!r}"])

@@ -40,9 +40,18 @@ class PipelineSpec(StrictModel):
     evaluation: EvaluationCfg = Field(default_factory=EvaluationCfg)
 
     @model_validator(mode="after")
-    def _unique_stage_names(self) -> PipelineSpec:
+    def _stage_references(self) -> PipelineSpec:
         names = [s.name for s in self.stages]
-        for i, name in enumerate(names):
-            if name in names[:i]:
-                raise ValueError(f"stages.{i}.name: duplicate stage name {name!r}")
+        for i, stage in enumerate(self.stages):
+            if stage.name in names[:i]:
+                raise ValueError(f"stages.{i}.name: duplicate stage name {stage.name!r}")
+            if stage.init_from is not None and stage.init_from not in names[:i]:
+                raise ValueError(f"stages.{i}.init_from: {stage.init_from!r} is not an earlier stage")
         return self
+
+    def init_stage(self, index: int) -> str | None:
+        """Name of the stage whose best policy stage ``index`` starts from."""
+        stage = self.stages[index]
+        if stage.init_from is not None:
+            return stage.init_from
+        return self.stages[index - 1].name if index > 0 else None

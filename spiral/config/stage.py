@@ -10,7 +10,7 @@ from spiral.config.base import PosInt, StrictModel
 from spiral.config.env import EnvCfg
 from spiral.config.ppo import PPOCfg
 
-__all__ = ["SCENARIO_DRONES", "SelectionCfg", "StageSpec"]
+__all__ = ["SCENARIO_DRONES", "PromotionCfg", "SelectionCfg", "SelfPlayCfg", "StageSpec"]
 
 SCENARIO_DRONES: dict[str, int] = {"solo": 1, "1v1": 2, "2v2": 4}
 """Drones per world of each race format."""
@@ -21,6 +21,30 @@ class SelectionCfg(StrictModel):
 
     interval: PosInt = Field(default=25, description="Iterations between evaluations")
     races: PosInt = Field(default=64, description="Seeded races from the start box per evaluation")
+
+
+class PromotionCfg(StrictModel):
+    """When the learner replaces the current best: head-to-head races against it every ``interval`` iterations."""
+
+    interval: PosInt = Field(default=25, description="Iterations between head-to-head evaluations")
+    races: PosInt = Field(default=64, description="Seeded races per evaluation (M)")
+    min_races: PosInt = Field(default=64, description="Fewest races a promotion may rest on")
+    min_win_rate: float = Field(default=0.55, ge=0, le=1, description="Win rate needed over the current best")
+    max_success_drop: float = Field(default=0.02, ge=0, le=1, description="Largest success-ratio drop allowed")
+    elo_k: float = Field(default=16.0, gt=0, description="Elo K-factor applied per evaluation (match score)")
+
+
+class SelfPlayCfg(StrictModel):
+    """Where opponents come from in multi-drone stages.
+
+    ``pool``: SPIRAL — the pool of past bests, promoted policies join it. ``frozen``: PPO without self-play —
+    the stage's initial policy, never updated, nothing added to the pool.
+    """
+
+    mode: Literal["pool", "frozen"] = Field(default="pool")
+    p_latest: float = Field(default=0.5, ge=0, le=1, description="Probability of racing the latest best")
+    sampling: Literal["uniform", "prioritized"] = Field(default="prioritized", description="Other draws")
+    promotion: PromotionCfg = Field(default_factory=PromotionCfg)
 
 
 class StageSpec(StrictModel):
@@ -35,6 +59,13 @@ class StageSpec(StrictModel):
     env: EnvCfg = Field(default_factory=EnvCfg)
     ppo: PPOCfg = Field(default_factory=PPOCfg)
     selection: SelectionCfg = Field(default_factory=SelectionCfg)
+    selfplay: SelfPlayCfg = Field(default_factory=SelfPlayCfg)
+    init_from: str | None = Field(
+        default=None, description="Stage whose best policy this stage starts from; the previous stage when absent"
+    )
+    publish_as: str | None = Field(
+        default=None, pattern=r"^[A-Za-z0-9_.-]+\.pt$", description="Also publish the best as checkpoints/<p>/<name>"
+    )
 
     @model_validator(mode="after")
     def _one_budget(self) -> StageSpec:

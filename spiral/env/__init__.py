@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from spiral.env.observations import HISTORY_FEATURES, ObservationBuilder
 from spiral.env.race_env import OpponentPolicy, RaceEnv
-from spiral.env.racing import RaceResults, run_races
+from spiral.env.racing import RaceResults, race_winners, run_races
 from spiral.env.rewards import REWARD_TERMS, StepOutcome, compute_rewards
 
 __all__ = [
@@ -16,5 +16,6 @@ __all__ = [
     "RaceResults",
     "StepOutcome",
     "compute_rewards",
+    "race_winners",
     "run_races",
 ]

@@ -21,7 +21,9 @@ from spiral.sim import COLLISION_KINDS, World
 __all__ = ["OpponentPolicy", "RaceEnv"]
 
 OpponentPolicy = Callable[[TensorDict], torch.Tensor]
-"""Maps the observations of the opponent drones (TensorDict with ``policy``) to their actions in [−1, 1]."""
+"""Maps the observations of the opponent drones (TensorDict with ``policy``, world-major rows) to actions in
+[−1, 1]. Optional methods: ``reset(worlds: bool mask)`` at world resets (to draw new opponents) and
+``record(worlds: indices, learner_won: bool)`` when races end (for matchmaking statistics)."""
 
 
 def _heading(quat: torch.Tensor) -> torch.Tensor:
@@ -152,6 +154,8 @@ class RaceEnv:
                          init_next_gate=self._wp_gate)
         drones = worlds.repeat_interleave(d)
         self._reset_drone_buffers(drones)
+        if hasattr(self.opponent_policy, "reset"):
+            self.opponent_policy.reset(worlds)
 
     def _reset_drone_buffers(self, drones: torch.Tensor) -> None:
         for buf in (self.last_action, self.lap_time, self.crash_kind, *self.term_sums.values()):
@@ -190,6 +194,9 @@ class RaceEnv:
         dones = terminated | time_outs
         self.episode_length_buf += 1
         log = self._log_episodes(dones, world_done)
+        if world_done.any() and hasattr(self.opponent_policy, "record"):
+            ended = world_done.nonzero().squeeze(1)
+            self.opponent_policy.record(ended, self.learner_won()[ended])
         if self.auto_reset and world_done.any():
             self.stats["nonfinite_resets"] += float((self.world_nonfinite != 0).sum())
             self._reset_worlds(world_done)
@@ -270,6 +277,14 @@ class RaceEnv:
         log["Episode/success"] = fin.float().mean()
         log["Episode/crash"] = crashed.float().mean()
         return log
+
+    def learner_won(self) -> torch.Tensor:
+        """Per world, whether a learner drone finished before every opponent drone (bool, (W,))."""
+        inf = torch.full_like(self.lap_time, float("inf"))
+        t = torch.where(self.finished, self.lap_time, inf).view(self.world_count, self.drones_per_world)
+        learner = t[:, self.learner_slots].amin(dim=1)
+        opponent = t[:, self.opponent_slots].amin(dim=1) if self.opponent_slots else inf[: self.world_count]
+        return torch.isfinite(learner) & (learner < opponent)
 
     def pop_stats(self) -> dict[str, float]:
         """Means over the learner episodes ended since the last call, then start counting afresh."""

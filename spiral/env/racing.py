@@ -10,7 +10,7 @@ from tensordict import TensorDict
 
 from spiral.env.race_env import RaceEnv
 
-__all__ = ["RaceResults", "run_races"]
+__all__ = ["RaceResults", "race_winners", "run_races"]
 
 Policy = Callable[[TensorDict], torch.Tensor]
 """Deterministic policy: observations of the learner drones -> actions."""
@@ -69,3 +69,12 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False) -> RaceResu
         present=grid(~env.absent),
         trajectory=torch.stack(frames).view(-1, w, d, 3).cpu() if record else None,
     )
+
+
+def race_winners(res: RaceResults, teams: list[list[int]]) -> torch.Tensor:
+    """Index of the winning team of each race (its first drone to finish finished first), −1 when nobody finished."""
+    t = torch.where(res.finished, res.lap_time, torch.full_like(res.lap_time, float("inf")))
+    best = torch.stack([t[:, slots].amin(dim=1) for slots in teams], dim=1)
+    first = best.amin(dim=1)
+    winner = best.argmin(dim=1)
+    return torch.where(torch.isfinite(first), winner, torch.full_like(winner, -1))

@@ -11,34 +11,46 @@ from spiral.config.track import TrackSpec
 __all__ = ["sample_box_starts", "sample_track_starts"]
 
 
-def _separated(pos: torch.Tensor, min_sep: float) -> torch.Tensor:
-    """Per world (``pos``: (W, D, 3)), whether every pair of drones is at least ``min_sep`` apart."""
-    if pos.shape[1] < 2:
-        return torch.ones(pos.shape[0], dtype=torch.bool, device=pos.device)
-    dist = torch.cdist(pos, pos)
-    dist = dist + torch.eye(pos.shape[1], device=pos.device) * 1e9
-    return dist.amin(dim=(1, 2)) >= min_sep
+def _place_sequentially(lo: torch.Tensor, size: torch.Tensor, pos: torch.Tensor, todo: torch.Tensor, drones: int,
+                        min_sep: float, generator: torch.Generator, candidates: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Place the drones of the worlds in ``todo`` one by one; return positions and the worlds that got stuck."""
+    w = pos.shape[0]
+    new = pos.clone()
+    stuck = torch.zeros(w, dtype=torch.bool, device=pos.device)
+    for j in range(drones):
+        cand = lo + torch.rand(w, candidates, 3, generator=generator, device=pos.device) * size
+        if j == 0:
+            new[:, 0] = cand[:, 0]
+            continue
+        ok = torch.cdist(cand, new[:, :j]).amin(dim=-1) >= min_sep
+        stuck |= ~ok.any(dim=1)
+        new[:, j] = cand[torch.arange(w, device=pos.device), ok.float().argmax(dim=1)]
+    return torch.where(todo[:, None, None], new, pos), stuck & todo
 
 
 def sample_box_starts(
-    track: TrackSpec, world_count: int, drones: int, generator: torch.Generator, *, device: torch.device
+    track: TrackSpec, world_count: int, drones: int, generator: torch.Generator, *, device: torch.device,
+    candidates: int = 256,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Positions (W, D, 3) uniform in the start box with the minimum separation, and yaws (W, D).
 
-    Rejection sampling, redrawing only the worlds that violate the separation, so the result depends only on the
-    generator's state. Raises ``ValueError`` when the box cannot hold the drones.
+    Drones are placed one after another: each takes the first of ``candidates`` uniform draws that keeps the
+    separation from the drones already placed; a world that gets stuck starts over. The result depends only on
+    the generator's state. Raises ``ValueError`` when the box cannot hold the drones.
     """
     lo = torch.tensor(track.start.center, device=device) - torch.tensor(track.start.size, device=device) / 2
     size = torch.tensor(track.start.size, device=device)
-    pos = lo + torch.rand(world_count, drones, 3, generator=generator, device=device) * size
-    for _ in range(200):
-        bad = ~_separated(pos, track.start.min_separation)
-        if not bad.any():
+    pos = torch.zeros(world_count, drones, 3, device=device)
+    todo = torch.ones(world_count, dtype=torch.bool, device=device)
+    for _ in range(50):  # worlds whose sequential placement got stuck start over
+        pos, stuck = _place_sequentially(lo, size, pos, todo, drones, track.start.min_separation, generator,
+                                         candidates)
+        todo = stuck
+        if not todo.any():
             break
-        redraw = lo + torch.rand(world_count, drones, 3, generator=generator, device=device) * size
-        pos = torch.where(bad[:, None, None], redraw, pos)
     else:
-        raise ValueError(f"start box of track {track.name!r} cannot hold {drones} drones {track.start.min_separation} m apart")
+        raise ValueError(f"start box of track {track.name!r} cannot hold {drones} drones "
+                         f"{track.start.min_separation} m apart")
     yaw = torch.full((world_count, drones), math.radians(track.start.yaw_deg), device=device)
     return pos, yaw
 

@@ -14,8 +14,8 @@ from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
 from spiral.eval.evaluate import evaluate_methods
 from spiral.pipeline.step import Step, StepContext
+from spiral.selfplay.curriculum import run_stage
 from spiral.train.checkpoint import atomic_write_bytes
-from spiral.train.runner import StageTrainer
 
 __all__ = ["PipelinePlan", "select_steps"]
 
@@ -43,17 +43,23 @@ class PipelinePlan:
     def steps(self) -> list[Step]:
         """Every step in dependency order."""
         steps: list[Step] = []
-        previous: str | None = None
-        for stage in self.spec.stages:
+        for index, stage in enumerate(self.spec.stages):
+            init = self.spec.init_stage(index)
+            previous = f"train:{init}" if init else None
             train = Step(f"train:{stage.name}", self._train_fn(stage, previous), [previous] if previous else [],
                          self._train_section(stage), resumable=True)
             evaluate = Step(f"eval:{stage.name}", self._eval_fn(stage), [train.name],
                             {"scenario": stage.scenario, **self.spec.evaluation.model_dump()})
             promote = Step(f"promote:{stage.name}", self._promote_fn(stage), [train.name, evaluate.name],
-                           {"stage": stage.name, "dest": str(self.publish_root / stage.name)})
+                           {"stage": stage.name, "dest": str(self.publish_root / stage.name),
+                            "publish_as": stage.publish_as})
             steps += [train, evaluate, promote]
-            previous = train.name
         return steps
+
+    def _last_pool_stage(self) -> str | None:
+        """The last self-play stage: its pool is the one published to ``checkpoints/<name>/pool``."""
+        names = [s.name for s in self.spec.stages if s.scenario != "solo" and s.selfplay.mode == "pool"]
+        return names[-1] if names else None
 
     def _train_section(self, stage: StageSpec) -> dict[str, Any]:
         return {"stage": stage.model_dump(), "track": self.track.model_dump(),
@@ -66,10 +72,12 @@ class PipelinePlan:
             section = self._train_section(stage)
             atomic_write_bytes(ctx.step_dir / "spec.json", json.dumps(section, indent=2).encode())
             init = Path(ctx.inputs[previous]["outputs"]["best"]["path"]) if previous else None
-            trainer = StageTrainer(self.track, resolve_airframe(self.spec.airframe), self.spec.sim, stage,
-                                   ctx.step_dir, device=self.spec.device, seed=section["seed"],
-                                   init_checkpoint=init, log=ctx.log, progress=ctx.progress)
-            result = trainer.train()
+            pool_dir = ctx.step_dir / "pool"
+            if init is not None and not pool_dir.exists() and (init.parent / "pool").is_dir():
+                shutil.copytree(init.parent / "pool", pool_dir)  # the pool carries over from stage to stage
+            result = run_stage(self.track, resolve_airframe(self.spec.airframe), self.spec.sim, stage, ctx.step_dir,
+                               pool_dir=pool_dir, init_checkpoint=init, device=self.spec.device,
+                               seed=section["seed"], log=ctx.log, progress=ctx.progress)
             info = {"iterations": result.iterations, "wall_time_s": result.wall_time_s, "env_steps": result.env_steps,
                     "best": {"success": result.best.success, "lap_time": result.best.lap_time,
                              "iteration": result.best.iteration}}
@@ -96,10 +104,19 @@ class PipelinePlan:
             best = Path(ctx.inputs[f"train:{stage.name}"]["outputs"]["best"]["path"])
             evaluation = Path(ctx.inputs[f"eval:{stage.name}"]["outputs"]["eval"]["path"])
             outputs = {}
-            for key, src, name in (("best", best, "best.pt"), ("best_meta", best.with_suffix(".json"), "best.json"),
-                                   ("eval", evaluation, "eval.json")):
-                atomic_write_bytes(dest / name, src.read_bytes())
-                outputs[key] = dest / name
+            copies = [("best", best, dest / "best.pt"), ("best_meta", best.with_suffix(".json"), dest / "best.json"),
+                      ("eval", evaluation, dest / "eval.json")]
+            if stage.publish_as:
+                final = self.publish_root / stage.publish_as
+                copies += [("final", best, final), ("final_meta", best.with_suffix(".json"), final.with_suffix(".json"))]
+            for key, src, target in copies:
+                atomic_write_bytes(target, src.read_bytes())
+                outputs[key] = target
+            pool = best.parent / "pool"
+            if pool.is_dir() and stage.name == self._last_pool_stage():
+                shutil.rmtree(self.publish_root / "pool", ignore_errors=True)
+                shutil.copytree(pool, self.publish_root / "pool")
+                outputs["pool"] = self.publish_root / "pool" / "pool.json"
             ctx.log(f"promote:{stage.name}: published {dest / 'best.pt'}")
             return outputs, {"dest": str(dest)}
         return run

@@ -1,0 +1,90 @@
+"""Run one curriculum stage: solo selection, or self-play against the pool, or PPO against a frozen opponent."""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+from spiral.config.airframe import AirframeCfg
+from spiral.config.sim import SimCfg
+from spiral.config.stage import StageSpec
+from spiral.config.track import TrackSpec
+from spiral.selfplay.matchmaking import Matchmaker
+from spiral.selfplay.opponents import PoolOpponents
+from spiral.selfplay.pool import INITIAL_RATING, Pool
+from spiral.selfplay.promotion import PromotionSelector
+from spiral.train.checkpoint import load_checkpoint, load_policy
+from spiral.train.runner import StageTrainer, TrainResult
+
+__all__ = ["run_stage"]
+
+
+def run_stage(
+    track: TrackSpec,
+    airframe: AirframeCfg,
+    sim: SimCfg,
+    stage: StageSpec,
+    run_dir: Path,
+    *,
+    pool_dir: Path,
+    init_checkpoint: Path | None,
+    device: str = "cpu",
+    seed: int = 0,
+    log: Callable[[str], None] = print,
+    progress: bool = True,
+) -> TrainResult:
+    """Train ``stage`` and return its result; ``run_dir/best.pt`` is its best policy.
+
+    Multi-drone stages need ``init_checkpoint`` (the policy they start from, which is also the first opponent
+    and the first best). In ``pool`` mode the pool in ``pool_dir`` supplies the opponents and receives every
+    promoted policy; in ``frozen`` mode the initial policy is the only opponent and the pool is left alone.
+    """
+    run_dir = Path(run_dir)
+    if stage.scenario == "solo":
+        trainer = StageTrainer(track, airframe, sim, stage, run_dir, device=device, seed=seed,
+                               init_checkpoint=init_checkpoint, log=log, progress=progress)
+        return trainer.train()
+    if init_checkpoint is None:
+        raise ValueError(f"stage {stage.name!r}: a {stage.scenario} stage needs an earlier stage to start from")
+    best_path = run_dir / "best.pt"
+    if not best_path.exists():
+        run_dir.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(init_checkpoint, best_path)
+        shutil.copyfile(init_checkpoint.with_suffix(".json"), best_path.with_suffix(".json"))
+    layout = load_checkpoint(init_checkpoint)["spiral"]["obs_layout"]
+    generator = torch.Generator(device=device).manual_seed(seed + 30_000)
+    opp_per_world = stage.drones_per_world - len(stage.learner_slots())
+    pool = Pool(pool_dir, log=log) if stage.selfplay.mode == "pool" else None
+    if pool is not None and not pool.members:
+        pool.add(init_checkpoint, stage=stage.init_from or "init", iteration=0, evaluation={})
+    if pool is not None:
+        policies = pool.load_policies(layout, device=device)
+        ids = list(policies)
+        latest = ids.index(pool.latest_best) if pool.latest_best in policies else len(ids) - 1
+        best_rating = pool.member(ids[latest]).rating
+    else:
+        policies, ids, latest, best_rating = {"frozen": load_policy(init_checkpoint, device=device)}, ["frozen"], 0, \
+            INITIAL_RATING
+    if not policies:
+        raise ValueError(f"stage {stage.name!r}: no usable policy in the pool {pool_dir}")
+    matchmaker = Matchmaker(len(ids), latest=latest, p_latest=stage.selfplay.p_latest,
+                            mode=stage.selfplay.sampling, device=device)
+    opponents = PoolOpponents([policies[i] for i in ids], matchmaker, world_count=stage.worlds,
+                              per_world=opp_per_world, generator=generator)
+
+    def add_opponent(path: Path) -> None:
+        opponents.policies.append(load_policy(path, device=device))
+        matchmaker.races = torch.cat([matchmaker.races, matchmaker.races.new_zeros(1)])
+        matchmaker.losses = torch.cat([matchmaker.losses, matchmaker.losses.new_zeros(1)])
+        matchmaker.latest = len(opponents.policies) - 1
+
+    selector = PromotionSelector(stage, track, airframe, sim, best_path=best_path, pool=pool, best_rating=best_rating,
+                                 device=device, seed=seed, on_promote=add_opponent if pool is not None else None,
+                                 log=log)
+    trainer = StageTrainer(track, airframe, sim, stage, run_dir, device=device, seed=seed,
+                           init_checkpoint=init_checkpoint, opponent=opponents, selector=selector,
+                           selection_interval=selector.interval, log=log, progress=progress)
+    return trainer.train()

@@ -1,0 +1,43 @@
+"""Which pool member each training world races: the latest best with probability p, else sampled from the pool."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+
+__all__ = ["Matchmaker"]
+
+
+class Matchmaker:
+    """Draws opponents and keeps, per member, how often the learner lost to it.
+
+    ``prioritized`` sampling weights member m by (losses_m + 1) / (races_m + 2), the learner's smoothed loss
+    rate against it, so the pool's hardest members are met more often (prioritised fictitious self-play).
+    """
+
+    def __init__(self, member_count: int, *, latest: int, p_latest: float,
+                 mode: Literal["uniform", "prioritized"] = "prioritized", device: torch.device | str = "cpu") -> None:
+        self.latest, self.p_latest, self.mode = latest, p_latest, mode
+        self.races = torch.zeros(member_count, device=device)
+        self.losses = torch.zeros(member_count, device=device)
+
+    def weights(self) -> torch.Tensor:
+        """Sampling weights over members for the non-latest draws (sum to 1)."""
+        if self.mode == "uniform":
+            w = torch.ones_like(self.races)
+        else:
+            w = (self.losses + 1.0) / (self.races + 2.0)
+        return w / w.sum()
+
+    def draw(self, count: int, generator: torch.Generator) -> torch.Tensor:
+        """Member index for each of ``count`` worlds."""
+        device = self.races.device
+        latest = torch.rand(count, generator=generator, device=device) < self.p_latest
+        sampled = torch.multinomial(self.weights(), count, replacement=True, generator=generator)
+        return torch.where(latest, torch.full_like(sampled, self.latest), sampled)
+
+    def record(self, members: torch.Tensor, learner_won: torch.Tensor) -> None:
+        """Count finished races against ``members``; a race the learner did not win counts as a loss."""
+        self.races.index_add_(0, members, torch.ones_like(members, dtype=self.races.dtype))
+        self.losses.index_add_(0, members, (~learner_won).to(self.races.dtype))

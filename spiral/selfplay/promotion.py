@@ -1,0 +1,111 @@
+"""Head-to-head races against the current best, the promotion rule and Elo ratings."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+
+from spiral.config.airframe import AirframeCfg
+from spiral.config.sim import SimCfg
+from spiral.config.stage import PromotionCfg, StageSpec
+from spiral.config.track import TrackSpec
+from spiral.env.race_env import RaceEnv
+from spiral.env.racing import Policy, race_winners, run_races
+from spiral.selfplay.pool import Pool
+from spiral.train.checkpoint import FrozenPolicy, load_policy
+from spiral.train.runner import StageTrainer
+
+__all__ = ["HeadToHead", "PromotionSelector", "elo_update", "head_to_head", "should_promote"]
+
+
+@dataclass
+class HeadToHead:
+    """Outcome of ``races`` races of team A (the challenger) against team B."""
+
+    races: int
+    wins: int
+    losses: int
+    draws: int
+    a_success: float
+    b_success: float
+
+    @property
+    def win_rate(self) -> float:
+        """Races won by team A over all races (draws count as not won)."""
+        return self.wins / self.races if self.races else 0.0
+
+    @property
+    def score(self) -> float:
+        """Match score of team A: wins plus half the draws, over all races."""
+        return (self.wins + 0.5 * self.draws) / self.races if self.races else 0.5
+
+
+def head_to_head(env: RaceEnv, challenger: Policy, holder: Policy) -> HeadToHead:
+    """Race ``challenger`` (the env's learner slots) against ``holder`` (its opponent slots) once per world."""
+    env.set_opponent_policy(holder)
+    res = run_races(env, challenger)
+    env.set_opponent_policy(None)
+    winners = race_winners(res, [env.learner_slots, env.opponent_slots])
+    a = res.finished[:, env.learner_slots].float().mean()
+    b = res.finished[:, env.opponent_slots].float().mean()
+    return HeadToHead(races=len(winners), wins=int((winners == 0).sum()), losses=int((winners == 1).sum()),
+                      draws=int((winners == -1).sum()), a_success=float(a), b_success=float(b))
+
+
+def should_promote(result: HeadToHead, cfg: PromotionCfg) -> bool:
+    """Win rate at least ``min_win_rate`` over at least ``min_races`` races, success not below the holder's by more
+    than ``max_success_drop``."""
+    return (result.races >= cfg.min_races and result.win_rate >= cfg.min_win_rate
+            and result.a_success >= result.b_success - cfg.max_success_drop)
+
+
+def elo_update(rating_a: float, rating_b: float, score_a: float, k: float) -> tuple[float, float]:
+    """Elo update for a match in which A scored ``score_a`` in [0, 1] against B."""
+    expected = 1.0 / (1.0 + 10.0 ** ((rating_b - rating_a) / 400.0))
+    delta = k * (score_a - expected)
+    return rating_a + delta, rating_b - delta
+
+
+class PromotionSelector:
+    """Stage selection for multi-drone stages: promote the learner when it beats the current best.
+
+    In ``pool`` mode a promoted learner also joins the pool (and ``on_promote`` refreshes the training
+    opponents); in ``frozen`` mode only the stage's best changes.
+    """
+
+    def __init__(self, stage: StageSpec, track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, *, best_path: Path,
+                 pool: Pool | None, best_rating: float, device: str, seed: int,
+                 on_promote: Callable[[Path], None] | None = None, log: Callable[[str], None] = print) -> None:
+        self.cfg, self.stage, self.pool, self.device = stage.selfplay.promotion, stage, pool, device
+        self.best_path, self.best_rating, self.on_promote, self.log = best_path, best_rating, on_promote, log
+        self.best: FrozenPolicy = load_policy(best_path, device=device)
+        d = stage.drones_per_world
+        self.env = RaceEnv(track, airframe, sim, stage.env, world_count=self.cfg.races, drones_per_world=d,
+                           learner_slots=stage.learner_slots(), device=device, seed=seed + 20_000, auto_reset=False)
+        self.interval = self.cfg.interval
+
+    def __call__(self, trainer: StageTrainer, it: int) -> dict[str, float]:
+        """Race the learner against the best; promote it when the rule holds."""
+        learner = trainer.runner.get_inference_policy(device=self.device)
+        result = head_to_head(self.env, learner, self.best)
+        trainer.runner.alg.train_mode()
+        learner_rating, best_rating = elo_update(self.best_rating, self.best_rating, result.score, self.cfg.elo_k)
+        row = {"h2h/win_rate": result.win_rate, "h2h/draws": result.draws / max(result.races, 1),
+               "h2h/learner_success": result.a_success, "h2h/best_success": result.b_success,
+               "h2h/promoted": 0.0}
+        if should_promote(result, self.cfg):
+            path = trainer.save_best(it)
+            if self.pool is not None:
+                if self.pool.latest_best is not None:
+                    self.pool.member(self.pool.latest_best).rating = best_rating
+                self.pool.add(path, stage=self.stage.name, iteration=it, evaluation=asdict(result),
+                              rating=learner_rating)
+            self.best, self.best_rating = load_policy(path, device=self.device), learner_rating
+            if self.on_promote is not None:
+                self.on_promote(path)
+            self.log(f"iteration {it}: promoted (win rate {result.win_rate:.2f}, success "
+                     f"{result.a_success:.2f} vs {result.b_success:.2f})")
+            row["h2h/promoted"] = 1.0
+        return row
