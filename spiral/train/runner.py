@@ -85,6 +85,8 @@ class StageTrainer:
         seed: int = 0,
         init_checkpoint: Path | None = None,
         opponent: OpponentPolicy | None = None,
+        selector: Callable[[StageTrainer, int], dict[str, float]] | None = None,
+        selection_interval: int | None = None,
         log: Callable[[str], None] = print,
         progress: bool = True,
     ) -> None:
@@ -103,6 +105,9 @@ class StageTrainer:
             self.runner = OnPolicyRunner(self.vec_env, stage.ppo.to_rsl_rl(), log_dir=None, device=device)
         self.start_iteration = 0
         self.best = EvalScore(-1.0, -math.inf)
+        self.selector = selector or StageTrainer.select_by_solo_eval
+        """Called every ``selection_interval`` iterations; keeps ``best.pt`` and returns numbers to log."""
+        self.selection_interval = selection_interval or stage.selection.interval
         self._resume_or_init(init_checkpoint)
 
     # Checkpoints
@@ -205,8 +210,8 @@ class StageTrainer:
                        "reward_per_step": float(reward_sum) / steps_per_it,
                        "action_std": float(alg.get_policy().output_std.detach().mean()),
                        **{f"loss/{k}": float(v) for k, v in losses.items()}, **self.env.pop_stats()}
-                if (it + 1) % self.stage.selection.interval == 0 or it == total - 1:
-                    row.update(self._select(it))
+                if (it + 1) % self.selection_interval == 0 or it == total - 1:
+                    row.update(self.selector(self, it))
                 if (it + 1) % self.stage.ppo.save_interval == 0 or it == total - 1:
                     last_path = self.ckpt_dir / f"model_{it}.pt"
                     self._save(last_path, it)
@@ -218,11 +223,18 @@ class StageTrainer:
         return TrainResult(self.run_dir / "best.pt", last_path, self.best, total, time.perf_counter() - t_start,
                            env_steps, history)
 
-    def _select(self, it: int) -> dict[str, float]:
+    def save_best(self, iteration: int, score: EvalScore | None = None) -> Path:
+        """Write the learner as ``best.pt`` and return its path."""
+        path = self.run_dir / "best.pt"
+        self._save(path, iteration, score)
+        return path
+
+    def select_by_solo_eval(self, it: int) -> dict[str, float]:
+        """Default selection: keep the checkpoint with the best self-match success, then lap time."""
         score = self.evaluate(it)
         if score > self.best or not (self.run_dir / "best.pt").exists():
             self.best = score if score > self.best else self.best
-            self._save(self.run_dir / "best.pt", it, score)
+            self.save_best(it, score)
         lap = score.lap_time
         return {"eval/success": score.success, "eval/lap_time": lap if lap is not None else float("nan"),
                 "eval/best_success": self.best.success}
