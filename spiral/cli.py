@@ -1,0 +1,223 @@
+"""The ``spiral`` command line: parse arguments, load specs, delegate. Nothing else."""
+
+from __future__ import annotations
+
+import functools
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, Any, TypeVar
+
+import typer
+
+from spiral.config import KINDS, SpecError, load_pipeline, load_spec, load_track
+
+__all__ = ["app", "main"]
+
+app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
+                  help="spiral: self-play training of autonomous racing drones.")
+track_app = typer.Typer(no_args_is_help=True, help="Inspect race tracks.")
+bench_app = typer.Typer(no_args_is_help=True, help="Throughput benchmarks.")
+app.add_typer(track_app, name="track")
+app.add_typer(bench_app, name="bench")
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+Device = Annotated[str | None, typer.Option("--device", help="cpu or cuda:N (default: the pipeline's)")]
+JsonOut = Annotated[Path | None, typer.Option("--json", help="Also write the numbers as JSON to this file")]
+RunsDir = Annotated[Path, typer.Option("--runs-dir", help="Folder of run outputs")]
+CkptDir = Annotated[Path, typer.Option("--checkpoints-dir", help="Folder of promoted policies")]
+
+
+def _expected_errors() -> tuple[type[Exception], ...]:
+    from spiral.pipeline import PipelineError, PipelineLockedError
+    from spiral.train import CheckpointError
+
+    return SpecError, PipelineError, PipelineLockedError, CheckpointError, FileNotFoundError, ValueError
+
+
+def handles_errors(fn: F) -> F:
+    """Print expected errors as ``Error: ...`` lines on stderr and exit 1, without a traceback."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except _expected_errors() as exc:
+            lines = exc.problems if isinstance(exc, SpecError) else str(exc).splitlines()
+            for line in lines:
+                typer.echo(f"Error: {line}", err=True)
+            raise typer.Exit(1) from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+def _write_json(path: Path | None, data: Any) -> None:
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(data, indent=2, default=str) + "\n")
+
+
+@app.command()
+def validate(paths: Annotated[list[Path], typer.Argument(help="Track or pipeline YAML files")]) -> None:
+    """Check spec files; exit 1 with one `Error:` line per problem."""
+    failed = False
+    for path in paths:
+        try:
+            spec = load_pipeline(path)[0] if _kind_of(path) == "pipeline" else load_spec(path)
+            typer.echo(f"OK {path} ({spec.kind})")  # type: ignore[attr-defined]
+        except SpecError as exc:
+            failed = True
+            for line in exc.problems:
+                typer.echo(f"Error: {line}", err=True)
+    raise typer.Exit(1 if failed else 0)
+
+
+def _kind_of(path: Path) -> str | None:
+    import yaml
+
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError):
+        return None
+    return data.get("kind") if isinstance(data, dict) else None
+
+
+@app.command()
+@handles_errors
+def schema(out: Annotated[Path, typer.Option("--out", help="Folder for <kind>.schema.json files")]) -> None:
+    """Write the JSON Schema of each spec kind (for editor completion)."""
+    out.mkdir(parents=True, exist_ok=True)
+    for kind, model in KINDS.items():
+        (out / f"{kind}.schema.json").write_text(json.dumps(model.model_json_schema(), indent=2) + "\n")
+        typer.echo(f"wrote {out / f'{kind}.schema.json'}")
+
+
+@track_app.command("show")
+@handles_errors
+def track_show(track: Path, out: Annotated[Path, typer.Option("--out", help="PNG file")] = Path("track.png")) -> None:
+    """Draw a track in top and side view: gates, passing directions, centreline, start box, bounds."""
+    from spiral.eval.plots import plot_track
+
+    typer.echo(f"wrote {plot_track(load_track(track), out)}")
+
+
+@track_app.command("info")
+@handles_errors
+def track_info(track: Path, json_out: JsonOut = None) -> None:
+    """Print a track's gate count, centreline length, bounds and gates."""
+    info = load_track(track).summary()
+    typer.echo(f"{info['name']}: {info['gate_count']} gates, centreline {info['centreline_length_m']:.2f} m, "
+               f"bounds {info['bounds']['min']} .. {info['bounds']['max']}")
+    for g in info["gates"]:
+        typer.echo(f"  gate {g['index']}: at {g['position']}, rpy {g['rpy_deg']} deg, passing {g['forward']}")
+    _write_json(json_out, info)
+
+
+@app.command()
+@handles_errors
+def run(
+    pipeline: Path,
+    from_step: Annotated[str | None, typer.Option("--from", help="Start at this step")] = None,
+    only: Annotated[str | None, typer.Option("--only", help="Run only this step")] = None,
+    force: Annotated[list[str] | None, typer.Option("--force", help="Rerun this step from scratch")] = None,
+    device: Device = None,
+    runs_dir: RunsDir = Path("runs"),
+    checkpoints_dir: CkptDir = Path("checkpoints"),
+) -> None:
+    """Run a pipeline's steps in order; complete steps are skipped, interrupted training resumes."""
+    from spiral.pipeline import PipelineRunner
+
+    runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device)
+    ran = runner.run(start=from_step, only=only, force=force)
+    typer.echo(f"pipeline '{runner.plan.spec.name}': {len(ran)} step(s) ran, {len(runner.steps) - len(ran)} skipped")
+
+
+@app.command()
+@handles_errors
+def status(pipeline: Path, json_out: JsonOut = None, runs_dir: RunsDir = Path("runs"),
+           checkpoints_dir: CkptDir = Path("checkpoints")) -> None:
+    """Show each step as complete, stale (why), partial (last checkpoint) or missing."""
+    from spiral.pipeline import PipelineRunner
+
+    runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir)
+    for s in runner.status():
+        extra = "; ".join(x for x in (s.reason, s.detail) if x)
+        typer.echo(f"{s.name:<28} {s.status}{f' ({extra})' if extra else ''}")
+    _write_json(json_out, runner.describe())
+
+
+@app.command()
+@handles_errors
+def train(
+    pipeline: Path,
+    stage: Annotated[str, typer.Option("--stage", help="Stage name in the pipeline")],
+    device: Device = None,
+    runs_dir: RunsDir = Path("runs"),
+    checkpoints_dir: CkptDir = Path("checkpoints"),
+) -> None:
+    """Train one stage of a pipeline (its inputs must be complete); resumes from its newest checkpoint."""
+    from spiral.pipeline import PipelineRunner
+
+    runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device)
+    runner.run(only=f"train:{stage}")
+
+
+def _parse_method(text: str) -> tuple[str, str]:
+    name, sep, value = text.partition("=")
+    if not sep:
+        return text, text
+    return name, value
+
+
+@app.command("eval")
+@handles_errors
+def evaluate(
+    track: Annotated[Path, typer.Option("--track", help="Track YAML")],
+    method: Annotated[list[str], typer.Option("--method", help="NAME=CHECKPOINT (repeatable)")],
+    scenario: Annotated[str, typer.Option("--scenario", help="solo, 1v1 or 2v2")] = "solo",
+    against: Annotated[str | None, typer.Option("--against", help="NAME=CHECKPOINT: cross-play opponent team")] = None,
+    runs: Annotated[int, typer.Option("--runs", min=1, help="Races")] = 50,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the start placements")] = 0,
+    device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
+    json_out: JsonOut = None,
+) -> None:
+    """Race methods from seeded start placements (identical for every method) and report their metrics."""
+    from spiral.eval.evaluate import evaluate_methods, format_eval
+
+    if scenario not in ("solo", "1v1", "2v2"):
+        raise ValueError(f"--scenario: expected solo, 1v1 or 2v2, got {scenario!r}")
+    methods = dict(_parse_method(m) for m in method)
+    opponent = _parse_method(against) if against else None
+    result = evaluate_methods(load_track(track), methods, scenario=scenario, runs=runs, seed=seed, device=device,
+                              against=opponent)
+    typer.echo(format_eval(result))
+    _write_json(json_out, result)
+
+
+@bench_app.command("sim")
+@handles_errors
+def bench_sim(
+    worlds: Annotated[str, typer.Option("--worlds", help="Comma-separated world counts")] = "1,64,1024,4096,16384",
+    device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
+    steps: Annotated[int, typer.Option("--steps", min=1, help="Timed control steps per row")] = 100,
+    two_process: Annotated[bool, typer.Option("--two-process", help="Also run 4096x4 in two processes")] = True,
+    json_out: JsonOut = None,
+) -> None:
+    """Simulator throughput (pid mode, gates and collisions on) against the numpy reference."""
+    from spiral.sim.bench import format_bench_table, run_sim_bench
+
+    counts = [int(w) for w in worlds.split(",") if w.strip()]
+    result = run_sim_bench(counts, device=device, steps=steps, two_process=two_process)
+    typer.echo(format_bench_table(result))
+    _write_json(json_out, result)
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
