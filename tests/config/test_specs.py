@@ -1,0 +1,116 @@
+"""Specs: shipped files validate, malformed files fail naming file and field, geometry conventions hold."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from spiral.config import (
+    AIRFRAMES,
+    AirframeSel,
+    SpecError,
+    StageSpec,
+    gate_rotation,
+    load_pipeline,
+    load_spec,
+    load_track,
+    resolve_airframe,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+FIXTURES = Path(__file__).parent / "fixtures"
+
+MALFORMED = {
+    "unknown_key.yaml": "gates.0.colour",
+    "wrong_kind.yaml": "kind",
+    "string_for_number.yaml": "gates.0.position.1",
+    "nan.yaml": "gates.0.position.2",
+    "one_gate.yaml": "gates",
+    "gate_outside_bounds.yaml": "gates.1.position",
+    "overlapping_gates.yaml": "gates.1.position",
+    "negative_opening.yaml": "opening",
+    "yaml_syntax.yaml": "line 5",
+    "pipeline_bad_field.yaml": "stages.0.ppo.learning_rate",
+}
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "tracks").glob("*.yaml")) + sorted((ROOT / "pipelines").glob("*.yaml")),
+                         ids=lambda p: p.name)
+def test_every_shipped_spec_validates(path):
+    """Load every track and pipeline shipped in the repository."""
+    spec = load_pipeline(path)[0] if path.parent.name == "pipelines" else load_track(path)
+    assert spec.name
+
+
+@pytest.mark.parametrize(("name", "field"), sorted(MALFORMED.items()))
+def test_malformed_spec_names_the_file_and_the_field(name, field):
+    """Fail with one line per problem that starts with the file and names the bad field."""
+    with pytest.raises(SpecError) as info:
+        load_pipeline(FIXTURES / name) if name.startswith("pipeline") else load_spec(FIXTURES / name)
+    line = info.value.problems[0]
+    assert line.startswith(str(FIXTURES / name) + ":")
+    assert f": {field}" in line
+
+
+def test_wrong_kind_for_the_expected_spec_is_refused():
+    """Refuse a track file where a pipeline is expected."""
+    with pytest.raises(SpecError, match="kind: expected 'pipeline', got 'track'"):
+        load_pipeline(ROOT / "tracks" / "circuit6.yaml")
+
+
+def test_gate_rotation_is_rz_ry_rx():
+    """Compose yaw 90 after pitch 90: the local x axis (normal) points straight down."""
+    rot = gate_rotation((0.0, 90.0, 90.0))
+    assert np.allclose(rot[:, 0], [0.0, 0.0, -1.0], atol=1e-12)
+    assert np.allclose(rot[:, 1], [-1.0, 0.0, 0.0], atol=1e-12)
+    assert np.allclose(gate_rotation((30.0, 0.0, 0.0))[:, 2], [0.0, -0.5, math.sqrt(3) / 2])
+
+
+def test_inferred_directions_give_a_flyable_order_on_circuit6(circuit6):
+    """Point every gate's passing direction from the previous gate towards the next one."""
+    c, fwd = circuit6.gate_centers(), circuit6.gate_forward()
+    for i in range(len(c)):
+        assert fwd[i] @ (c[(i + 1) % len(c)] - c[i - 1]) > 0
+    assert circuit6.gate_directions().tolist() == [-1, -1, -1, -1, 1, -1]
+
+
+def test_centreline_length_is_the_closed_polyline_length(circuit6):
+    """Sum the distances between consecutive gate centres around the loop."""
+    c = circuit6.gate_centers()
+    expected = sum(np.linalg.norm(c[(i + 1) % 6] - c[i]) for i in range(6))
+    assert circuit6.centreline_length() == pytest.approx(expected)
+
+
+def test_airframe_override_changes_one_field_and_typos_fail():
+    """Apply a valid override field by field; name a misspelt override key in the error."""
+    heavy = resolve_airframe(AirframeSel(overrides={"mass": 0.03, "pid": {"max_tilt_deg": 45.0}}))
+    assert heavy.mass == 0.03 and heavy.pid.max_tilt_deg == 45.0 and heavy.pid.pos_p == AIRFRAMES["cf2x"].pid.pos_p
+    with pytest.raises(SpecError, match="airframe.overrides.mas"):
+        resolve_airframe(AirframeSel(overrides={"mas": 0.03}))
+
+
+def test_max_rpm_gives_the_thrust_to_weight_ratio():
+    """Make four motors at max rpm lift thrust_to_weight times the weight."""
+    cf = AIRFRAMES["cf2x"]
+    assert 4 * cf.kf * cf.max_rpm**2 == pytest.approx(cf.thrust_to_weight * cf.mass * 9.81)
+    assert 4 * cf.kf * cf.hover_rpm**2 == pytest.approx(cf.mass * 9.81)
+
+
+def test_stage_budget_comes_from_iterations_or_env_steps():
+    """Derive iterations from an env-step budget and refuse both budgets at once."""
+    stage = StageSpec(name="s", worlds=100, env_steps=10_000, ppo={"num_steps_per_env": 24})
+    assert stage.iteration_budget() == 5
+    with pytest.raises(ValueError, match="iterations"):
+        StageSpec(name="s", iterations=3, env_steps=10)
+
+
+def test_pipeline_refuses_unknown_init_stage(tmp_path):
+    """Name the stage field when init_from points at no earlier stage."""
+    path = tmp_path / "p.yaml"
+    path.write_text(f"kind: pipeline\nname: p\ntrack: {ROOT / 'tracks' / 'oval4.yaml'}\n"
+                    "stages:\n  - {name: a, iterations: 1}\n  - {name: b, iterations: 1, init_from: zz}\n")
+    with pytest.raises(SpecError, match="stages.1.init_from"):
+        load_pipeline(path)

@@ -1,0 +1,66 @@
+"""The command line: exit codes, error lines, written files."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from typer.testing import CliRunner
+
+from spiral.cli import app
+
+ROOT = Path(__file__).resolve().parents[1]
+runner = CliRunner()
+
+
+def test_validate_exits_zero_for_the_shipped_tracks():
+    """Print one OK line per valid file and exit 0."""
+    tracks = sorted(str(p) for p in (ROOT / "tracks").glob("*.yaml"))
+    result = runner.invoke(app, ["validate", *tracks])
+    assert result.exit_code == 0
+    assert result.output.count("OK ") == len(tracks)
+
+
+def test_validate_exits_one_with_field_naming_errors():
+    """Print `Error: <file>: <field>: ...` for a malformed file and exit 1, without a traceback."""
+    bad = ROOT / "tests" / "config" / "fixtures" / "unknown_key.yaml"
+    result = runner.invoke(app, ["validate", str(ROOT / "tracks" / "oval4.yaml"), str(bad)])
+    assert result.exit_code == 1
+    assert f"Error: {bad}: gates.0.colour:" in result.output
+    assert "Traceback" not in result.output
+
+
+def test_schema_writes_one_json_schema_per_kind(tmp_path):
+    """Write track and pipeline schemas that list their required fields."""
+    result = runner.invoke(app, ["schema", "--out", str(tmp_path)])
+    assert result.exit_code == 0
+    track = json.loads((tmp_path / "track.schema.json").read_text())
+    assert {"kind", "name", "gates", "start", "bounds"} <= set(track["required"])
+    assert "stages" in json.loads((tmp_path / "pipeline.schema.json").read_text())["properties"]
+
+
+def test_track_show_writes_a_png(tmp_path):
+    """Draw circuit6 into a PNG of plausible size."""
+    out = tmp_path / "c6.png"
+    result = runner.invoke(app, ["track", "show", str(ROOT / "tracks" / "circuit6.yaml"), "--out", str(out)])
+    assert result.exit_code == 0
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert out.stat().st_size > 10_000
+
+
+def test_track_info_reports_gates_and_centreline(tmp_path):
+    """Report the gate count and the centreline length in text and JSON."""
+    out = tmp_path / "info.json"
+    result = runner.invoke(app, ["track", "info", str(ROOT / "tracks" / "oval4.yaml"), "--json", str(out)])
+    assert result.exit_code == 0
+    info = json.loads(out.read_text())
+    assert info["gate_count"] == 4
+    assert "4 gates" in result.output
+    assert abs(info["centreline_length_m"] - 4 * (3.0**2 + 2.0**2) ** 0.5) < 1e-9
+
+
+def test_eval_reports_a_missing_checkpoint_as_an_error():
+    """Exit 1 with an `Error:` line naming the checkpoint."""
+    result = runner.invoke(app, ["eval", "--track", str(ROOT / "tracks" / "oval4.yaml"), "--method", "x=/nope.pt"])
+    assert result.exit_code == 1
+    assert "Error: /nope.pt: no such checkpoint" in result.output
