@@ -41,7 +41,7 @@ class RewardCfg(StrictModel):
     progress: NonNegFloat = Field(default=1.0, description="Per metre of progress towards the next gate")
     gate: NonNegFloat = Field(default=2.0, description="Per gate passed in order")
     collision: NonNegFloat = Field(
-        default=2.0, description="Penalty C once, at the step of a collision (a crash also forfeits the rest of the lap)"
+        default=2.0, description="Penalty C once, at the step of a collision (a crash also ends the race)"
     )
     alignment: NonNegFloat = Field(default=0.002, description="Weight ζ of max(0, cos θ − cos θ_th) per step")
     alignment_threshold_deg: float = Field(default=60.0, gt=0, le=180, description="θ_th [deg]")

@@ -36,5 +36,5 @@ class SimCfg(StrictModel):
     @model_validator(mode="after")
     def _integer_ratio(self) -> SimCfg:
         if self.physics_hz % self.ctrl_hz:
-            raise ValueError(f"ctrl_hz: {self.ctrl_hz} does not divide physics_hz {self.physics_hz} (use e.g. 48 at 240)")
+            raise ValueError(f"ctrl_hz: {self.ctrl_hz} does not divide physics_hz {self.physics_hz} (e.g. 48 at 240)")
         return self

@@ -11,8 +11,10 @@ from spiral.config.track import TrackSpec
 __all__ = ["sample_box_starts", "sample_track_starts"]
 
 
-def _place_sequentially(lo: torch.Tensor, size: torch.Tensor, pos: torch.Tensor, todo: torch.Tensor, drones: int,
-                        min_sep: float, generator: torch.Generator, candidates: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _place_sequentially(
+    lo: torch.Tensor, size: torch.Tensor, pos: torch.Tensor, todo: torch.Tensor, drones: int, min_sep: float,
+    generator: torch.Generator, candidates: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Place the drones of the worlds in ``todo`` one by one; return positions and the worlds that got stuck."""
     w = pos.shape[0]
     new = pos.clone()

@@ -108,7 +108,8 @@ class PipelinePlan:
                       ("eval", evaluation, dest / "eval.json")]
             if stage.publish_as:
                 final = self.publish_root / stage.publish_as
-                copies += [("final", best, final), ("final_meta", best.with_suffix(".json"), final.with_suffix(".json"))]
+                copies += [("final", best, final),
+                           ("final_meta", best.with_suffix(".json"), final.with_suffix(".json"))]
             for key, src, target in copies:
                 atomic_write_bytes(target, src.read_bytes())
                 outputs[key] = target

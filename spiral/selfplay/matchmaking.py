@@ -24,10 +24,7 @@ class Matchmaker:
 
     def weights(self) -> torch.Tensor:
         """Sampling weights over members for the non-latest draws (sum to 1)."""
-        if self.mode == "uniform":
-            w = torch.ones_like(self.races)
-        else:
-            w = (self.losses + 1.0) / (self.races + 2.0)
+        w = torch.ones_like(self.races) if self.mode == "uniform" else (self.losses + 1.0) / (self.races + 2.0)
         return w / w.sum()
 
     def draw(self, count: int, generator: torch.Generator) -> torch.Tensor:

@@ -6,7 +6,6 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-
 from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.stage import PromotionCfg, StageSpec

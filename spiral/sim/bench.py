@@ -9,9 +9,10 @@ skips the gate and contact tests, and a benchmark in which drones drop out would
 from __future__ import annotations
 
 import math
-import multiprocessing as mp
 import os
 import platform
+import subprocess
+import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -27,7 +28,7 @@ from spiral.config.track import TrackSpec
 from spiral.sim.reference import ReferenceSim
 from spiral.sim.world import World
 
-__all__ = ["format_bench_table", "machine_info", "run_sim_bench", "run_sim_bench_two_process"]
+__all__ = ["format_bench_table", "machine_info", "run_sim_bench", "run_sim_bench_two_process", "two_process_worker"]
 
 TARGET_REDRAW_STEPS = 10
 """Control steps between two draws of the random targets (about 0.2 s at 48 Hz)."""
@@ -209,21 +210,32 @@ def run_sim_bench(
     return result
 
 
-def _two_process_worker(world_count: int, drones: int, device: str, steps: int, seed: int, repeats: int,
-                        barrier: Any, queue: Any) -> None:
-    """Time ``repeats`` runs, each started together with the other process; report (start, end) of each."""
+def two_process_worker(world_count: int, drones: int, device: str, steps: int, seed: int, repeats: int) -> None:
+    """Child side of :func:`run_sim_bench_two_process`: time each repeat when told to on stdin, report on stdout.
+
+    Prints ``ready`` after the warm-up and before each repeat, waits for a line on stdin, then prints the repeat's
+    ``span start end`` (``time.perf_counter``, a system-wide monotonic clock on Linux). Other output (Warp's
+    banner) may come in between and is skipped by the parent.
+    """
     wp.config.quiet = True
     wp.init()
-    track = load_track(DEFAULT_TRACK)
-    world, targets_wp, *_ = _make_world(track, AIRFRAMES["cf2x"], world_count, drones, device, seed)
+    world, targets_wp, *_ = _make_world(load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"], world_count, drones, device,
+                                        seed)
     _time_warp(world, targets_wp, WARMUP_STEPS, 0)
-    spans = []
     for r in range(repeats):
-        barrier.wait()
+        print("ready", flush=True)
+        sys.stdin.readline()
         begin = time.perf_counter()
         _time_warp(world, targets_wp, steps, WARMUP_STEPS + r * steps)
-        spans.append((begin, time.perf_counter()))
-    queue.put(spans)
+        print(f"span {begin!r} {time.perf_counter()!r}", flush=True)
+
+
+def _read_tagged(proc: subprocess.Popen, tag: str) -> str:
+    """Next line of ``proc``'s stdout that starts with ``tag``."""
+    for line in proc.stdout:
+        if line.startswith(tag):
+            return line
+    raise RuntimeError(f"two-process benchmark worker exited with {proc.wait()} before reporting {tag!r}")
 
 
 def run_sim_bench_two_process(
@@ -232,33 +244,40 @@ def run_sim_bench_two_process(
 ) -> dict[str, Any]:
     """Run one Warp row in two processes at once (a CPU launch uses one thread) and report their sum.
 
-    The aggregate of a repeat is both processes' drone-control-steps over the wall time from the first start
-    to the last end; the best repeat is kept.
+    The children are fresh interpreters (``subprocess``), released together for each repeat. The aggregate of a
+    repeat is both processes' drone-control-steps over the wall time from the first start to the last end; the best
+    repeat is kept.
     """
-    ctx = mp.get_context("spawn")
-    barrier, queue = ctx.Barrier(2), ctx.Queue()
-    procs = [
-        ctx.Process(target=_two_process_worker,
-                    args=(world_count, drones, device, steps, seed + i, repeats, barrier, queue))
-        for i in range(2)
-    ]
-    for p in procs:
-        p.start()
-    spans = [queue.get() for _ in procs]
-    for p in procs:
-        p.join()
+    procs = []
+    for i in range(2):
+        code = (f"from spiral.sim.bench import two_process_worker; "
+                f"two_process_worker({world_count}, {drones}, {device!r}, {steps}, {seed + i}, {repeats})")
+        procs.append(subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                      text=True))
+    spans: list[list[tuple[float, float]]] = [[], []]
+    try:
+        for _ in range(repeats):
+            for p in procs:
+                _read_tagged(p, "ready")
+            for p in procs:
+                p.stdin.write("go\n")
+                p.stdin.flush()
+            for i, p in enumerate(procs):
+                begin, end = (float(v) for v in _read_tagged(p, "span").split()[1:])
+                spans[i].append((begin, end))
+    finally:
+        for p in procs:
+            p.stdin.close()
+            p.wait()
     n = world_count * drones
-    aggregates, per_process = [], [[n * steps / (e - b) for b, e in s] for s in spans]
-    for r in range(repeats):
-        begin, end = min(s[r][0] for s in spans), max(s[r][1] for s in spans)
-        aggregates.append(2 * n * steps / (end - begin))
+    aggregates = [2 * n * steps / (max(s[r][1] for s in spans) - min(s[r][0] for s in spans)) for r in range(repeats)]
     best = int(np.argmax(aggregates))
     return {
         "worlds": world_count,
         "drones": drones,
         "processes": 2,
         "steps": steps,
-        "per_process_drone_ctrl_steps_per_s": [round(p[best]) for p in per_process],
+        "per_process_drone_ctrl_steps_per_s": [round(n * steps / (s[best][1] - s[best][0])) for s in spans],
         "aggregate_drone_ctrl_steps_per_s": round(aggregates[best]),
     }
 

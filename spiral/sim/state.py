@@ -84,7 +84,8 @@ def make_quad_params(airframe: AirframeCfg, sim: SimCfg) -> QuadParams:
     p.arm_xy = airframe.arm / math.sqrt(2.0)
     p.kf, p.km, p.drag = airframe.kf, airframe.km, wp.vec3(*airframe.drag)
     p.max_rpm, p.hover_rpm = airframe.max_rpm, airframe.hover_rpm
-    p.radius, p.motor_tau, p.prop_radius, p.gravity = airframe.radius, airframe.motor_tau, airframe.prop_radius, sim.gravity
+    p.radius, p.motor_tau, p.prop_radius = airframe.radius, airframe.motor_tau, airframe.prop_radius
+    p.gravity = sim.gravity
     gains = airframe.pid
     p.pos_p, p.pos_i, p.pos_d = wp.vec3(*gains.pos_p), wp.vec3(*gains.pos_i), wp.vec3(*gains.pos_d)
     p.pos_i_limit, p.att_p, p.att_d = gains.pos_i_limit, wp.vec3(*gains.att_p), wp.vec3(*gains.att_d)

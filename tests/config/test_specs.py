@@ -88,7 +88,7 @@ def test_airframe_override_changes_one_field_and_typos_fail():
     """Apply a valid override field by field; name a misspelt override key in the error."""
     heavy = resolve_airframe(AirframeSel(overrides={"mass": 0.03, "pid": {"max_tilt_deg": 45.0}}))
     assert heavy.mass == 0.03 and heavy.pid.max_tilt_deg == 45.0 and heavy.pid.pos_p == AIRFRAMES["cf2x"].pid.pos_p
-    with pytest.raises(SpecError, match="airframe.overrides.mas"):
+    with pytest.raises(SpecError, match=r"airframe\.overrides\.mas"):
         resolve_airframe(AirframeSel(overrides={"mas": 0.03}))
 
 
@@ -112,5 +112,5 @@ def test_pipeline_refuses_unknown_init_stage(tmp_path):
     path = tmp_path / "p.yaml"
     path.write_text(f"kind: pipeline\nname: p\ntrack: {ROOT / 'tracks' / 'oval4.yaml'}\n"
                     "stages:\n  - {name: a, iterations: 1}\n  - {name: b, iterations: 1, init_from: zz}\n")
-    with pytest.raises(SpecError, match="stages.1.init_from"):
+    with pytest.raises(SpecError, match=r"stages\.1\.init_from"):
         load_pipeline(path)

@@ -100,7 +100,8 @@ def test_reward_terms_on_a_hand_made_transition():
     outcome = StepOutcome(
         dist_before=torch.tensor([2.0, 1.0]), dist_after=torch.tensor([1.5, 1.0]),
         gates_passed=torch.tensor([1, 0]), crashed_now=torch.tensor([False, True]),
-        heading=torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]), to_gate=torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
+        heading=torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]),
+        to_gate=torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
         lap_time=torch.tensor([5.0, 0.0]))
     total, terms = compute_rewards(outcome, cfg)
     assert terms["progress"].tolist() == pytest.approx([1.0, 0.0])

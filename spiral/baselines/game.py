@@ -1,0 +1,202 @@
+"""The racing game of one world: linearised constraints and objective of each player, and the IBR loop."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from spiral.baselines.best_response import BestResponseQP, RowData, Solution
+from spiral.baselines.centreline import Centreline
+
+__all__ = ["GameParams", "Player", "gate_rows", "iterate_best_responses", "plan_phases", "player_rows"]
+
+_INF = 1e30
+_SIGNS = np.array([1.0, -1.0, 1.0, -1.0])
+
+
+@dataclass(frozen=True)
+class GameParams:
+    """Numbers the linearisation needs (derived from :class:`~spiral.baselines.se_ibr.SEIBRCfg` and the env)."""
+
+    steps: int
+    """Waypoints per plan N."""
+    dt: float
+    """Time between waypoints [s]."""
+    gate_half: np.ndarray
+    """Half side of each gate's usable opening: opening/2 − radius − margin (G,) [m]."""
+    tube: float
+    """Depth either side of a gate plane inside which the opening's tube applies (no widening) [m]."""
+    slope: float
+    """Widening of the approach/exit funnel per metre of depth beyond the tube."""
+    reach: float
+    """Distance from a gate's centre within which its approach funnel is enforced [m]."""
+    exit_reach: float
+    """Distance from a passed gate's centre within which its exit funnel is enforced [m]."""
+    separation: float
+    """Minimum centre distance between two drones in a plan: 2·radius + margin [m]."""
+    progress_weight: float
+    """Weight of the terminal progress along the centreline [1/m]."""
+    alpha: float
+    """Weight of the sensitivity term; 0 gives plain iterated best response."""
+    guard_steps: int = 3
+    """Waypoints over which an owned drone also avoids the constant-velocity extrapolation of drones it does not
+    fly (their own planner may not do what this game predicts)."""
+    sensitivity: bool = True
+    """Compute the sensitivity term at all (False skips that code path; α = 0 must give the same plans)."""
+
+
+@dataclass
+class Player:
+    """One drone in the game: its state now and its latest plan."""
+
+    slot: int
+    p0: np.ndarray
+    """Position now (3,)."""
+    v0: np.ndarray
+    """Velocity now (3,)."""
+    next_gate: int
+    """Index of the next gate to pass (env's ``next_gate``)."""
+    passed_any: bool
+    """Whether it has passed a gate in this race (so the previous gate's exit funnel applies)."""
+    plan: np.ndarray
+    """Latest plan p_0 … p_N (N + 1, 3), p_0 = position now."""
+    duals: np.ndarray
+    """Duals of its collision rows against every slot (D, N); zero for itself and absent slots."""
+    qp: BestResponseQP
+    owned: bool = True
+    """Whether this planner flies the drone (else it is only predicted, e.g. an opponent with its own planner)."""
+    solve_ms: float = 0.0
+    """Time spent on this player's best responses in the current planning step [ms]."""
+    last: Solution | None = None
+    """Its most recent best response."""
+    soft_count: int = 0
+    """Best responses in the current planning step that needed the soft fallback."""
+
+
+def plan_phases(line: Centreline, plan: np.ndarray, next_gate: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gates passed before each waypoint of ``plan`` (N + 1, 3), and the straddling pairs.
+
+    Returns ``phase`` (N + 1,), ``before`` and ``after`` (N + 1,): the gate index whose plane the segment
+    ``k → k+1`` (before) or ``k−1 → k`` (after) crosses forwards, −1 elsewhere. Gates are taken in order.
+    """
+    n = len(plan)
+    phase = np.zeros(n, dtype=np.int64)
+    before = np.full(n, -1, dtype=np.int64)
+    after = np.full(n, -1, dtype=np.int64)
+    m = 0
+    g = next_gate % line.gate_count
+    prev = float(line.depth(plan[0], np.int64(g)))
+    for k in range(1, n):
+        cur = float(line.depth(plan[k], np.int64(g)))
+        if prev < 0.0 <= cur:
+            before[k - 1], after[k] = g, g
+            m += 1
+            g = (next_gate + m) % line.gate_count
+            cur = float(line.depth(plan[k], np.int64(g)))
+        phase[k] = m
+        prev = cur
+    return phase, before, after
+
+
+def gate_rows(line: Centreline, gate: int, half: float, *, slope: float, tube: float, side: int
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Four rows ``a·p ≤ b`` of gate ``gate``'s opening: ``|y|, |z| ≤ half + slope·(side·depth − tube)``.
+
+    ``side`` = −1 is the approach funnel (widening in front of the plane), +1 the exit funnel, 0 the tube
+    ``|y|, |z| ≤ half`` with y, z the gate's in-plane axes. Returns normals (4, 3) and bounds (4,).
+    """
+    c, f = line.center[gate], line.forward[gate]
+    axes = np.stack([line.axis_y[gate], line.axis_y[gate], line.axis_z[gate], line.axis_z[gate]]) * _SIGNS[:, None]
+    if side == 0:
+        a, b = axes, np.full(4, half)
+    else:
+        a = axes - side * slope * f[None, :]
+        b = np.full(4, half - slope * tube)
+    return a, b + a @ c
+
+
+def _gate_constraints(line: Centreline, pl: Player, gp: GameParams) -> tuple[np.ndarray, ...]:
+    """Gate rows (N, 4, 3), (N, 4) of player ``pl``'s next plan, and the phase of each waypoint."""
+    N, G = gp.steps, line.gate_count
+    guess = pl.plan
+    phase, before, after = plan_phases(line, guess, pl.next_gate)
+    ga, gb = np.zeros((N, 4, 3)), np.full((N, 4), _INF)
+    for k in range(1, N + 1):
+        target = (pl.next_gate + phase[k]) % G
+        prev = (target - 1) % G
+        passed_prev = phase[k] > 0 or pl.passed_any
+        d_prev = float(line.depth(guess[k], np.int64(prev)))
+        d_next = float(line.depth(guess[k], np.int64(target)))
+        rows = None
+        if after[k] >= 0 or before[k] >= 0:  # the pair whose segment crosses a gate plane: both in the tube
+            g = int(max(after[k], before[k]))
+            rows = gate_rows(line, g, gp.gate_half[g], slope=gp.slope, tube=gp.tube, side=0)
+        elif passed_prev and d_prev >= 0.0 and np.linalg.norm(guess[k] - line.center[prev]) <= gp.exit_reach:
+            side = 0 if d_prev <= gp.tube else 1
+            rows = gate_rows(line, prev, gp.gate_half[prev], slope=gp.slope, tube=gp.tube, side=side)
+        elif np.linalg.norm(guess[k] - line.center[target]) <= gp.reach:
+            side = 0 if -d_next <= gp.tube else -1
+            rows = gate_rows(line, target, gp.gate_half[target], slope=gp.slope, tube=gp.tube, side=side)
+        if rows is not None:
+            ga[k - 1], gb[k - 1] = rows
+    return ga, gb, phase
+
+
+def _unit(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.where(n > 1e-6, v / np.maximum(n, 1e-12), fallback)
+
+
+def player_rows(line: Centreline, pl: Player, players: list[Player], slots: int, gp: GameParams) -> RowData:
+    """The linearised best-response problem of ``pl`` against the latest plans of ``players`` (D = ``slots``)."""
+    N = gp.steps
+    ga, gb, phase = _gate_constraints(line, pl, gp)
+    q = np.zeros((N, 3))
+    target = np.array([(pl.next_gate + phase[N]) % line.gate_count])
+    tangent = line.tangent[line.project(pl.plan[N:N + 1], target)[0]]
+    q[N - 1] -= gp.progress_weight * tangent
+    others = [s for s in range(slots) if s != pl.slot]
+    ca, cb = np.zeros((N, len(others), 3)), np.full((N, len(others)), _INF)
+    ga2, gb2 = np.zeros((N, len(others), 3)), np.full((N, len(others)), _INF)
+    by_slot = {o.slot: o for o in players}
+    up = np.array([0.0, 0.0, 1.0])
+    for col, s in enumerate(others):
+        other = by_slot.get(s)
+        if other is None:
+            continue
+        fallback = _unit(other.p0 - pl.p0, up)
+        beta = _unit(other.plan[1:] - pl.plan[1:], fallback)  # unit vectors from pl towards the other (N, 3)
+        ca[:, col] = beta
+        cb[:, col] = (beta * other.plan[1:]).sum(-1) - gp.separation
+        if gp.sensitivity:
+            mu = other.duals[pl.slot]  # the other's multipliers of its rows against pl (N,)
+            q -= gp.alpha * mu[:, None] * beta
+        if pl.owned and not other.owned and gp.guard_steps > 0:
+            k = min(gp.guard_steps, N)
+            cv = other.p0 + other.v0 * gp.dt * np.arange(1, k + 1)[:, None]
+            g_beta = _unit(cv - pl.plan[1:k + 1], fallback)
+            ga2[:k, col] = g_beta
+            gb2[:k, col] = (g_beta * cv).sum(-1) - gp.separation
+    return RowData(p0=pl.p0, v0=pl.v0, q=q, gate_a=ga, gate_b=gb, coll_a=ca, coll_b=cb, guard_a=ga2, guard_b=gb2)
+
+
+def iterate_best_responses(line: Centreline, players: list[Player], slots: int, gp: GameParams, rounds: int) -> None:
+    """``rounds`` rounds of iterated best response: each player in turn against the others' latest plans.
+
+    Updates every player's ``plan``, ``duals`` (against each slot) and ``solve_ms`` in place.
+    """
+    for _ in range(rounds):
+        for pl in players:
+            t0 = time.perf_counter()
+            rows = player_rows(line, pl, players, slots, gp)
+            sol = pl.qp.solve(rows)
+            pl.plan = np.concatenate([pl.p0[None], sol.plan], axis=0)
+            others = [s for s in range(slots) if s != pl.slot]
+            pl.duals = np.zeros((slots, gp.steps))
+            if not sol.soft:  # a fallback's multipliers price the penalty, not the opponent: no sensitivity
+                pl.duals[others] = sol.coll_dual.T
+            pl.last = sol
+            pl.soft_count += int(sol.soft)
+            pl.solve_ms += 1e3 * (time.perf_counter() - t0)

@@ -1,0 +1,165 @@
+"""SE-IBR planner: gate passage, separation, multipliers, the α = 0 reduction, the fallback, flying the plan."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from spiral.baselines import SEIBRPlanner, opponent_policy, se_ibr_policy
+from spiral.baselines.best_response import BestResponseQP, RowData
+from spiral.baselines.game import plan_phases
+from spiral.config import AIRFRAMES, EnvCfg, SimCfg, TrackSpec
+from spiral.env import RaceEnv, run_races
+
+CF2X = AIRFRAMES["cf2x"]
+
+
+def make_env(track: TrackSpec, *, worlds: int = 1, drones: int = 1, learners=None) -> RaceEnv:
+    learners = list(range(drones)) if learners is None else learners
+    return RaceEnv(track, CF2X, SimCfg(), EnvCfg(), world_count=worlds, drones_per_world=drones,
+                   learner_slots=learners, seed=0, auto_reset=False)
+
+
+def place(env: RaceEnv, pos: list[list[float]], vel: list[list[float]] | None = None) -> None:
+    """Put the drones of world 0 at ``pos`` with velocities ``vel`` (rest when None)."""
+    n = len(pos)
+    env.pos[:n] = torch.tensor(pos)
+    env.vel[:n] = torch.tensor(vel) if vel is not None else 0.0
+
+
+def crossing(planner: SEIBRPlanner, slot: int, gate: int) -> np.ndarray:
+    """Point where the plan of ``slot`` (world 0) crosses ``gate``'s plane forwards, in the gate's (y, z) axes."""
+    line, plan = planner.line, planner.plans[0, slot]
+    d = line.depth(plan, np.full(len(plan), gate))
+    k = int(np.nonzero((d[:-1] < 0) & (d[1:] >= 0))[0][0])
+    hit = plan[k] + (plan[k + 1] - plan[k]) * d[k] / (d[k] - d[k + 1]) - line.center[gate]
+    return np.array([hit @ line.axis_y[gate], hit @ line.axis_z[gate]])
+
+
+def min_plan_separation(planner: SEIBRPlanner, a: int, b: int) -> float:
+    """Smallest distance between the waypoints p_1 … p_N of slots ``a`` and ``b`` of world 0."""
+    return float(np.linalg.norm(planner.plans[0, a, 1:] - planner.plans[0, b, 1:], axis=1).min())
+
+
+def test_single_player_plan_crosses_the_gate_inside_its_opening(circuit6):
+    """Plan a solo drone from the start box through gate 0's opening, radius and margin kept from the frame."""
+    env = make_env(circuit6)
+    planner = SEIBRPlanner(env)
+    planner.replan()
+    hit = crossing(planner, 0, 0)
+    limit = circuit6.gate_opening(0) / 2 - CF2X.radius
+    assert np.all(np.abs(hit) <= limit - planner.cfg.gate_margin + 1e-4)
+    phase, _, _ = plan_phases(planner.line, planner.plans[0, 0], 0)
+    assert phase[-1] >= 1
+
+
+def test_plan_respects_speed_and_acceleration_bounds(circuit6):
+    """Keep every planned step within v_max·Δt and every second difference within a_max·Δt²."""
+    env = make_env(circuit6)
+    planner = SEIBRPlanner(env)
+    planner.replan()
+    plan, dt = planner.plans[0, 0], planner.cfg.dt
+    steps = np.linalg.norm(np.diff(plan, axis=0), axis=1)
+    assert steps.max() <= planner.v_max * dt * (1 + 1e-5)
+    assert steps.max() >= 0.5 * planner.v_max * dt  # it does race
+    p_prev = np.concatenate([plan[:1] - env.vel[0].numpy() * dt, plan])
+    acc = np.linalg.norm(p_prev[2:] - 2 * p_prev[1:-1] + p_prev[:-2], axis=1)
+    assert acc.max() <= planner.a_max * dt**2 * (1 + 1e-5)
+
+
+@pytest.fixture()
+def collision_course(line2):
+    """Two drones converging on gate 0 of ``line2`` from either side at 1.5 m/s."""
+    env = make_env(line2, drones=2)
+    place(env, [[-1.0, -0.45, 1.0], [-1.0, 0.45, 1.0]], [[1.0, 1.2, 0.0], [1.0, -1.2, 0.0]])
+    return env
+
+
+def test_players_on_a_collision_course_keep_the_separation(collision_course):
+    """Keep the planned waypoints of two converging drones at least 2·radius + margin apart, without fallback."""
+    planner = SEIBRPlanner(collision_course, alpha=0.0)
+    planner.replan(rounds=3)
+    sep = planner.params.separation
+    assert min_plan_separation(planner, 0, 1) >= sep - 1e-4
+    assert planner.soft_solves == 0
+    assert np.abs(crossing(planner, 0, 0)).max() < 0.3 and np.abs(crossing(planner, 1, 0)).max() < 0.3
+
+
+def test_duals_are_non_negative_and_zero_on_slack_rows():
+    """Price the blocking half-plane ahead (μ > 0 where it is tight) and give zero to slack rows and a far one."""
+    n = 6
+    qp = BestResponseQP(steps=n, others=2, dt=0.15, v_max=2.0, a_max=5.0, smooth=1e-3, lo=np.full(3, -10.0),
+                        hi=np.full(3, 10.0))
+    q = np.zeros((n, 3))
+    q[-1, 0] = -1.0  # progress along +x at the horizon
+    coll_a = np.zeros((n, 2, 3))
+    coll_a[:, 0] = (1.0, 0.0, 0.0)  # other 0 sits at x = 0.5 ahead: x_k ≤ 0.5 − 0.2
+    coll_a[:, 1] = (-1.0, 0.0, 0.0)  # other 1 far behind at x = −5: −x_k ≤ 5 − 0.2
+    coll_b = np.stack([np.full(n, 0.3), np.full(n, 4.8)], axis=1)
+    rows = RowData(p0=np.array([0.0, 0.0, 1.0]), v0=np.array([1.0, 0.0, 0.0]), q=q, gate_a=np.zeros((n, 4, 3)),
+                   gate_b=np.full((n, 4), np.inf), coll_a=coll_a, coll_b=coll_b)
+    sol = qp.solve(rows)
+    assert not sol.soft
+    slack = coll_b - np.einsum("koc,kc->ko", coll_a, sol.plan)
+    assert np.all(slack >= -1e-6)
+    assert np.all(sol.raw_coll_dual >= -1e-7)
+    assert np.all(sol.coll_dual[:, 1] < 1e-6)
+    assert np.all(sol.coll_dual[slack[:, 0] > 1e-3, 0] < 1e-6)
+    assert sol.coll_dual[-1, 0] == pytest.approx(1.0, abs=0.02)  # it absorbs the progress weight
+    assert np.abs(sol.coll_dual * slack).max() < 1e-6
+
+
+def test_game_duals_vanish_when_players_are_far_apart(collision_course):
+    """Give all-zero multipliers when the two drones race 4 m apart, and non-negative ones on a collision course."""
+    planner = SEIBRPlanner(collision_course, alpha=0.0)
+    planner.replan(rounds=3)
+    assert np.all(planner.duals[0] >= 0.0) and planner.duals[0].max() > 1e-3
+    place(collision_course, [[-1.0, -2.0, 1.0], [-1.0, 2.0, 1.0]])
+    far = SEIBRPlanner(collision_course, alpha=0.0)
+    far.replan()
+    assert np.all(far.duals[0] < 1e-6)
+
+
+def test_alpha_zero_reproduces_plain_ibr_and_alpha_changes_the_plan(collision_course):
+    """Give identical plans for α = 0 with and without the sensitivity code path, and a different one for α > 0."""
+    plans = []
+    for kw in ({"alpha": 0.0}, {"alpha": 0.0, "sensitivity": False}, {"alpha": 1.0}):
+        planner = SEIBRPlanner(collision_course, **kw)
+        planner.replan(rounds=3)
+        plans.append(planner.plans[0].copy())
+    assert np.array_equal(plans[0], plans[1])
+    assert np.abs(plans[2] - plans[0]).max() > 1e-3
+
+
+def test_infeasible_start_falls_back_to_soft_constraints(line2):
+    """Plan two overlapping drones with the soft fallback: finite plans that separate them, no exception."""
+    env = make_env(line2, drones=2)
+    place(env, [[-1.0, 0.0, 1.0], [-1.0, 0.02, 1.0]])
+    planner = SEIBRPlanner(env, alpha=1.0)
+    actions = planner.act(torch.arange(2))
+    assert planner.soft_solves > 0
+    assert np.all(np.isfinite(planner.plans[0]))
+    assert np.linalg.norm(planner.plans[0, 0, -1] - planner.plans[0, 1, -1]) > 0.1
+    assert actions.shape == (2, 4) and torch.all(actions.abs() <= 1.0)
+
+
+def test_self_match_policy_finishes_the_lap(oval2):
+    """Fly a 1v1 self-match on the two-gate oval through run_races: both drones finish without collision."""
+    env = make_env(oval2, worlds=2, drones=2)
+    policy = se_ibr_policy(env)
+    res = run_races(env, policy)
+    assert bool(res.finished.all())
+    assert float(res.lap_time.max()) < 6.0
+    timing = policy.planner.timing()
+    assert timing["plans"] > 0 and timing["drone_ms_median"] > 0
+
+
+def test_opponent_policy_drives_the_opponent_slot(oval2):
+    """Drive slot 1 from opponent_policy (IBR) against an SE-IBR learner; each planner flies only its drones."""
+    env = make_env(oval2, drones=2, learners=[0])
+    env.set_opponent_policy(opponent_policy(env, alpha=0.0))
+    learner = se_ibr_policy(env, alpha=1.0)
+    res = run_races(env, learner)
+    assert bool(res.present.all()) and bool(res.finished.all())
+    assert learner(env.get_observations()).shape == (1, 4)

@@ -1,0 +1,111 @@
+"""Pipelines: skip complete steps, rerun what changed, resume killed training, one run at a time."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from spiral.config import SpecError
+from spiral.pipeline import PipelineLock, PipelineLockedError, PipelineRunner
+from spiral.train.checkpoint import list_checkpoints
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def runner_for(path: Path, tmp_path: Path, logs: list[str] | None = None) -> PipelineRunner:
+    return PipelineRunner(path, runs_dir=tmp_path / "runs", checkpoints_dir=tmp_path / "ckpt", progress=False,
+                          log=(logs.append if logs is not None else lambda _: None))
+
+
+def write_pipeline(tmp_path: Path, *, iterations: int = 2, lr: float = 1e-3, stages: int = 1) -> Path:
+    data = yaml.safe_load((ROOT / "pipelines" / "smoke.yaml").read_text())
+    data = json.loads(json.dumps({k: v for k, v in data.items() if not k.startswith("x-")}))  # unshare anchors
+    data["track"] = str(ROOT / "tracks" / "oval4.yaml")
+    data["stages"] = data["stages"][:stages]
+    data["stages"][0]["iterations"] = iterations
+    data["stages"][0]["ppo"]["learning_rate"] = lr
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_smoke_pipeline_twice_skips_every_step_the_second_time(tmp_path):
+    """Run smoke.yaml end to end, then again: the second run runs nothing and publishes the final policies."""
+    logs: list[str] = []
+    first = runner_for(ROOT / "pipelines" / "smoke.yaml", tmp_path, logs).run()
+    assert first == [s.name for s in runner_for(ROOT / "pipelines" / "smoke.yaml", tmp_path).steps]
+    second = runner_for(ROOT / "pipelines" / "smoke.yaml", tmp_path, logs).run()
+    assert second == []
+    assert sum("unchanged, skipping" in line for line in logs) == len(first)
+    published = tmp_path / "ckpt" / "smoke"
+    for name in ("spiral.pt", "ppo-noselfplay.pt", "solo/best.pt", "solo/eval.json", "pool/pool.json"):
+        assert (published / name).is_file(), name
+    assert json.loads((published / "solo" / "eval.json").read_text())["runs"] == 2
+
+
+def test_changing_a_stage_parameter_reruns_that_step_and_downstream_only(tmp_path):
+    """Rerun train, eval and promote of a changed stage and nothing upstream of it."""
+    path = write_pipeline(tmp_path, stages=2)
+    assert len(runner_for(path, tmp_path).run()) == 6
+    data = yaml.safe_load(path.read_text())
+    data["stages"][1]["ppo"]["learning_rate"] = 5e-4
+    path.write_text(yaml.safe_dump(data))
+    runner = runner_for(path, tmp_path)
+    assert [s.status for s in runner.status()][:3] == ["complete"] * 3
+    assert runner.run() == ["train:1v1", "eval:1v1", "promote:1v1"]
+
+
+def test_killed_training_step_resumes_and_ends_with_the_full_iteration_count(tmp_path):
+    """SIGKILL `spiral run` after its first checkpoint; the rerun resumes and finishes every iteration."""
+    path = write_pipeline(tmp_path, iterations=30)
+    cmd = [sys.executable, "-m", "spiral.cli", "run", str(path), "--runs-dir", str(tmp_path / "runs"),
+           "--checkpoints-dir", str(tmp_path / "ckpt")]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT)
+    ckpt_dir = tmp_path / "runs" / "smoke" / "train-solo" / "ckpt"
+    deadline = time.time() + 120
+    while time.time() < deadline and len(list_checkpoints(ckpt_dir)) < 2:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    killed_at = list_checkpoints(ckpt_dir)[0][0]
+    assert 0 < killed_at < 29
+    logs: list[str] = []
+    ran = runner_for(path, tmp_path, logs).run()
+    assert ran[0] == "train:solo"
+    assert any("resuming" in line and f"iteration {killed_at + 1}" in line for line in logs)
+    assert list_checkpoints(ckpt_dir)[0][0] == 29
+    manifest = json.loads((tmp_path / "runs" / "smoke" / "train-solo" / "manifest.json").read_text())
+    assert manifest["info"]["iterations"] == 30
+
+
+def test_second_concurrent_run_is_refused(tmp_path):
+    """Refuse to run a pipeline whose lock a live process holds; take over a dead process's lock."""
+    path = write_pipeline(tmp_path)
+    runner = runner_for(path, tmp_path)
+    with PipelineLock(runner.plan.run_root / ".lock"), pytest.raises(PipelineLockedError, match="already running"):
+        runner.run()
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    lock = runner.plan.run_root / ".lock"
+    lock.write_text(json.dumps({"pid": dead.pid, "host": os.uname().nodename, "started": 0}))
+    assert runner.run()[0] == "train:solo"
+    assert not lock.exists()
+
+
+def test_malformed_pipeline_fails_before_any_step_runs(tmp_path):
+    """Name the bad field and create no run folder."""
+    path = write_pipeline(tmp_path)
+    data = yaml.safe_load(path.read_text())
+    data["stages"][0]["worlds"] = "many"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(SpecError, match=r"stages\.0\.worlds"):
+        runner_for(path, tmp_path)
+    assert not (tmp_path / "runs").exists()
