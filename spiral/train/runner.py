@@ -96,7 +96,9 @@ class StageTrainer:
         d = stage.drones_per_world
         self.env = RaceEnv(track, airframe, sim, stage.env, world_count=stage.worlds, drones_per_world=d,
                            learner_slots=stage.learner_slots(), device=device, seed=seed)
-        self.env.set_opponent_policy(opponent)
+        if opponent is not None:
+            self.env.set_opponent_policy(opponent)
+            self.env.reset()  # the first episodes were drawn without opponents
         self.eval_env = RaceEnv(track, airframe, sim, stage.env, world_count=stage.selection.races,
                                 drones_per_world=d, learner_slots=list(range(d)), device=device,
                                 seed=seed + 10_000, auto_reset=False)

@@ -1,0 +1,58 @@
+"""Self-play rules on scripted numbers: matchmaking frequencies, promotion, Elo, pool integrity."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from spiral.config import PromotionCfg
+from spiral.selfplay import HeadToHead, Matchmaker, Pool, elo_update, should_promote
+
+
+def test_matchmaking_draws_the_latest_best_with_probability_p():
+    """Draw the latest member about p of the time and the others uniformly otherwise."""
+    mm = Matchmaker(4, latest=3, p_latest=0.5, mode="uniform")
+    draws = mm.draw(40_000, torch.Generator().manual_seed(0))
+    freq = torch.bincount(draws, minlength=4).float() / draws.numel()
+    assert freq[3].item() == pytest.approx(0.5 + 0.5 / 4, abs=0.01)
+    assert freq[:3].tolist() == pytest.approx([0.125] * 3, abs=0.01)
+
+
+def test_prioritized_matchmaking_favours_members_the_learner_loses_to():
+    """Weight members by the learner's smoothed loss rate against them."""
+    mm = Matchmaker(2, latest=0, p_latest=0.0, mode="prioritized")
+    mm.record(torch.tensor([0] * 8 + [1] * 8), torch.tensor([True] * 8 + [False] * 8))
+    assert mm.weights().tolist() == pytest.approx([0.1, 0.9])
+    draws = mm.draw(20_000, torch.Generator().manual_seed(1))
+    assert (draws == 1).float().mean().item() == pytest.approx(0.9, abs=0.01)
+
+
+def test_promotion_rule_on_scripted_results():
+    """Promote on win rate ≥ 0.55 over ≥ 64 races unless success drops by more than 0.02."""
+    cfg = PromotionCfg()
+    assert should_promote(HeadToHead(64, 36, 20, 8, 0.95, 0.96), cfg)
+    assert not should_promote(HeadToHead(64, 35, 20, 9, 0.95, 0.96), cfg)  # 0.547 < 0.55
+    assert not should_promote(HeadToHead(64, 40, 20, 4, 0.90, 0.96), cfg)  # success drop 0.06
+    assert not should_promote(HeadToHead(32, 30, 2, 0, 1.0, 1.0), cfg)  # too few races
+
+
+def test_elo_update_is_zero_sum_and_follows_the_expected_score():
+    """Move equal ratings by K·(S − ½) and keep the sum."""
+    a, b = elo_update(1000.0, 1000.0, 1.0, 16.0)
+    assert (a, b) == pytest.approx((1008.0, 992.0))
+    a, b = elo_update(1200.0, 1000.0, 0.5, 16.0)
+    assert a + b == pytest.approx(2200.0) and a < 1200.0
+
+
+def test_pool_skips_a_member_whose_checksum_fails(tmp_path):
+    """Report and skip a corrupted member instead of failing."""
+    pool = Pool(tmp_path)
+    pool.members = []
+    (tmp_path / "pool.json").write_text(json.dumps({"latest_best": "x", "members": [
+        {"id": "x", "file": "x.pt", "stage": "solo", "iteration": 0, "sha256": "00"}]}))
+    (tmp_path / "x.pt").write_bytes(b"garbage")
+    logs: list[str] = []
+    assert Pool(tmp_path, log=logs.append).load_policies({"obs_dim": 1}) == {}
+    assert "pool member x skipped" in logs[0]

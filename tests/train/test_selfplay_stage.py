@@ -1,0 +1,63 @@
+"""Self-play stages: opponents race from the first episode, promotion feeds the pool, resume keeps the pool."""
+
+from __future__ import annotations
+
+import json
+
+import torch
+
+from spiral.config import AIRFRAMES, SimCfg, StageSpec
+from spiral.selfplay import Matchmaker, Pool, PoolOpponents, run_stage
+from spiral.train import load_policy
+
+CF2X = AIRFRAMES["cf2x"]
+COMMON = {"worlds": 8, "env": {"obs": {"history_len": 1, "gate_normals": True, "pid_integral": True}},
+          "ppo": {"num_steps_per_env": 8, "save_interval": 1, "actor_hidden_dims": [16, 16],
+                  "critic_hidden_dims": [16, 16]},
+          "selection": {"interval": 2, "races": 2}}
+PERMISSIVE = {"promotion": {"interval": 1, "races": 4, "min_races": 4, "min_win_rate": 0.0, "max_success_drop": 1.0}}
+
+
+def test_short_1v1_stage_promotes_into_the_pool_and_resumes(line2, tmp_path):
+    """Promote at least once with a permissive rule, add members to the pool, and resume the stage."""
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
+    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "solo", pool_dir=tmp_path / "pool", init_checkpoint=None,
+              progress=False)
+    duel = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 2, "selfplay": PERMISSIVE,
+                                     **COMMON})
+    result = run_stage(line2, CF2X, SimCfg(), duel, tmp_path / "duel", pool_dir=tmp_path / "pool",
+                       init_checkpoint=tmp_path / "solo" / "best.pt", progress=False)
+    pool = Pool(tmp_path / "pool")
+    assert len(pool.members) == 3  # the initial policy and two promotions
+    assert pool.latest_best == pool.members[-1].id
+    assert result.best_path.exists()
+    rows = [json.loads(x) for x in (tmp_path / "duel" / "train_log.jsonl").read_text().splitlines()]
+    assert [r["h2h/promoted"] for r in rows] == [1.0, 1.0]
+    longer = duel.model_copy(update={"iterations": 3})
+    run_stage(line2, CF2X, SimCfg(), longer, tmp_path / "duel", pool_dir=tmp_path / "pool",
+              init_checkpoint=tmp_path / "solo" / "best.pt", progress=False)
+    rows = [json.loads(x) for x in (tmp_path / "duel" / "train_log.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in rows] == [0, 1, 2]
+    assert len(Pool(tmp_path / "pool").members) == 4
+
+
+def test_batched_opponents_match_one_by_one_inference(line2, tmp_path):
+    """Give the same actions when worlds sharing a member are batched as when each row is run alone."""
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
+    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "a", pool_dir=tmp_path / "p", init_checkpoint=None,
+              progress=False, seed=1)
+    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "b", pool_dir=tmp_path / "p", init_checkpoint=None,
+              progress=False, seed=2)
+    policies = [load_policy(tmp_path / "a" / "best.pt"), load_policy(tmp_path / "b" / "best.pt")]
+    gen = torch.Generator().manual_seed(0)
+    opponents = PoolOpponents(policies, Matchmaker(2, latest=1, p_latest=0.5), world_count=6, per_world=2,
+                              generator=gen)
+    dim = policies[0].obs_layout["obs_dim"]
+    from tensordict import TensorDict
+
+    obs = torch.randn(12, dim)
+    batched = opponents(TensorDict({"policy": obs, "critic": obs}, batch_size=[12]))
+    member = opponents.assignment.repeat_interleave(2)
+    for row in range(12):
+        single = TensorDict({"policy": obs[row:row + 1], "critic": obs[row:row + 1]}, batch_size=[1])
+        assert torch.allclose(batched[row], policies[int(member[row])](single)[0], atol=1e-6)
