@@ -39,6 +39,11 @@ class RewardCfg(StrictModel):
     """Weights of the paper's reward terms; each term is logged as ``Episode_Reward/<term>``."""
 
     progress: NonNegFloat = Field(default=1.0, description="Per metre of progress towards the next gate")
+    progress_lateral: float = Field(
+        default=2.0, ge=1.0,
+        description="Funnel factor κ of the progress distance sqrt(a² + κ²·l²) to the next gate (a along its "
+        "normal, l across it); 1 is the plain distance to the gate centre",
+    )
     gate: NonNegFloat = Field(default=2.0, description="Per gate passed in order")
     collision: NonNegFloat = Field(
         default=2.0, description="Penalty C once, at the step of a collision (a crash also ends the race)"

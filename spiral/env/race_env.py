@@ -180,7 +180,7 @@ class RaceEnv:
         """
         all_actions = self._gather_actions(actions)
         prev_gate = self.next_gate.long().clone()
-        dist_before = (self.pos - self.gate_center[prev_gate]).norm(dim=-1)
+        dist_before = self._gate_distance(prev_gate)
         self._apply_actions(all_actions)
         self.world.step()
         outcome, crashed_now, finished_now = self._race_events(prev_gate, dist_before)
@@ -242,7 +242,7 @@ class RaceEnv:
         passes = torch.where(racing, self.step_passes, torch.zeros_like(self.step_passes))
         outcome = StepOutcome(
             dist_before=dist_before,
-            dist_after=(self.pos - self.gate_center[prev_gate]).norm(dim=-1),
+            dist_after=self._gate_distance(prev_gate),
             gates_passed=passes,
             crashed_now=crashed_now,
             heading=_heading(self.quat),
@@ -252,6 +252,18 @@ class RaceEnv:
         for name in ("dist_before", "dist_after"):  # no reward for frozen drones
             setattr(outcome, name, torch.where(racing, getattr(outcome, name), torch.zeros_like(dist_before)))
         return outcome, crashed_now, finished_now
+
+    def _gate_distance(self, gate: torch.Tensor) -> torch.Tensor:
+        """Funnel distance sqrt(a² + κ²·l²) of every drone to ``gate``: a along the gate's normal, l across it.
+
+        With κ > 1 lateral error costs more than distance along the normal, so progress pays for lining up in
+        front of a gate before crossing its plane rather than for a straight line into its frame.
+        """
+        rel = self.pos - self.gate_center[gate]
+        along = (rel * self.gate_forward[gate]).sum(-1, keepdim=True)
+        lateral = rel - along * self.gate_forward[gate]
+        kappa = self.cfg.reward.progress_lateral
+        return (along.squeeze(-1) ** 2 + kappa**2 * (lateral**2).sum(-1)).sqrt()
 
     def _world_done(self, terminated: torch.Tensor) -> torch.Tensor:
         """Worlds that end now: a learner drone terminated, the time limit, or a non-finite state."""
