@@ -15,7 +15,8 @@ The objective is ``½xᵀPx + qᵀx``: P is the smoothness term ``smooth·Σ‖a
 
 Fallback: when the hard problem is not solved (infeasible, or the solver stops early), the same problem is solved
 with a non-negative slack on every arena, gate and collision row and on every speed cone, each penalised linearly
-by ``soft_penalty`` (an exact penalty: where a feasible point exists the soft problem returns it). Acceleration
+by ``soft_penalty`` times a weight per kind (an exact penalty: where a feasible point exists the soft problem
+returns it). Acceleration
 cones stay hard; a constant-velocity plan satisfies them, so the fallback always has a solution.
 """
 
@@ -30,6 +31,9 @@ import scipy.sparse as sp
 __all__ = ["BestResponseQP", "RowData", "Solution"]
 
 _SOLVED = ("Solved", "AlmostSolved")
+_SLACK_WEIGHT = {"geometry": 5.0, "separation": 2.0, "speed": 1.0}
+"""Fallback penalty per metre of slack, relative to ``soft_penalty``: violating the arena or a gate opening costs
+most (the margin to a crash is a few cm), the drone separation less (its margin is larger), the speed bound least."""
 
 
 @dataclass
@@ -135,6 +139,10 @@ class BestResponseQP:
         cols = np.concatenate([self.box.col, c])
         vals = np.concatenate([self.box.data, coef.ravel()])
         b = np.concatenate([self.box_b, gb[g_act], cb[c_act], ub[u_act]])
+        w = _SLACK_WEIGHT
+        weight = np.concatenate([np.full(n_box + len(g_act), w["geometry"]), np.full(len(c_act) + len(u_act),
+                                                                                       w["separation"])])
+        self._weight = weight
         return (rows, cols, vals), b, c_act, n_box + len(g_act) + np.arange(len(c_act))
 
     def solve(self, d: RowData) -> Solution:
@@ -153,35 +161,38 @@ class BestResponseQP:
         sv[:, 1:] = c1.reshape(self.N, 3)
         sa = soc_b[4 * self.N:].reshape(self.N, 4)
         sa[:, 1:] = -e.reshape(self.N, 3)
-        A = sp.csc_matrix((np.concatenate([vals, self.soc.data]),
-                           (np.concatenate([rows, self.soc.row + m]), np.concatenate([cols, self.soc.col]))),
-                          shape=(m + 8 * self.N, n))
+        trip = (np.concatenate([rows, self.soc.row + m]), np.concatenate([cols, self.soc.col]),
+                np.concatenate([vals, self.soc.data]))
+        A = sp.csc_matrix((trip[2], (trip[0], trip[1])), shape=(m + 8 * self.N, n))
         b = np.concatenate([b_lin, soc_b])
         cones = [clarabel.NonnegativeConeT(m), *self.cones_soc]
         sol = clarabel.DefaultSolver(self.P, q, A, b, cones, self.settings).solve()
         iters = int(sol.iterations)
         if str(sol.status) in _SOLVED:
             return self._solution(sol.x, sol.z, c_act, c_rows, str(sol.status), soft=False, iterations=iters)
-        soft = self._solve_soft(q, A, b, m)
+        soft = self._solve_soft(q, trip, b, m)
         x = np.asarray(soft.x)[:n]
         if str(soft.status) not in _SOLVED or not np.all(np.isfinite(x)):
             x = np.tile(d.p0, self.N)  # never hand NaN to the controller: hold the current position
         return self._solution(x, np.nan_to_num(np.asarray(soft.z)), c_act, c_rows, str(soft.status), soft=True,
                               iterations=iters + int(soft.iterations))
 
-    def _solve_soft(self, q: np.ndarray, A: sp.csc_matrix, b: np.ndarray, m: int):
-        """Slack s ≥ 0 on the m linear rows and the N speed cones, cost soft_penalty·Σs (exact penalty)."""
+    def _solve_soft(self, q: np.ndarray, trip: tuple[np.ndarray, ...], b: np.ndarray, m: int):
+        """Slack s ≥ 0 on the m linear rows and the N speed cones, cost soft_penalty·Σ weight·s (exact penalty)."""
         n, N = 3 * self.N, self.N
-        ns = m + N
-        # Slack σ enters each linear row as a·x − σ ≤ b and each speed cone's bound as t = v_max·Δt + σ.
-        S = sp.csc_matrix((-np.ones(ns), (np.concatenate([np.arange(m), m + 4 * np.arange(N)]), np.arange(ns))),
-                          shape=(m + 8 * N, ns))
-        A_soft = sp.vstack([sp.hstack([A, S]), sp.hstack([sp.csc_matrix((ns, n)), -sp.eye(ns)])]).tocsc()
-        b_soft = np.concatenate([b, np.zeros(ns)])
-        P = sp.block_diag([self.P, sp.csc_matrix((ns, ns))]).tocsc()
-        q_soft = np.concatenate([q, np.full(ns, self.soft_penalty)])
+        ns, rows_hard = m + N, m + 8 * N
+        slack = n + np.arange(ns)
+        # Slack σ enters each linear row as a·x − σ ≤ b, each speed cone's bound as t = v_max·Δt + σ, and σ ≥ 0.
+        r = np.concatenate([trip[0], np.arange(m), m + 4 * np.arange(N), rows_hard + np.arange(ns)])
+        c = np.concatenate([trip[1], slack, slack])
+        v = np.concatenate([trip[2], -np.ones(2 * ns)])
+        A = sp.csc_matrix((v, (r, c)), shape=(rows_hard + ns, n + ns))
+        P = sp.csc_matrix((self.P.data, self.P.indices, np.concatenate([self.P.indptr, np.full(ns, self.P.nnz)])),
+                          shape=(n + ns, n + ns))
+        weight = np.concatenate([self._weight, np.full(N, _SLACK_WEIGHT["speed"])])
+        q_soft = np.concatenate([q, self.soft_penalty * weight])
         cones = [clarabel.NonnegativeConeT(m), *self.cones_soc, clarabel.NonnegativeConeT(ns)]
-        return clarabel.DefaultSolver(P, q_soft, A_soft, b_soft, cones, self.settings).solve()
+        return clarabel.DefaultSolver(P, q_soft, A, np.concatenate([b, np.zeros(ns)]), cones, self.settings).solve()
 
     def _solution(self, x, z, c_act: np.ndarray, c_rows: np.ndarray, status: str, *, soft: bool,
                   iterations: int) -> Solution:

@@ -81,22 +81,18 @@ def plan_phases(line: Centreline, plan: np.ndarray, next_gate: int) -> tuple[np.
     Returns ``phase`` (N + 1,), ``before`` and ``after`` (N + 1,): the gate index whose plane the segment
     ``k → k+1`` (before) or ``k−1 → k`` (after) crosses forwards, −1 elsewhere. Gates are taken in order.
     """
-    n = len(plan)
+    n, G = len(plan), line.gate_count
+    gates = (next_gate + np.arange(min(n, G + 1))) % G
+    depth = ((plan[None, :, :] - line.center[gates][:, None, :]) * line.forward[gates][:, None, :]).sum(-1).tolist()
     phase = np.zeros(n, dtype=np.int64)
     before = np.full(n, -1, dtype=np.int64)
     after = np.full(n, -1, dtype=np.int64)
     m = 0
-    g = next_gate % line.gate_count
-    prev = float(line.depth(plan[0], np.int64(g)))
     for k in range(1, n):
-        cur = float(line.depth(plan[k], np.int64(g)))
-        if prev < 0.0 <= cur:
-            before[k - 1], after[k] = g, g
+        if m < len(gates) and depth[m][k - 1] < 0.0 <= depth[m][k]:
+            before[k - 1], after[k] = gates[m], gates[m]
             m += 1
-            g = (next_gate + m) % line.gate_count
-            cur = float(line.depth(plan[k], np.int64(g)))
         phase[k] = m
-        prev = cur
     return phase, before, after
 
 
@@ -117,30 +113,43 @@ def gate_rows(line: Centreline, gate: int, half: float, *, slope: float, tube: f
     return a, b + a @ c
 
 
-def _gate_constraints(line: Centreline, pl: Player, gp: GameParams) -> tuple[np.ndarray, ...]:
-    """Gate rows (N, 4, 3), (N, 4) of player ``pl``'s next plan, and the phase of each waypoint."""
+_TUBE, _APPROACH, _EXIT = 0, 1, 2
+
+
+def gate_row_table(line: Centreline, gp: GameParams) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of every gate in each form (tube, approach funnel, exit funnel): normals (3, G, 4, 3), bounds (3, G, 4)."""
+    rows = [[gate_rows(line, g, gp.gate_half[g], slope=gp.slope, tube=gp.tube, side=side) for g in
+             range(line.gate_count)] for side in (0, -1, 1)]
+    return (np.array([[r[0] for r in kind] for kind in rows]), np.array([[r[1] for r in kind] for kind in rows]))
+
+
+def _gate_constraints(line: Centreline, table: tuple[np.ndarray, np.ndarray], pl: Player, gp: GameParams
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gate rows (N, 4, 3), (N, 4) of player ``pl``'s next plan, and the phase of each waypoint.
+
+    Per waypoint (linearised at the previous plan): both ends of a segment that crosses a gate plane get that
+    gate's tube; else, within ``exit_reach`` of the gate just passed and past its plane, its
+    exit funnel (tube up to ``tube`` deep); else, within ``reach`` of the next gate, its approach funnel (tube
+    within ``tube`` of the plane); else no gate row.
+    """
     N, G = gp.steps, line.gate_count
-    guess = pl.plan
-    phase, before, after = plan_phases(line, guess, pl.next_gate)
+    phase, before, after = plan_phases(line, pl.plan, pl.next_gate)
+    p = pl.plan[1:]
+    target = (pl.next_gate + phase[1:]) % G
+    prev = (target - 1) % G
+    d_prev = ((p - line.center[prev]) * line.forward[prev]).sum(-1)
+    d_next = ((p - line.center[target]) * line.forward[target]).sum(-1)
+    straddle = np.maximum(before[1:], after[1:])
+    passed_prev = (phase[1:] > 0) | pl.passed_any
+    exit_ok = (straddle < 0) & passed_prev & (d_prev >= 0.0) & (
+        np.linalg.norm(p - line.center[prev], axis=1) <= gp.exit_reach)
+    approach_ok = (straddle < 0) & ~exit_ok & (np.linalg.norm(p - line.center[target], axis=1) <= gp.reach)
+    gate = np.where(straddle >= 0, straddle, np.where(exit_ok, prev, target))
+    kind = np.where(straddle >= 0, _TUBE, np.where(exit_ok, np.where(d_prev <= gp.tube, _TUBE, _EXIT),
+                                                  np.where(-d_next <= gp.tube, _TUBE, _APPROACH)))
+    active = (straddle >= 0) | exit_ok | approach_ok
     ga, gb = np.zeros((N, 4, 3)), np.full((N, 4), _INF)
-    for k in range(1, N + 1):
-        target = (pl.next_gate + phase[k]) % G
-        prev = (target - 1) % G
-        passed_prev = phase[k] > 0 or pl.passed_any
-        d_prev = float(line.depth(guess[k], np.int64(prev)))
-        d_next = float(line.depth(guess[k], np.int64(target)))
-        rows = None
-        if after[k] >= 0 or before[k] >= 0:  # the pair whose segment crosses a gate plane: both in the tube
-            g = int(max(after[k], before[k]))
-            rows = gate_rows(line, g, gp.gate_half[g], slope=gp.slope, tube=gp.tube, side=0)
-        elif passed_prev and d_prev >= 0.0 and np.linalg.norm(guess[k] - line.center[prev]) <= gp.exit_reach:
-            side = 0 if d_prev <= gp.tube else 1
-            rows = gate_rows(line, prev, gp.gate_half[prev], slope=gp.slope, tube=gp.tube, side=side)
-        elif np.linalg.norm(guess[k] - line.center[target]) <= gp.reach:
-            side = 0 if -d_next <= gp.tube else -1
-            rows = gate_rows(line, target, gp.gate_half[target], slope=gp.slope, tube=gp.tube, side=side)
-        if rows is not None:
-            ga[k - 1], gb[k - 1] = rows
+    ga[active], gb[active] = table[0][kind[active], gate[active]], table[1][kind[active], gate[active]]
     return ga, gb, phase
 
 
@@ -149,10 +158,11 @@ def _unit(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
     return np.where(n > 1e-6, v / np.maximum(n, 1e-12), fallback)
 
 
-def player_rows(line: Centreline, pl: Player, players: list[Player], slots: int, gp: GameParams) -> RowData:
+def player_rows(line: Centreline, table: tuple[np.ndarray, np.ndarray], pl: Player, players: list[Player], slots: int,
+                gp: GameParams) -> RowData:
     """The linearised best-response problem of ``pl`` against the latest plans of ``players`` (D = ``slots``)."""
     N = gp.steps
-    ga, gb, phase = _gate_constraints(line, pl, gp)
+    ga, gb, phase = _gate_constraints(line, table, pl, gp)
     q = np.zeros((N, 3))
     target = np.array([(pl.next_gate + phase[N]) % line.gate_count])
     tangent = line.tangent[line.project(pl.plan[N:N + 1], target)[0]]
@@ -182,7 +192,8 @@ def player_rows(line: Centreline, pl: Player, players: list[Player], slots: int,
     return RowData(p0=pl.p0, v0=pl.v0, q=q, gate_a=ga, gate_b=gb, coll_a=ca, coll_b=cb, guard_a=ga2, guard_b=gb2)
 
 
-def iterate_best_responses(line: Centreline, players: list[Player], slots: int, gp: GameParams, rounds: int) -> None:
+def iterate_best_responses(line: Centreline, table: tuple[np.ndarray, np.ndarray], players: list[Player], slots: int,
+                           gp: GameParams, rounds: int) -> None:
     """``rounds`` rounds of iterated best response: each player in turn against the others' latest plans.
 
     Updates every player's ``plan``, ``duals`` (against each slot) and ``solve_ms`` in place.
@@ -190,7 +201,7 @@ def iterate_best_responses(line: Centreline, players: list[Player], slots: int, 
     for _ in range(rounds):
         for pl in players:
             t0 = time.perf_counter()
-            rows = player_rows(line, pl, players, slots, gp)
+            rows = player_rows(line, table, pl, players, slots, gp)
             sol = pl.qp.solve(rows)
             pl.plan = np.concatenate([pl.p0[None], sol.plan], axis=0)
             others = [s for s in range(slots) if s != pl.slot]

@@ -22,7 +22,7 @@ from tensordict import TensorDict
 
 from spiral.baselines.best_response import BestResponseQP
 from spiral.baselines.centreline import Centreline
-from spiral.baselines.game import GameParams, Player, iterate_best_responses
+from spiral.baselines.game import GameParams, Player, gate_row_table, iterate_best_responses
 from spiral.config.base import NonNegFloat, PosFloat, PosInt, StrictModel
 from spiral.env.race_env import RaceEnv
 
@@ -38,19 +38,19 @@ class SEIBRCfg(StrictModel):
     rounds: PosInt = Field(default=2, description="IBR rounds L per planning step")
     first_rounds: PosInt = Field(default=4, description="IBR rounds when a drone has no previous plan")
     replan_every: PosInt = Field(default=2, description="Control steps between planning steps (plan held between)")
-    speed_frac: float = Field(default=0.7, gt=0, le=1,
-                              description="Speed bound as a share of the largest steady speed the action can "
-                                          "command through the airframe's PID: pos_scale·min(K_p/K_d)")
+    speed_frac: float = Field(default=1.0, gt=0, le=1,
+                              description="Speed bound as a share of the largest steady speed whose PID target "
+                                          "(with room for a_max) fits in the action: min((K_p·pos_scale − a_max)/K_d)")
     accel_frac: float = Field(default=0.35, gt=0, le=1,
                               description="Acceleration bound as a share of the airframe's level-flight "
                                           "acceleration g·√(TWR² − 1)")
-    gate_margin: NonNegFloat = Field(default=0.05, description="Margin inside opening/2 − radius [m]")
+    gate_margin: NonNegFloat = Field(default=0.08, description="Margin inside opening/2 − radius [m]")
     funnel_slope: PosFloat = Field(default=1.5, description="Widening of the gate funnels per metre of depth")
     funnel_reach: PosFloat = Field(default=1.5, description="Distance from the next gate within which its approach "
                                                             "funnel is enforced [m]")
     exit_reach: PosFloat = Field(default=0.6, description="Distance from a passed gate's centre within which its "
                                                           "exit funnel is enforced [m]")
-    drone_margin: NonNegFloat = Field(default=0.1, description="Separation between drones beyond 2·radius [m]")
+    drone_margin: NonNegFloat = Field(default=0.15, description="Separation between drones beyond 2·radius [m]")
     wall_margin: NonNegFloat = Field(default=0.1, description="Distance kept from the ground and arena walls "
                                                               "beyond the radius [m]")
     progress_weight: PosFloat = Field(default=1.0, description="Weight of the progress at the horizon [1/m]")
@@ -91,9 +91,12 @@ class SEIBRPlanner:
         act = env.cfg.action
         reach = act.pos_scale if act.mode == "relative" else 0.5 * float(np.min(np.subtract(track.bounds.max,
                                                                                           track.bounds.min)))
-        self.v_max = c.speed_frac * reach * float(np.min(self.kp / self.kd))
         g = env.world.sim.gravity
         self.a_max = c.accel_frac * g * math.sqrt(air.thrust_to_weight**2 - 1.0)
+        # Fastest steady speed whose PID target, with room for a_max, fits in the action: K_d·v + a_max ≤ K_p·reach.
+        self.v_max = c.speed_frac * float(np.min((self.kp * reach - self.a_max) / self.kd))
+        if self.v_max <= 0:
+            raise ValueError("the action's reach leaves no speed after the acceleration bound: lower accel_frac")
         r = air.radius
         bar = max(track.gate_bar(i) for i in range(len(track.gates)))
         self.params = GameParams(
@@ -102,6 +105,7 @@ class SEIBRPlanner:
             tube=bar / 2 + r + c.gate_margin, slope=c.funnel_slope, reach=c.funnel_reach, exit_reach=c.exit_reach,
             separation=2 * r + c.drone_margin, progress_weight=c.progress_weight, alpha=c.alpha,
             guard_steps=c.guard_steps, sensitivity=c.sensitivity)
+        self.gate_table = gate_row_table(self.line, self.params)
         self.lo = np.asarray(track.bounds.min, float) + r + c.wall_margin
         self.hi = np.asarray(track.bounds.max, float) - r - c.wall_margin
         self.plans = np.zeros((self.W, self.D, self.N + 1, 3))
@@ -216,7 +220,7 @@ class SEIBRPlanner:
         if not players:
             return
         n_rounds = rounds or (self.cfg.first_rounds if fresh else self.cfg.rounds)
-        iterate_best_responses(self.line, players, self.D, self.params, n_rounds)
+        iterate_best_responses(self.line, self.gate_table, players, self.D, self.params, n_rounds)
         for pl in players:
             self.plans[w, pl.slot], self.plan_v0[w, pl.slot] = pl.plan, pl.v0
             self.duals[w, pl.slot] = pl.duals

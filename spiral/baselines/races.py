@@ -1,0 +1,162 @@
+"""Seeded SE-IBR races: self-matches and head-to-head duels, with the statistics ``docs/se_ibr.md`` reports.
+
+Run ``python -m spiral.baselines.races --help``. Library functions return :class:`~spiral.env.RaceResults`; only the
+command-line entry formats them (with :func:`spiral.eval.metrics.summarize_races`, imported there).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from spiral.baselines.centreline import Centreline
+from spiral.baselines.se_ibr import PlannerPolicy, opponent_policy, se_ibr_policy
+from spiral.config import AIRFRAMES, EnvCfg, SimCfg, TrackSpec, load_track
+from spiral.env import RaceEnv, RaceResults, run_races
+
+__all__ = ["duel_statistics", "head_to_head", "race_progress", "self_match"]
+
+
+def _env(track: TrackSpec, drones: int, runs: int, seed: int, learners: list[int]) -> RaceEnv:
+    return RaceEnv(track, AIRFRAMES["cf2x"], SimCfg(), EnvCfg(), world_count=runs, drones_per_world=drones,
+                   learner_slots=learners, seed=seed, auto_reset=False)
+
+
+def self_match(track: TrackSpec, drones: int, *, runs: int = 50, seed: int = 0, **kw: Any
+               ) -> tuple[RaceResults, PlannerPolicy]:
+    """``runs`` seeded races in which one SE-IBR planner (``kw``: SEIBRCfg fields) flies every drone."""
+    env = _env(track, drones, runs, seed, list(range(drones)))
+    policy = se_ibr_policy(env, **kw)
+    return run_races(env, policy, record=True), policy
+
+
+def head_to_head(track: TrackSpec, *, learner: dict[str, Any], opponent: dict[str, Any], runs: int = 50,
+                 seed: int = 0) -> tuple[RaceResults, PlannerPolicy, PlannerPolicy]:
+    """1v1 races: slot 0 flown by a planner with ``learner`` settings, slot 1 by one with ``opponent`` settings."""
+    env = _env(track, 2, runs, seed, [0])
+    opp = opponent_policy(env, **opponent)
+    env.set_opponent_policy(opp)
+    policy = se_ibr_policy(env, **learner)
+    return run_races(env, policy, record=True), policy, opp
+
+
+def race_progress(track: TrackSpec, traj: torch.Tensor) -> np.ndarray:
+    """Progress along the track [m] of every drone at every recorded step, shape (T, W, D).
+
+    Gates passed (replayed from the trajectory with the simulator's crossing rule, on the centre points)
+    times the lap length over the gate count, plus the arc length of the projection onto the reference line
+    inside the next gate's window. Frozen drones keep their last value.
+    """
+    line = Centreline(track)
+    p = traj.numpy().astype(float)
+    T, W, D, _ = p.shape
+    flat = p.reshape(T, W * D, 3)
+    nxt = np.zeros(W * D, dtype=np.int64)
+    passed = np.zeros(W * D)
+    out = np.zeros((T, W * D))
+    half = line.half_opening
+    per_gate = line.length / line.gate_count
+    for t in range(T):
+        if t > 0:
+            d0, d1 = line.depth(flat[t - 1], nxt), line.depth(flat[t], nxt)
+            cross = (d0 < 0) & (d1 >= 0)
+            frac = np.where(cross, d0 / np.where(cross, d0 - d1, 1.0), 0.0)[:, None]
+            hit = flat[t - 1] + frac * (flat[t] - flat[t - 1]) - line.center[nxt]
+            inside = (np.abs((hit * line.axis_y[nxt]).sum(-1)) < half[nxt]) & (
+                np.abs((hit * line.axis_z[nxt]).sum(-1)) < half[nxt])
+            ok = cross & inside
+            passed += ok
+            nxt = np.where(ok, (nxt + 1) % line.gate_count, nxt)
+        idx = line.project(flat[t], nxt)
+        start = line.gate_sample[(nxt - 1) % line.gate_count]
+        arc = (line.arc[idx] - line.arc[start]) % line.length
+        out[t] = (passed - 1) * per_gate + np.minimum(arc, 1.5 * per_gate)
+    return out.reshape(T, W, D)
+
+
+def duel_statistics(track: TrackSpec, res: RaceResults, *, a: int = 0, b: int = 1) -> dict[str, Any]:
+    """Who won each 1v1 race between slots ``a`` and ``b`` and how they raced.
+
+    A win is finishing first (a finisher beats a crashed or timed-out drone; no winner when neither finishes).
+    Also: the closest approach of the two drones in each race while both fly, the lap times, how often the lead changed
+    (progress order, ignoring swings under 0.1 m) and the share of steps with both flying in which ``a`` led.
+    """
+    fin, lap = res.finished.numpy(), res.lap_time.numpy()
+    runs = fin.shape[0]
+    a_wins = fin[:, a] & (~fin[:, b] | (lap[:, a] < lap[:, b]))
+    b_wins = fin[:, b] & (~fin[:, a] | (lap[:, b] < lap[:, a]))
+    traj = res.trajectory
+    assert traj is not None, "duel statistics need recorded trajectories"
+    step = (traj[1:] - traj[:-1]).norm(dim=-1).numpy()  # frozen (crashed or finished) drones do not move
+    both = np.concatenate([np.ones((1, runs), bool), (step[:, :, a] > 0) & (step[:, :, b] > 0)])
+    sep = np.where(both, (traj[:, :, a] - traj[:, :, b]).norm(dim=-1).numpy(), np.inf).min(axis=0)
+    prog = race_progress(track, traj)
+    lead = prog[:, :, a] - prog[:, :, b]
+    sign = np.sign(np.where(np.abs(lead) < 0.1, 0.0, lead))
+    changes = []
+    for w in range(runs):
+        s = sign[:, w][sign[:, w] != 0]
+        changes.append(int((s[1:] != s[:-1]).sum()))
+    lap_a, lap_b = lap[fin[:, a], a], lap[fin[:, b], b]
+    return {
+        "races": runs, "a_wins": int(a_wins.sum()), "b_wins": int(b_wins.sum()),
+        "no_winner": int(runs - a_wins.sum() - b_wins.sum()),
+        "a_win_rate": float(a_wins.mean()), "b_win_rate": float(b_wins.mean()),
+        "min_separation_median": float(np.median(sep)),
+        "min_separation_p10": float(np.percentile(sep, 10)),
+        "a_success": float(fin[:, a].mean()), "b_success": float(fin[:, b].mean()),
+        "a_lap_mean": float(lap_a.mean()) if lap_a.size else None,
+        "b_lap_mean": float(lap_b.mean()) if lap_b.size else None,
+        "lead_changes_mean": float(np.mean(changes)),
+        "a_ahead_share": float((lead[both] > 0).mean()),
+    }
+
+
+def _summary(res: RaceResults, slots: list[int] | None = None) -> dict[str, Any]:
+    from spiral.eval.metrics import summarize_races  # CLI only: eval sits above baselines in the layering
+
+    return summarize_races(res, slots)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Command line: ``python -m spiral.baselines.races {solo,1v1,2v2,duel} --track tracks/circuit6.yaml``."""
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("scenario", choices=["solo", "1v1", "2v2", "duel"])
+    ap.add_argument("--track", type=Path, default=Path("tracks/circuit6.yaml"))
+    ap.add_argument("--runs", type=int, default=50)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--cfg", type=json.loads, default={}, help="SEIBRCfg overrides as JSON (learner/self-match)")
+    ap.add_argument("--opponent-cfg", type=json.loads, default={"alpha": 0.0}, help="duel: slot 1's overrides")
+    ap.add_argument("--json", type=Path, default=None, help="also write the result here")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    track = load_track(args.track)
+    t0 = time.perf_counter()
+    out: dict[str, Any] = {"track": track.name, "scenario": args.scenario, "runs": args.runs, "seed": args.seed,
+                           "cfg": args.cfg}
+    if args.scenario == "duel":
+        res, pol, opp = head_to_head(track, learner=args.cfg, opponent=args.opponent_cfg, runs=args.runs,
+                                     seed=args.seed)
+        out.update(opponent_cfg=args.opponent_cfg, slot0=_summary(res, [0]), slot1=_summary(res, [1]),
+                   duel=duel_statistics(track, res), timing=pol.planner.timing(), opponent_timing=opp.planner.timing())
+    else:
+        drones = {"solo": 1, "1v1": 2, "2v2": 4}[args.scenario]
+        res, pol = self_match(track, drones, runs=args.runs, seed=args.seed, **args.cfg)
+        out.update(summary=_summary(res), timing=pol.planner.timing())
+        if drones == 2:
+            out["duel"] = duel_statistics(track, res)
+    out["wall_s"] = time.perf_counter() - t0
+    text = json.dumps(out, indent=1)
+    print(text)
+    if args.json is not None:
+        args.json.write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
