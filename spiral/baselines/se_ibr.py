@@ -114,6 +114,8 @@ class SEIBRPlanner:
         self.duals = np.zeros((self.W, self.D, self.D, self.N))
         """``duals[w, i, j, k]``: multiplier of i's collision row against j at waypoint k."""
         self.has_plan = np.zeros((self.W, self.D), dtype=bool)
+        self.fallback = np.zeros((self.W, self.D), dtype=bool)
+        """Whether each drone's current plan comes from the soft-constraint fallback."""
         self.plan_time = np.full(self.W, -np.inf)
         self._qps: dict[tuple[int, int], BestResponseQP] = {}
         self.drone_ms: list[float] = []
@@ -225,6 +227,7 @@ class SEIBRPlanner:
             self.plans[w, pl.slot], self.plan_v0[w, pl.slot] = pl.plan, pl.v0
             self.duals[w, pl.slot] = pl.duals
             self.has_plan[w, pl.slot] = True
+            self.fallback[w, pl.slot] = pl.last is not None and pl.last.soft
             self.drone_ms.append(pl.solve_ms)
         self.solves += n_rounds * len(players)
         self.soft_solves += sum(pl.soft_count for pl in players)

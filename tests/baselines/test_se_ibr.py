@@ -82,7 +82,7 @@ def test_players_on_a_collision_course_keep_the_separation(collision_course):
     planner.replan(rounds=3)
     sep = planner.params.separation
     assert min_plan_separation(planner, 0, 1) >= sep - 1e-4
-    assert planner.soft_solves == 0
+    assert not planner.fallback[0].any()
     assert np.abs(crossing(planner, 0, 0)).max() < 0.3 and np.abs(crossing(planner, 1, 0)).max() < 0.3
 
 
@@ -111,9 +111,9 @@ def test_duals_are_non_negative_and_zero_on_slack_rows():
 
 
 def test_game_duals_vanish_when_players_are_far_apart(collision_course):
-    """Give all-zero multipliers when the two drones race 4 m apart, and non-negative ones on a collision course."""
+    """Give non-negative multipliers on a collision course and all-zero ones when the drones race 4 m apart."""
     planner = SEIBRPlanner(collision_course, alpha=0.0)
-    planner.replan(rounds=3)
+    planner.replan(rounds=1)
     assert np.all(planner.duals[0] >= 0.0) and planner.duals[0].max() > 1e-3
     place(collision_course, [[-1.0, -2.0, 1.0], [-1.0, 2.0, 1.0]])
     far = SEIBRPlanner(collision_course, alpha=0.0)
