@@ -64,3 +64,33 @@ def test_eval_reports_a_missing_checkpoint_as_an_error():
     result = runner.invoke(app, ["eval", "--track", str(ROOT / "tracks" / "oval4.yaml"), "--method", "x=/nope.pt"])
     assert result.exit_code == 1
     assert "Error: /nope.pt: no such checkpoint" in result.output
+
+
+def test_validate_checks_the_track_a_pipeline_names(tmp_path):
+    """Fail a valid pipeline whose track overlaps two gates, naming the track file and field on stderr."""
+    bad = ROOT / "tests" / "config" / "fixtures" / "overlapping_gates.yaml"
+    path = tmp_path / "p.yaml"
+    path.write_text(f"kind: pipeline\nname: p\ntrack: {bad}\nstages:\n  - {{name: solo, iterations: 1}}\n")
+    result = runner.invoke(app, ["validate", str(path)])
+    assert result.exit_code == 1
+    assert result.stderr.startswith(f"Error: {bad}: gates.1.position: ")
+    assert "OK" not in result.stdout
+
+
+def test_track_show_reports_a_malformed_track_without_a_traceback(tmp_path):
+    """Print `Error: <file>: <field>: ...`, exit 1 and write no image."""
+    bad = ROOT / "tests" / "config" / "fixtures" / "unknown_key.yaml"
+    out = tmp_path / "bad.png"
+    result = runner.invoke(app, ["track", "show", str(bad), "--out", str(out)])
+    assert result.exit_code == 1
+    assert result.stderr == f"Error: {bad}: gates.0.colour: Extra inputs are not permitted\n"
+    assert not out.exists()
+
+
+def test_track_info_lists_every_gate_of_circuit6():
+    """Print the centreline length and one line per gate with its passing direction."""
+    result = runner.invoke(app, ["track", "info", str(ROOT / "tracks" / "circuit6.yaml")])
+    assert result.exit_code == 0
+    assert "6 gates, centreline 14.48 m" in result.stdout
+    gate_lines = [line for line in result.stdout.splitlines() if line.startswith("  gate ")]
+    assert len(gate_lines) == 6 and all("passing [" in line for line in gate_lines)

@@ -131,7 +131,7 @@ class TrackSpec(StrictModel):
                 "rpy_deg": list(g.rpy_deg),
                 "direction": int(signs[i]),
                 "direction_inferred": g.direction is None,
-                "forward": [round(float(v), 6) for v in forward[i]],
+                "forward": [round(float(v), 6) + 0.0 for v in forward[i]],  # + 0.0 turns -0.0 into 0.0
                 "opening": self.gate_opening(i),
                 "outer_size": self.gate_size(i),
             }

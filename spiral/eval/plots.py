@@ -22,6 +22,8 @@ _CORNER_LOOP = [0, 1, 3, 2, 0]
 
 _GATE_COLOUR = "tab:orange"
 _ARROW_COLOUR = "tab:red"
+_PAD = 0.3
+"""Margin around the arena bounds in each view [m]."""
 _ARROW_LENGTH = 0.6
 """Length of a passing-direction arrow before projection [m]."""
 
@@ -39,27 +41,55 @@ def plot_track(track: TrackSpec, out: Path) -> Path:
     Returns:
         The path written.
     """
-    lo, hi = np.asarray(track.bounds.min), np.asarray(track.bounds.max)
-    heights = [hi[v] - lo[v] for _, _, v, _ in _VIEWS]
     # A figure without pyplot: the Agg canvas renders off-screen and no global backend state is touched.
-    fig = Figure(figsize=(10, 10 * sum(heights) / (hi[0] - lo[0]) + 1.5))
+    size, rects = _track_layout(track)
+    fig = Figure(figsize=size)
     FigureCanvasAgg(fig)
-    axes = fig.subplots(2, 1, gridspec_kw={"height_ratios": heights})
+    axes = [fig.add_axes(rect) for rect in rects]
     for ax, (title, h, v, ylabel) in zip(axes, _VIEWS, strict=True):
         _draw_view(ax, track, h, v)
         ax.set_title(title, fontsize=11)
         ax.set_xlabel("x [m]")
         ax.set_ylabel(ylabel)
-    axes[0].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9, frameon=False)
-    fig.suptitle(
-        f"{track.name}: {len(track.gates)} gates, centreline {track.centreline_length():.1f} m",
-        fontsize=13,
-    )
-    fig.tight_layout()
+    x, y, w, h = rects[0]
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="upper left", bbox_to_anchor=(x + w + 0.01, y + h), fontsize=9, frameon=False)
+    fig.suptitle(f"{track.name}: {len(track.gates)} gates, centreline {track.centreline_length():.1f} m", fontsize=13)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=150)
     return out
+
+
+def _label_offset(outward: np.ndarray, forward: np.ndarray, h: int, v: int) -> np.ndarray:
+    """Unit 2-D direction for a gate's number: away from the track's middle and away from its arrow."""
+    arrow = np.array([forward[h], forward[v]])
+    away = np.array([outward[h], outward[v]])
+    away = away / max(float(np.linalg.norm(away)), 1e-6) - arrow
+    norm = float(np.linalg.norm(away))
+    return away / norm if norm > 1e-6 else np.array([0.0, 1.0])
+
+
+def _track_layout(track: TrackSpec) -> tuple[tuple[float, float], list[tuple[float, float, float, float]]]:
+    """Figure size [in] and the two panels' rectangles (figure fractions), top view above side view.
+
+    Both panels use one scale (inches per metre), so with equal aspect their x axes have the same length and
+    line up, and no space is lost to aspect adjustment.
+    """
+    lo, hi = np.asarray(track.bounds.min) - _PAD, np.asarray(track.bounds.max) + _PAD
+    span = hi - lo
+    scale = min(7.0 / span[0], 9.0 / (span[1] + span[2]))
+    left, right, top, gap, bottom = 0.8, 2.0, 0.8, 0.9, 0.6
+    width = scale * span[0]
+    panel_heights = [scale * span[v] for _, _, v, _ in _VIEWS]
+    fig_w, fig_h = left + width + right, top + sum(panel_heights) + gap + bottom
+    y_side = bottom
+    y_top = bottom + panel_heights[1] + gap
+    rects = [
+        (left / fig_w, y_top / fig_h, width / fig_w, panel_heights[0] / fig_h),
+        (left / fig_w, y_side / fig_h, width / fig_w, panel_heights[1] / fig_h),
+    ]
+    return (fig_w, fig_h), rects
 
 
 def _draw_view(ax: Axes, track: TrackSpec, h: int, v: int) -> None:
@@ -73,9 +103,8 @@ def _draw_view(ax: Axes, track: TrackSpec, h: int, v: int) -> None:
     line = track.centreline_points()
     ax.plot(line[:, h], line[:, v], ":", color="tab:blue", lw=1.2, label="centreline")
     _draw_gates(ax, track, h, v)
-    pad = 0.3
-    ax.set_xlim(lo[h] - pad, hi[h] + pad)
-    ax.set_ylim(lo[v] - pad, hi[v] + pad)
+    ax.set_xlim(lo[h] - _PAD, hi[h] + _PAD)
+    ax.set_ylim(lo[v] - _PAD, hi[v] + _PAD)
     ax.set_aspect("equal")
     ax.grid(True, color="0.9", lw=0.6)
 
@@ -95,9 +124,7 @@ def _draw_gates(ax: Axes, track: TrackSpec, h: int, v: int) -> None:
             xytext=(c[h], c[v]),
             arrowprops={"arrowstyle": "-|>", "color": _ARROW_COLOUR, "lw": 1.8, "mutation_scale": 14},
         )
-        away = np.array([c[h] - middle[h], c[v] - middle[v]])
-        away = away / n if (n := np.linalg.norm(away)) > 1e-6 else np.array([0.0, 1.0])
-        label = np.array([c[h], c[v]]) + away * (0.5 * track.gate_size(i) + 0.25)
-        ax.text(*label, str(i), ha="center", va="center", fontsize=11, fontweight="bold",
+        at = np.array([c[h], c[v]]) + _label_offset(c - middle, forward[i], h, v) * (0.5 * track.gate_size(i) + 0.25)
+        ax.text(*at, str(i), ha="center", va="center", fontsize=11, fontweight="bold",
                 bbox={"boxstyle": "circle,pad=0.2", "fc": "white", "ec": _GATE_COLOUR})
     ax.plot([], [], color=_ARROW_COLOUR, marker=">", label="passing direction")
