@@ -8,6 +8,7 @@ from typing import Any, TypeVar, overload
 import yaml
 from pydantic import BaseModel, ValidationError
 
+from spiral.config.airframe import resolve_airframe
 from spiral.config.errors import SpecError, format_validation_error
 from spiral.config.pipeline import PipelineSpec
 from spiral.config.track import TrackSpec
@@ -70,5 +71,6 @@ def load_pipeline(path: str | Path) -> tuple[PipelineSpec, TrackSpec]:
     """Load a pipeline and the track it names (relative to the pipeline file)."""
     path = Path(path)
     spec = load_spec(path, PipelineSpec)
+    resolve_airframe(spec.airframe, source=str(path))  # a misspelt override fails here, naming the file
     track_path = spec.track if spec.track.is_absolute() else path.parent / spec.track
     return spec, load_track(track_path)

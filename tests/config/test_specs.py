@@ -34,6 +34,7 @@ MALFORMED = {
     "negative_opening.yaml": "opening",
     "yaml_syntax.yaml": "line 5",
     "pipeline_bad_field.yaml": "stages.0.ppo.learning_rate",
+    "pipeline_bad_override.yaml": "airframe.overrides.mas",
 }
 
 
