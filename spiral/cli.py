@@ -156,10 +156,17 @@ def train(
     device: Device = None,
     runs_dir: RunsDir = Path("runs"),
     checkpoints_dir: CkptDir = Path("checkpoints"),
+    distributed: Annotated[bool, typer.Option("--distributed", help="One process per GPU under torchrun "
+                                              "(docs/scaling.md)")] = False,
 ) -> None:
     """Train one stage of a pipeline (its inputs must be complete); resumes from its newest checkpoint."""
     from spiral.pipeline import PipelineRunner
 
+    if distributed:
+        from spiral.pipeline.distributed import train_stage_distributed
+
+        train_stage_distributed(pipeline, stage, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device)
+        return
     runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device)
     runner.run(only=f"train:{stage}")
 
@@ -212,6 +219,19 @@ def bench_sim(
     result = run_sim_bench(counts, device=device, steps=steps, two_process=two_process)
     typer.echo(format_bench_table(result))
     _write_json(json_out, result)
+
+
+@app.command("export")
+@handles_errors
+def export(
+    checkpoint: Annotated[Path, typer.Argument(help="Checkpoint (.pt) to export")],
+    fmt: Annotated[str, typer.Option("--format", help="onnx or torchscript")],
+    out: Annotated[Path, typer.Option("--out", help="Output file")],
+) -> None:
+    """Export a policy (observation normaliser included) for deployment: obs (B, obs_dim) -> actions (B, 4)."""
+    from spiral.train.export import export_policy
+
+    typer.echo(f"wrote {export_policy(checkpoint, out, fmt=fmt)}")  # type: ignore[arg-type]
 
 
 def main() -> None:

@@ -16,7 +16,6 @@ from typing import Any
 import numpy as np
 import torch
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-from rsl_rl.runners import OnPolicyRunner
 from torch.utils.tensorboard import SummaryWriter
 
 from spiral.config.airframe import AirframeCfg
@@ -26,6 +25,7 @@ from spiral.config.track import TrackSpec
 from spiral.env.race_env import OpponentPolicy, RaceEnv
 from spiral.env.racing import run_races
 from spiral.env.vec_env import RaceVecEnv
+from spiral.train import distributed
 from spiral.train.checkpoint import load_checkpoint, newest_valid_checkpoint, save_checkpoint
 
 __all__ = ["EvalScore", "StageTrainer", "TrainResult", "seed_everything"]
@@ -92,10 +92,13 @@ class StageTrainer:
     ) -> None:
         self.track, self.airframe, self.sim, self.stage = track, airframe, sim, stage
         self.run_dir, self.device, self.seed, self.log, self.show_progress = Path(run_dir), device, seed, log, progress
-        seed_everything(seed)
+        self.dist = distributed.current()
+        """This process's rank: rank 0 of 1 unless in a torchrun process group (only rank 0 writes files)."""
+        self.show_progress = progress and self.dist.is_main
+        seed_everything(self.dist.seed(seed))
         d = stage.drones_per_world
         self.env = RaceEnv(track, airframe, sim, stage.env, world_count=stage.worlds, drones_per_world=d,
-                           learner_slots=stage.learner_slots(), device=device, seed=seed)
+                           learner_slots=stage.learner_slots(), device=device, seed=self.dist.seed(seed))
         if opponent is not None:
             self.env.set_opponent_policy(opponent)
             self.env.reset()  # the first episodes were drawn without opponents
@@ -104,13 +107,15 @@ class StageTrainer:
                                 seed=seed + 10_000, auto_reset=False)
         self.vec_env = RaceVecEnv(self.env)
         with contextlib.redirect_stdout(io.StringIO()):  # rsl-rl prints the model architecture
-            self.runner = OnPolicyRunner(self.vec_env, stage.ppo.to_rsl_rl(), log_dir=None, device=device)
+            self.runner = distributed.GroupRunner(self.vec_env, stage.ppo.to_rsl_rl(), log_dir=None, device=device)
         self.start_iteration = 0
         self.best = EvalScore(-1.0, -math.inf)
         self.selector = selector or StageTrainer.select_by_solo_eval
         """Called every ``selection_interval`` iterations; keeps ``best.pt`` and returns numbers to log."""
         self.selection_interval = selection_interval or stage.selection.interval
         self._resume_or_init(init_checkpoint)
+        if self.runner.is_distributed:
+            distributed.share_training_state(self)
 
     # Checkpoints
 
@@ -185,13 +190,15 @@ class StageTrainer:
     def train(self) -> TrainResult:
         """Run the remaining iterations of the stage's budget and return where the best policy is."""
         total = self.stage.iteration_budget()
-        alg, env, cfg = self.runner.alg, self.vec_env, self.runner.cfg
-        writer = SummaryWriter(log_dir=str(self.run_dir / "tb"), flush_secs=30)
+        alg, env, cfg, main = self.runner.alg, self.vec_env, self.runner.cfg, self.dist.is_main
+        writer = SummaryWriter(log_dir=str(self.run_dir / "tb"), flush_secs=30) if main else None
         history: list[dict[str, float]] = []
         steps_per_it = cfg["num_steps_per_env"] * env.num_envs
         t_start = time.perf_counter()
         obs = env.get_observations().to(self.device)
         alg.train_mode()
+        if self.runner.is_distributed:  # as rsl-rl's learn(): every rank starts from rank 0's parameters
+            alg.broadcast_parameters()
         last_path = self.ckpt_dir / f"model_{max(self.start_iteration - 1, 0)}.pt"
         with self._progress(total) as (progress, task):
             for it in range(self.start_iteration, total):
@@ -212,15 +219,17 @@ class StageTrainer:
                        "reward_per_step": float(reward_sum) / steps_per_it,
                        "action_std": float(alg.get_policy().output_std.detach().mean()),
                        **{f"loss/{k}": float(v) for k, v in losses.items()}, **self.env.pop_stats()}
-                if (it + 1) % self.selection_interval == 0 or it == total - 1:
+                if main and ((it + 1) % self.selection_interval == 0 or it == total - 1):
                     row.update(self.selector(self, it))
-                if (it + 1) % self.stage.ppo.save_interval == 0 or it == total - 1:
+                if main and ((it + 1) % self.stage.ppo.save_interval == 0 or it == total - 1):
                     last_path = self.ckpt_dir / f"model_{it}.pt"
                     self._save(last_path, it)
-                self._write_row(writer, row, it)
+                if writer is not None:
+                    self._write_row(writer, row, it)
                 history.append(row)
                 progress.update(task, completed=it + 1, stats=self._status(row))
-        writer.close()
+        if writer is not None:
+            writer.close()
         env_steps = (total - self.start_iteration) * steps_per_it
         return TrainResult(self.run_dir / "best.pt", last_path, self.best, total, time.perf_counter() - t_start,
                            env_steps, history)

@@ -1,0 +1,309 @@
+"""gymnasium adapters: ``spiral/Race-v0`` as a batched ``VectorEnv`` over one :class:`RaceEnv`, and as a single Env.
+
+``gymnasium.make_vec("spiral/Race-v0", num_envs=N, track="oval4")`` returns :class:`RaceVectorEnv`: N learner drones
+stepped together by one :class:`RaceEnv` (no Python loop, no subprocesses). ``gymnasium.make("spiral/Race-v0")``
+returns :class:`RaceSingleEnv`, one learner drone, for tools that expect a plain ``gymnasium.Env``.
+
+Both take the same keyword arguments (see :func:`make_race_env`): the track (a YAML path, a shipped track's name or a
+``TrackSpec``), the race format, the opponents (none, a checkpoint path, ``"se-ibr"`` or any ``OpponentPolicy``), the
+environment, simulator and airframe settings, the device and the seed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+import gymnasium
+import numpy as np
+import torch
+from gymnasium import spaces
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from spiral.config.airframe import AirframeCfg, resolve_airframe
+from spiral.config.env import EnvCfg
+from spiral.config.load import load_track
+from spiral.config.sim import SimCfg
+from spiral.config.stage import SCENARIO_DRONES
+from spiral.config.track import TrackSpec
+from spiral.env.race_env import OpponentPolicy, RaceEnv
+
+__all__ = [
+    "ENV_ID",
+    "SHIPPED_TRACKS",
+    "RaceSingleEnv",
+    "RaceVectorEnv",
+    "make_race_env",
+    "register_envs",
+    "resolve_track",
+]
+
+ENV_ID = "spiral/Race-v0"
+"""gymnasium id of the race environment."""
+
+SHIPPED_TRACKS = Path(__file__).resolve().parents[2] / "tracks"
+"""Folder of the tracks that come with spiral; :func:`resolve_track` finds them by name."""
+
+Opponent = OpponentPolicy | str | Path | None
+"""``None`` (opponent slots stay empty), ``"se-ibr"``, a checkpoint path, or a callable ``OpponentPolicy``."""
+
+
+def register_envs() -> None:
+    """Register ``spiral/Race-v0`` with gymnasium (done on ``import spiral.env``; repeated calls are no-ops)."""
+    if ENV_ID not in gymnasium.registry:
+        gymnasium.register(ENV_ID, entry_point="spiral.env.gym_env:RaceSingleEnv",
+                           vector_entry_point="spiral.env.gym_env:RaceVectorEnv")
+
+
+def resolve_track(track: str | Path | TrackSpec) -> TrackSpec:
+    """A ``TrackSpec`` as is, a YAML file, or the name of a shipped track (``oval4``, ``circuit6``, ...)."""
+    if isinstance(track, TrackSpec):
+        return track
+    path = Path(track)
+    if not path.is_file() and path.suffix == "" and (SHIPPED_TRACKS / f"{track}.yaml").is_file():
+        path = SHIPPED_TRACKS / f"{track}.yaml"
+    if not path.is_file():
+        known = ", ".join(sorted(p.stem for p in SHIPPED_TRACKS.glob("*.yaml")))
+        raise FileNotFoundError(f"track {str(track)!r}: no such file and no shipped track of that name ({known})")
+    return load_track(path)
+
+
+def _model(value: Any, model: type, what: str) -> Any:
+    if value is None:
+        return model()
+    if isinstance(value, model):
+        return value
+    if isinstance(value, dict):
+        return model.model_validate(value)
+    raise TypeError(f"{what}: expected a {model.__name__}, a dict or None, got {type(value).__name__}")
+
+
+def _checkpoint_opponent(path: Path, device: str) -> tuple[Any, dict[str, Any]]:
+    """The frozen policy of a checkpoint and its stored env settings (imported here: train depends on env)."""
+    from spiral.train.checkpoint import load_policy
+
+    policy = load_policy(path, device=device)
+    return policy, policy.meta["env"]
+
+
+def make_race_env(
+    track: str | Path | TrackSpec = "oval4",
+    *,
+    scenario: Literal["solo", "1v1", "2v2"] = "solo",
+    opponent: Opponent = None,
+    env_cfg: EnvCfg | dict | None = None,
+    sim: SimCfg | dict | None = None,
+    airframe: str | AirframeCfg = "cf2x",
+    world_count: int = 1,
+    learner_slots: Sequence[int] | None = None,
+    device: str = "cpu",
+    seed: int = 0,
+    auto_reset: bool = True,
+    env_class: type[RaceEnv] = RaceEnv,
+) -> RaceEnv:
+    """Build a :class:`RaceEnv` from friendly arguments; the adapters of this module and PettingZoo's use it.
+
+    Args:
+        track: A ``TrackSpec``, a track YAML file, or the name of a shipped track.
+        scenario: Race format: ``solo`` (1 drone), ``1v1`` (2) or ``2v2`` (4).
+        opponent: Who flies the opponent slots: ``None`` (absent), ``"se-ibr"`` (the game-theoretic planner),
+            a checkpoint path (its frozen policy; its env settings are used when ``env_cfg`` is None) or a callable.
+        env_cfg: Observation, action, reward and episode settings (``EnvCfg`` or a dict of its fields).
+        sim: Simulator settings (``SimCfg`` or a dict).
+        airframe: A built-in airframe's name or an ``AirframeCfg``.
+        world_count: Races stepped together.
+        learner_slots: Slots the caller drives; the race format's learner team when None (slot 0, or 0 and 1 in 2v2).
+        device: ``cpu`` or ``cuda:N``.
+        seed: Seed of the start placements.
+        auto_reset: Reset a world in ``step`` when its race ends (training); False freezes finished drones.
+        env_class: ``RaceEnv`` or a subclass.
+    """
+    if scenario not in SCENARIO_DRONES:
+        raise ValueError(f"scenario: expected one of {', '.join(SCENARIO_DRONES)}, got {scenario!r}")
+    drones = SCENARIO_DRONES[scenario]
+    slots = list(learner_slots) if learner_slots is not None else ([0, 1] if scenario == "2v2" else [0])
+    policy: OpponentPolicy | None = None
+    se_ibr = isinstance(opponent, str) and opponent.lower() == "se-ibr"
+    if isinstance(opponent, (str, Path)) and not se_ibr:
+        policy, stored_env = _checkpoint_opponent(Path(opponent), device)
+        env_cfg = stored_env if env_cfg is None else env_cfg
+    elif callable(opponent):
+        policy = opponent
+    elif opponent is not None and not se_ibr:
+        raise TypeError(f"opponent: expected None, 'se-ibr', a checkpoint path or a callable, got {opponent!r}")
+    if opponent is not None and len(slots) == drones:
+        raise ValueError(f"opponent: a {scenario} race whose every slot is driven by the caller has no opponent slot")
+    air = airframe if isinstance(airframe, AirframeCfg) else resolve_airframe(airframe)
+    env = env_class(resolve_track(track), air, _model(sim, SimCfg, "sim"), _model(env_cfg, EnvCfg, "env_cfg"),
+                    world_count=world_count, drones_per_world=drones, learner_slots=slots, device=device, seed=seed,
+                    auto_reset=auto_reset)
+    if se_ibr:
+        from spiral.baselines import opponent_policy
+
+        policy = opponent_policy(env)
+    if policy is not None:
+        layout = getattr(policy, "obs_layout", None)
+        if layout is not None and layout != env.obs_builder.layout():
+            raise ValueError(f"opponent: checkpoint observation layout {layout} differs from the env's "
+                             f"{env.obs_builder.layout()} (pass env_cfg=None to use the checkpoint's)")
+        env.set_opponent_policy(policy)
+        env.reset()  # the opponents join at a reset
+    return env
+
+
+class _RaceEnvWithFinalObs(RaceEnv):
+    """A :class:`RaceEnv` that keeps its learner drones' last observation before each automatic world reset.
+
+    RaceEnv resets finished worlds inside ``step`` and returns the first observation of the new episode; gymnasium's
+    same-step autoreset also wants the last one of the old episode (``final_obs``). It is built here just before the
+    reset, without moving the history buffer, along with how the episode ended.
+    """
+
+    final_obs: torch.Tensor
+    """Learner observations as the last step left them, before its resets (rows of reset worlds matter)."""
+    final_outcome: dict[str, torch.Tensor]
+    """Per learner row at the last reset: ``success`` (finished without collision), ``crashed``, ``lap_time`` [s]
+    (NaN when not finished)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        self._stepping = False
+        super().__init__(*args, **kwargs)
+
+    def step(self, actions: torch.Tensor) -> tuple[Any, torch.Tensor, torch.Tensor, dict]:
+        """:meth:`RaceEnv.step`, recording :attr:`final_obs` and :attr:`final_outcome` when a world resets."""
+        self._stepping = True
+        try:
+            return super().step(actions)
+        finally:
+            self._stepping = False
+
+    def _reset_worlds(self, worlds: torch.Tensor) -> None:
+        if self._stepping:
+            history = self.obs_builder.history.clone()
+            self._fresh = torch.zeros_like(self.finished)
+            self._update_history()
+            idx = self.learner_idx
+            self.final_obs = self._build_observations()[idx]
+            self.final_outcome = {"success": self.finished[idx].clone(), "crashed": self.crashed[idx].clone(),
+                                  "lap_time": torch.where(self.finished[idx], self.lap_time[idx],
+                                                          torch.full_like(self.lap_time[idx], float("nan")))}
+            self.obs_builder.history.copy_(history)
+        super()._reset_worlds(worlds)
+
+
+def _spaces(obs_dim: int) -> tuple[spaces.Box, spaces.Box]:
+    obs = spaces.Box(-np.inf, np.inf, shape=(obs_dim,), dtype=np.float32)
+    act = spaces.Box(-1.0, 1.0, shape=(4,), dtype=np.float32)
+    return obs, act
+
+
+class RaceVectorEnv(VectorEnv):
+    """``num_envs`` learner drones of one batched :class:`RaceEnv` as a gymnasium vector env.
+
+    Each sub-environment is one learner drone (in ``2v2`` both learner drones of a world, so ``num_envs`` must be
+    even). Autoreset mode is ``SAME_STEP``: when a race ends, ``step`` returns the first observation of the next
+    race, and ``infos["final_obs"]`` (a dense ``(num_envs, obs_dim)`` array; rows flagged in ``infos["_final_obs"]``
+    hold the last observation of the ended episode, the other rows equal the returned observation) plus
+    ``infos["final_info"]`` (``success``, ``crashed``, ``lap_time`` per row, flagged by ``_final_info``) describe
+    the ended one. ``truncated`` is RaceEnv's ``time_outs`` (time limit, or a team mate's race ended the world's);
+    ``terminated`` is a crash or a finished race.
+
+    Args:
+        num_envs: Learner drones.
+        array_type: ``"numpy"`` (float32 arrays on the CPU) or ``"torch"`` (tensors on ``device``).
+        **kwargs: :func:`make_race_env` arguments (``track``, ``scenario``, ``opponent``, ``env_cfg``, ``sim``,
+            ``airframe``, ``device``, ``seed``).
+    """
+
+    metadata: ClassVar[dict[str, Any]] = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
+
+    def __init__(self, num_envs: int = 1, *, array_type: Literal["numpy", "torch"] = "numpy", **kwargs: Any) -> None:
+        if array_type not in ("numpy", "torch"):
+            raise ValueError(f"array_type: expected 'numpy' or 'torch', got {array_type!r}")
+        per_world = 2 if kwargs.get("scenario") == "2v2" and kwargs.get("learner_slots") is None else 1
+        if num_envs < 1 or num_envs % per_world:
+            raise ValueError(f"num_envs: expected a positive multiple of {per_world}, got {num_envs}")
+        self.race = make_race_env(world_count=num_envs // per_world, env_class=_RaceEnvWithFinalObs, **kwargs)
+        if self.race.num_envs != num_envs:
+            raise ValueError(f"num_envs: {num_envs} is not a multiple of the learner slots {self.race.learner_slots}")
+        self.num_envs, self.array_type = num_envs, array_type
+        self.single_observation_space, self.single_action_space = _spaces(self.race.obs_dim)
+        self.observation_space = batch_space(self.single_observation_space, num_envs)
+        self.action_space = batch_space(self.single_action_space, num_envs)
+
+    @property
+    def device(self) -> torch.device:
+        """Device of the simulation and of torch outputs."""
+        return self.race.device
+
+    def _out(self, x: torch.Tensor) -> Any:
+        return x if self.array_type == "torch" else x.detach().cpu().numpy().copy()
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict]:
+        """Start new races in every world (``seed`` reseeds the start placements)."""
+        super().reset(seed=seed)
+        if seed is not None:
+            self.race.generator.manual_seed(seed)
+        return self._out(self.race.reset()["policy"]), {}
+
+    def step(self, actions: Any) -> tuple[Any, Any, Any, Any, dict[str, Any]]:
+        """One control step of every race; ended races restart in the same step (``SAME_STEP``)."""
+        actions = torch.as_tensor(actions, dtype=torch.float32, device=self.race.device).reshape(self.num_envs, 4)
+        obs, rewards, dones, extras = self.race.step(actions)
+        truncated = extras["time_outs"].bool()
+        terminated = dones.bool() & ~truncated
+        infos: dict[str, Any] = {}
+        if bool(dones.any()):
+            final = torch.where(dones[:, None], self.race.final_obs, obs["policy"])
+            mask = self._out(dones.bool())
+            infos = {"final_obs": self._out(final), "_final_obs": mask,
+                     "final_info": {k: self._out(v) for k, v in self.race.final_outcome.items()},
+                     "_final_info": self._out(dones.bool())}
+        return self._out(obs["policy"]), self._out(rewards.float()), self._out(terminated), self._out(truncated), infos
+
+    def close_extras(self, **kwargs: Any) -> None:
+        """Drop the simulation."""
+        self.race = None  # type: ignore[assignment]
+
+
+class RaceSingleEnv(gymnasium.Env):
+    """One learner drone as a plain ``gymnasium.Env`` (numpy float32 observations, Box action in [−1, 1]⁴).
+
+    ``step`` returns the last observation of a race when it ends (``terminated``: crash or finish; ``truncated``:
+    time limit); call ``reset`` to race again. ``info`` holds ``success``, ``crashed`` and ``lap_time`` at the end.
+    The arguments are those of :func:`make_race_env`; ``scenario`` is ``solo`` or ``1v1`` (use the vector or
+    PettingZoo env for ``2v2``, where the caller drives two drones).
+    """
+
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
+
+    def __init__(self, **kwargs: Any) -> None:
+        if kwargs.get("scenario") == "2v2":
+            raise ValueError("scenario: the single env drives one drone; use gymnasium.make_vec or PettingZoo for 2v2")
+        kwargs.pop("render_mode", None)
+        self.race = make_race_env(world_count=1, env_class=_RaceEnvWithFinalObs, **kwargs)
+        self.observation_space, self.action_space = _spaces(self.race.obs_dim)
+
+    @staticmethod
+    def _np(x: torch.Tensor) -> np.ndarray:
+        return x.detach().cpu().numpy().astype(np.float32, copy=True)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        """Start a new race (``seed`` reseeds the start placement)."""
+        super().reset(seed=seed)
+        if seed is not None:
+            self.race.generator.manual_seed(seed)
+        return self._np(self.race.reset()["policy"][0]), {}
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Fly one control step."""
+        action = torch.as_tensor(np.asarray(action, dtype=np.float32), device=self.race.device).reshape(1, 4)
+        obs, rewards, dones, extras = self.race.step(action)
+        truncated = bool(extras["time_outs"][0])
+        terminated = bool(dones[0]) and not truncated
+        if not bool(dones[0]):
+            return self._np(obs["policy"][0]), float(rewards[0]), False, False, {}
+        info = {k: float(v[0]) if k == "lap_time" else bool(v[0]) for k, v in self.race.final_outcome.items()}
+        return self._np(self.race.final_obs[0]), float(rewards[0]), terminated, truncated, info
