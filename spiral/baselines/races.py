@@ -80,12 +80,14 @@ def race_progress(track: TrackSpec, traj: torch.Tensor) -> np.ndarray:
     return out.reshape(T, W, D)
 
 
-def duel_statistics(track: TrackSpec, res: RaceResults, *, a: int = 0, b: int = 1) -> dict[str, Any]:
+def duel_statistics(track: TrackSpec, res: RaceResults, *, a: int = 0, b: int = 1, close_m: float = 0.5
+                    ) -> dict[str, Any]:
     """Who won each 1v1 race between slots ``a`` and ``b`` and how they raced.
 
     A win is finishing first (a finisher beats a crashed or timed-out drone; no winner when neither finishes).
     Also: the closest approach of the two drones in each race while both fly, the lap times, how often the lead changed
-    (progress order, ignoring swings under 0.1 m) and the share of steps with both flying in which ``a`` led.
+    (progress order, ignoring swings under 0.1 m), the share of steps with both flying in which ``a`` led, the
+    share of those steps the two spent closer than ``close_m``, and who led during them.
     """
     fin, lap = res.finished.numpy(), res.lap_time.numpy()
     runs = fin.shape[0]
@@ -103,6 +105,7 @@ def duel_statistics(track: TrackSpec, res: RaceResults, *, a: int = 0, b: int = 
     for w in range(runs):
         s = sign[:, w][sign[:, w] != 0]
         changes.append(int((s[1:] != s[:-1]).sum()))
+    close = both & (np.where(both, (traj[:, :, a] - traj[:, :, b]).norm(dim=-1).numpy(), np.inf) < close_m)
     lap_a, lap_b = lap[fin[:, a], a], lap[fin[:, b], b]
     return {
         "races": runs, "a_wins": int(a_wins.sum()), "b_wins": int(b_wins.sum()),
@@ -115,6 +118,8 @@ def duel_statistics(track: TrackSpec, res: RaceResults, *, a: int = 0, b: int = 
         "b_lap_mean": float(lap_b.mean()) if lap_b.size else None,
         "lead_changes_mean": float(np.mean(changes)),
         "a_ahead_share": float((lead[both] > 0).mean()),
+        "close_share": float(close.sum() / max(both.sum(), 1)),
+        "a_ahead_when_close": float((lead[close] > 0).mean()) if close.any() else None,
     }
 
 
@@ -134,6 +139,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--cfg", type=json.loads, default={}, help="SEIBRCfg overrides as JSON (learner/self-match)")
     ap.add_argument("--opponent-cfg", type=json.loads, default={"alpha": 0.0}, help="duel: slot 1's overrides")
     ap.add_argument("--json", type=Path, default=None, help="also write the result here")
+    ap.add_argument("--save", type=Path, default=None, help="also torch.save the RaceResults (with trajectories)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     track = load_track(args.track)
@@ -152,6 +158,8 @@ def main(argv: list[str] | None = None) -> None:
         if drones == 2:
             out["duel"] = duel_statistics(track, res)
     out["wall_s"] = time.perf_counter() - t0
+    if args.save is not None:
+        torch.save(res, args.save)
     text = json.dumps(out, indent=1)
     print(text)
     if args.json is not None:

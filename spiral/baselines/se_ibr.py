@@ -26,7 +26,8 @@ from spiral.baselines.game import GameParams, Player, gate_row_table, iterate_be
 from spiral.config.base import NonNegFloat, PosFloat, PosInt, StrictModel
 from spiral.env.race_env import RaceEnv
 
-__all__ = ["PlannerPolicy", "SEIBRCfg", "SEIBRPlanner", "opponent_policy", "se_ibr_policy"]
+__all__ = ["PlannerPolicy", "SEIBRCfg", "SEIBRPlanner", "dynamic_limits", "game_params", "opponent_policy",
+           "se_ibr_policy"]
 
 
 class SEIBRCfg(StrictModel):
@@ -65,6 +66,35 @@ class SEIBRCfg(StrictModel):
                                                         "path; with α = 0 both must agree)")
 
 
+def dynamic_limits(env: RaceEnv, cfg: SEIBRCfg) -> tuple[float, float]:
+    """Speed and acceleration bounds (v_max [m/s], a_max [m/s²]) from the airframe, its PID and the action.
+
+    ``a_max = accel_frac·g·√(TWR² − 1)``; ``v_max`` is ``speed_frac`` times the fastest steady speed whose PID
+    target, with room for ``a_max`` of feed-forward, fits in the action: ``min_axis (K_p·reach − a_max)/K_d``.
+    """
+    air, act, track = env.world.airframe, env.cfg.action, env.track
+    kp, kd = np.asarray(air.pid.pos_p, float), np.asarray(air.pid.pos_d, float)
+    reach = act.pos_scale if act.mode == "relative" else 0.5 * float(np.min(np.subtract(track.bounds.max,
+                                                                                      track.bounds.min)))
+    a_max = cfg.accel_frac * env.world.sim.gravity * math.sqrt(air.thrust_to_weight**2 - 1.0)
+    v_max = cfg.speed_frac * float(np.min((kp * reach - a_max) / kd))
+    if v_max <= 0:
+        raise ValueError("the action's reach leaves no speed after the acceleration bound: lower accel_frac")
+    return v_max, a_max
+
+
+def game_params(env: RaceEnv, cfg: SEIBRCfg, steps: int) -> GameParams:
+    """Geometry and weights of the game from the track, the airframe's radius and ``cfg``."""
+    track, r = env.track, env.world.airframe.radius
+    gates = range(len(track.gates))
+    return GameParams(
+        steps=steps, dt=cfg.dt, gate_half=np.array([track.gate_opening(i) / 2 - r - cfg.gate_margin for i in gates]),
+        tube=max(track.gate_bar(i) for i in gates) / 2 + r + cfg.gate_margin, slope=cfg.funnel_slope,
+        reach=cfg.funnel_reach, exit_reach=cfg.exit_reach, separation=2 * r + cfg.drone_margin,
+        progress_weight=cfg.progress_weight, alpha=cfg.alpha, guard_steps=cfg.guard_steps,
+        sensitivity=cfg.sensitivity)
+
+
 class SEIBRPlanner:
     """SE-IBR planner for every racing drone of ``env``; :meth:`act` returns env actions for chosen drones.
 
@@ -86,28 +116,13 @@ class SEIBRPlanner:
         self.W, self.D = env.world_count, env.drones_per_world
         self.ctrl_dt = float(env.dt)
         self.line = Centreline(track)
-        pid = air.pid
-        self.kp, self.kd, self.ki = (np.asarray(x, float) for x in (pid.pos_p, pid.pos_d, pid.pos_i))
-        act = env.cfg.action
-        reach = act.pos_scale if act.mode == "relative" else 0.5 * float(np.min(np.subtract(track.bounds.max,
-                                                                                          track.bounds.min)))
-        g = env.world.sim.gravity
-        self.a_max = c.accel_frac * g * math.sqrt(air.thrust_to_weight**2 - 1.0)
-        # Fastest steady speed whose PID target, with room for a_max, fits in the action: K_d·v + a_max ≤ K_p·reach.
-        self.v_max = c.speed_frac * float(np.min((self.kp * reach - self.a_max) / self.kd))
-        if self.v_max <= 0:
-            raise ValueError("the action's reach leaves no speed after the acceleration bound: lower accel_frac")
-        r = air.radius
-        bar = max(track.gate_bar(i) for i in range(len(track.gates)))
-        self.params = GameParams(
-            steps=self.N, dt=c.dt,
-            gate_half=np.array([track.gate_opening(i) / 2 - r - c.gate_margin for i in range(len(track.gates))]),
-            tube=bar / 2 + r + c.gate_margin, slope=c.funnel_slope, reach=c.funnel_reach, exit_reach=c.exit_reach,
-            separation=2 * r + c.drone_margin, progress_weight=c.progress_weight, alpha=c.alpha,
-            guard_steps=c.guard_steps, sensitivity=c.sensitivity)
+        self.kp, self.kd, self.ki = (np.asarray(x, float) for x in (air.pid.pos_p, air.pid.pos_d, air.pid.pos_i))
+        self.v_max, self.a_max = dynamic_limits(env, c)
+        self.params = game_params(env, c, self.N)
         self.gate_table = gate_row_table(self.line, self.params)
-        self.lo = np.asarray(track.bounds.min, float) + r + c.wall_margin
-        self.hi = np.asarray(track.bounds.max, float) - r - c.wall_margin
+        margin = air.radius + c.wall_margin
+        self.lo = np.asarray(track.bounds.min, float) + margin
+        self.hi = np.asarray(track.bounds.max, float) - margin
         self.plans = np.zeros((self.W, self.D, self.N + 1, 3))
         """Latest plan p_0 … p_N of each drone (world-time ``plan_time`` at p_0)."""
         self.plan_v0 = np.zeros((self.W, self.D, 3))
