@@ -77,30 +77,30 @@ def _draw_inputs(track: TrackSpec, drone_count: int, draws: int,
     return start, yaw, targets
 
 
-def _time_warp(world: World, targets: list[wp.array], steps: int, first: int) -> float:
-    """Seconds for ``steps`` control steps, from step index ``first`` of the target schedule."""
+def _time_warp(world: World, targets: list[wp.array], steps: int, first: int) -> tuple[float, float]:
+    """Wall and process CPU seconds for ``steps`` control steps, from step ``first`` of the target schedule."""
     device = world.device
     wp.synchronize_device(device)
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     for i in range(first, first + steps):
         if i % TARGET_REDRAW_STEPS == 0:
             wp.copy(world.cmd, targets[(i // TARGET_REDRAW_STEPS) % len(targets)])
         world.race.crashed.zero_()
         world.step()
     wp.synchronize_device(device)
-    return time.perf_counter() - start
+    return time.perf_counter() - start, time.process_time() - cpu
 
 
-def _time_numpy(ref: ReferenceSim, targets: np.ndarray, steps: int, first: int) -> float:
-    """Seconds for ``steps`` control steps of the numpy reference, on the same schedule as :func:`_time_warp`."""
-    start = time.perf_counter()
+def _time_numpy(ref: ReferenceSim, targets: np.ndarray, steps: int, first: int) -> tuple[float, float]:
+    """Wall and CPU seconds for ``steps`` control steps of the numpy reference, on :func:`_time_warp`'s schedule."""
+    start, cpu = time.perf_counter(), time.process_time()
     cmd = targets[(first // TARGET_REDRAW_STEPS) % len(targets)]
     for i in range(first, first + steps):
         if i % TARGET_REDRAW_STEPS == 0:
             cmd = targets[(i // TARGET_REDRAW_STEPS) % len(targets)]
         ref.crashed[:] = 0
         ref.step(cmd)
-    return time.perf_counter() - start
+    return time.perf_counter() - start, time.process_time() - cpu
 
 
 def _make_world(track: TrackSpec, airframe: AirframeCfg, world_count: int, drones: int, device: str,
@@ -116,20 +116,20 @@ def _make_world(track: TrackSpec, airframe: AirframeCfg, world_count: int, drone
 
 def _bench_row(track: TrackSpec, airframe: AirframeCfg, world_count: int, drones: int, *, device: str, steps: int,
                seed: int, repeats: int, numpy_budget_s: float) -> dict[str, Any]:
-    """One row: Warp best of ``repeats`` over ``steps`` steps, then numpy on the same inputs."""
+    """One row: Warp and numpy on the same inputs, repeats interleaved so that load from others hits both alike."""
     n = world_count * drones
     world, targets_wp, start, yaw, targets = _make_world(track, airframe, world_count, drones, device, seed)
-    _time_warp(world, targets_wp, WARMUP_STEPS, 0)
-    warp_s = min(_time_warp(world, targets_wp, steps, WARMUP_STEPS + r * steps) for r in range(repeats))
-    speed = np.linalg.norm(world.state.vel.numpy(), axis=1)
-
     ref = ReferenceSim(airframe, _bench_cfg(), n, track=track, drones_per_world=drones, dtype=np.float32)
     ref.reset(start, yaw)
-    one = _time_numpy(ref, targets, 1, 0)  # untimed warm-up, also sizes the numpy run
+    _time_warp(world, targets_wp, WARMUP_STEPS, 0)
+    one = _time_numpy(ref, targets, 1, 0)[0]  # untimed warm-up, also sizes the numpy run
     np_steps = int(min(steps, max(3, numpy_budget_s / max(one, 1e-9))))
-    np_s = min(_time_numpy(ref, targets, np_steps, 1 + r * np_steps) for r in range(repeats))
-
-    warp_rate, np_rate = n * steps / warp_s, n * np_steps / np_s
+    warp_t, np_t = [], []
+    for r in range(repeats):
+        warp_t.append(_time_warp(world, targets_wp, steps, WARMUP_STEPS + r * steps))
+        np_t.append(_time_numpy(ref, targets, np_steps, 1 + r * np_steps))
+    speed = np.linalg.norm(world.state.vel.numpy(), axis=1)
+    warp_rate, np_rate = n * steps / min(t[0] for t in warp_t), n * np_steps / min(t[0] for t in np_t)
     return {
         "worlds": world_count,
         "drones": drones,
@@ -139,6 +139,8 @@ def _bench_row(track: TrackSpec, airframe: AirframeCfg, world_count: int, drones
         "speedup_vs_numpy": round(warp_rate / np_rate, 2),
         "steps": steps,
         "numpy_steps": np_steps,
+        "drone_ctrl_steps_per_cpu_s": round(n * steps / min(t[1] for t in warp_t)),
+        "numpy_drone_ctrl_steps_per_cpu_s": round(n * np_steps / min(t[1] for t in np_t)),
         "mean_speed_m_s": round(float(speed.mean()), 3),
     }
 
@@ -176,6 +178,7 @@ def run_sim_bench(
     track = track if track is not None else load_track(DEFAULT_TRACK)
     airframe = AIRFRAMES["cf2x"]
     cfg = _bench_cfg()
+    machine = machine_info()
     rows = [
         _bench_row(track, airframe, w, d, device=device, steps=steps, seed=seed, repeats=repeats,
                    numpy_budget_s=numpy_budget_s)
@@ -184,7 +187,7 @@ def run_sim_bench(
     ]
     result: dict[str, Any] = {
         "device": str(wp.get_device(device)),
-        "machine": machine_info(),
+        "machine": machine,
         "settings": {
             "track": track.name,
             "airframe": airframe.name,
@@ -201,9 +204,12 @@ def run_sim_bench(
             "repeats": repeats,
             "seed": seed,
             "numpy_dtype": "float32",
+            "timing": "wall clock, best of the repeats, Warp and numpy repeats interleaved; *_per_cpu_s use the "
+                      "process CPU time instead (a proxy when other processes share the cores)",
         },
         "results": rows,
     }
+    result["machine"]["load_avg_1min_end"] = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
     if two_process:
         result["two_process"] = run_sim_bench_two_process(4096, 4, device=device, steps=steps, seed=seed,
                                                           repeats=repeats)
@@ -287,16 +293,17 @@ def format_bench_table(result: dict[str, Any]) -> str:
     m = result["machine"]
     lines = [
         f"device {result['device']} · {m['cpu']} · {m['cores']} cores · Python {m['python']} · "
-        f"Warp {m['warp']} · numpy {m['numpy']}",
+        f"Warp {m['warp']} · numpy {m['numpy']} · load {m['load_avg_1min']} → {m.get('load_avg_1min_end')}",
         "",
         "| worlds | drones/world | drone-ctrl-steps/s | drone-substeps/s | numpy drone-ctrl-steps/s "
-        "(numpy steps) | speed-up |",
-        "|---:|---:|---:|---:|---:|---:|",
+        "(numpy steps) | speed-up | Warp per CPU-s |",
+        "|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in result["results"]:
         lines.append(
             f"| {r['worlds']} | {r['drones']} | {r['drone_ctrl_steps_per_s']:,} | {r['drone_substeps_per_s']:,} | "
-            f"{r['numpy_drone_ctrl_steps_per_s']:,} ({r['numpy_steps']}) | {r['speedup_vs_numpy']:.1f}× |"
+            f"{r['numpy_drone_ctrl_steps_per_s']:,} ({r['numpy_steps']}) | {r['speedup_vs_numpy']:.1f}× | "
+            f"{r['drone_ctrl_steps_per_cpu_s']:,} |"
         )
     two = result.get("two_process")
     if two:

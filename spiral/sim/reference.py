@@ -19,6 +19,7 @@ from spiral.config.track import TrackSpec
 from spiral.sim.state import COLLISION_KINDS
 
 __all__ = [
+    "GateArrays",
     "ReferenceSim",
     "body_wrench",
     "contact_bits",
@@ -102,7 +103,7 @@ def body_wrench(rpm: np.ndarray, kf: float, km: float, arm_xy: float) -> np.ndar
                      (km / kf) * (-f1 + f2 - f3 + f4)], axis=1)
 
 
-class _Gates:
+class GateArrays:
     """Gate geometry of a track as arrays of one dtype."""
 
     def __init__(self, track: TrackSpec, dtype: type) -> None:
@@ -116,7 +117,7 @@ class _Gates:
         self.bounds_max = np.asarray(track.bounds.max, dtype)
 
 
-def segment_gate_crossing(p0: np.ndarray, p1: np.ndarray, gate: np.ndarray, gates: _Gates) -> np.ndarray:
+def segment_gate_crossing(p0: np.ndarray, p1: np.ndarray, gate: np.ndarray, gates: GateArrays) -> np.ndarray:
     """Fraction in [0, 1] of each segment p0 → p1 where it passes its ``gate`` forward through the opening, else −1."""
     c, rot = gates.center[gate], gates.rot[gate]
     normal = gates.normal[gate]
@@ -139,7 +140,7 @@ def _sphere_box(local: np.ndarray, radius: float, box_center: np.ndarray, half: 
     return _dot(gap, gap) < radius * radius
 
 
-def _gate_hits(pos: np.ndarray, gates: _Gates, radius: float) -> np.ndarray:
+def _gate_hits(pos: np.ndarray, gates: GateArrays, radius: float) -> np.ndarray:
     """Whether each drone's sphere touches a bar of any gate (``collisions.sphere_gate_overlap``)."""
     dtype = pos.dtype
     hit = np.zeros(len(pos), bool)
@@ -159,7 +160,7 @@ def _gate_hits(pos: np.ndarray, gates: _Gates, radius: float) -> np.ndarray:
     return hit
 
 
-def contact_bits(pos: np.ndarray, crashed: np.ndarray, gates: _Gates, radius: float,
+def contact_bits(pos: np.ndarray, crashed: np.ndarray, gates: GateArrays, radius: float,
                  drones_per_world: int) -> np.ndarray:
     """Collision bits ``(n,)`` of each flying drone's sphere (``collisions.detect_collisions``); 0 for crashed."""
     bits = np.where(pos[:, 2] < radius, COLLISION_KINDS["ground"], 0)
@@ -211,7 +212,7 @@ class ReferenceSim:
         self.pos_i_limit, self.max_accel = f(gains.pos_i_limit), f(gains.max_accel)
         self.tan_max_tilt = f(math.tan(math.radians(gains.max_tilt_deg)))
         self.dt = f(sim.dt)
-        self.gates = _Gates(track, self.dtype) if track is not None else None
+        self.gates = GateArrays(track, self.dtype) if track is not None else None
         n = drone_count
         self.pos, self.vel, self.omega = np.zeros((n, 3), dtype), np.zeros((n, 3), dtype), np.zeros((n, 3), dtype)
         self.quat = np.tile(np.array([0.0, 0.0, 0.0, 1.0], dtype), (n, 1))

@@ -8,8 +8,7 @@ import warp as wp
 
 from spiral.config import SimCfg
 from spiral.sim.collisions import detect_collisions
-from spiral.sim.reference import ReferenceSim, contact_bits, segment_gate_crossing
-from spiral.sim.reference import _Gates as ReferenceGates
+from spiral.sim.reference import GateArrays, ReferenceSim, contact_bits, segment_gate_crossing
 
 EPS32 = float(np.finfo(np.float32).eps)
 STATE = ("pos", "vel", "quat", "omega", "thrust")
@@ -118,7 +117,7 @@ def test_reference_contacts_match_kernel(kernels, make_world, circuit6):
     wp.launch(detect_collisions, 3000, inputs=[wp.array(pos, dtype=wp.vec3), wp.array(crashed, dtype=wp.int32),
                                                world.track, world.params, 3], outputs=[out])
     expected = out.numpy()
-    got = contact_bits(pos, crashed, ReferenceGates(circuit6, np.float32), np.float32(world.airframe.radius), 3)
+    got = contact_bits(pos, crashed, GateArrays(circuit6, np.float32), np.float32(world.airframe.radius), 3)
     np.testing.assert_array_equal(got, expected)
     assert {0, 1, 2, 4, 8} <= set(expected.tolist())  # no contact and each kind alone all occur
 
@@ -132,7 +131,7 @@ def test_reference_gate_crossing_matches_kernel(kernels, make_world, circuit6):
     p1 = c + rng.uniform(-0.5, 0.5, (3000, 3))
     world = make_world(track=circuit6)
     expected = kernels.segment_crossing(world, p0, p1, gate)
-    gates = ReferenceGates(circuit6, np.float32)
+    gates = GateArrays(circuit6, np.float32)
     got = segment_gate_crossing(p0.astype(np.float32), p1.astype(np.float32), gate, gates)
     np.testing.assert_allclose(got, expected, atol=1e-5)
     assert 100 < (expected >= 0).sum() < 2900

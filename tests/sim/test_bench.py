@@ -1,0 +1,28 @@
+"""Benchmark plumbing on tiny sizes (the figures themselves come from `spiral bench sim`, not from tests)."""
+
+from __future__ import annotations
+
+from spiral.sim.bench import format_bench_table, run_sim_bench, run_sim_bench_two_process
+
+
+def test_bench_rows_and_table(kernels, gate_track):
+    """Report one row per world count and layout, with moving drones and a numpy figure from the same run."""
+    result = run_sim_bench([2, 3], drones=(1, 2), steps=4, repeats=1, track=gate_track)
+    rows = result["results"]
+    assert [(r["worlds"], r["drones"]) for r in rows] == [(2, 1), (2, 2), (3, 1), (3, 2)]
+    for r in rows:
+        assert abs(r["drone_substeps_per_s"] - 5 * r["drone_ctrl_steps_per_s"]) <= 3
+        assert r["numpy_drone_ctrl_steps_per_s"] > 0 and r["numpy_steps"] == 4
+        assert abs(r["speedup_vs_numpy"] - r["drone_ctrl_steps_per_s"] / r["numpy_drone_ctrl_steps_per_s"]) < 0.01
+        assert r["mean_speed_m_s"] > 0.1
+    assert result["settings"]["substeps"] == 5 and result["settings"]["freeze_crashed"] is False
+    assert result["device"] == "cpu" and result["machine"]["cores"] >= 1
+    assert "| 3 | 2 |" in format_bench_table(result)
+
+
+def test_two_process_row_sums_both_processes():
+    """Run two worker interpreters together and report an aggregate no larger than their sum."""
+    two = run_sim_bench_two_process(2, 2, steps=3, repeats=1)
+    each = two["per_process_drone_ctrl_steps_per_s"]
+    assert two["processes"] == 2 and len(each) == 2 and min(each) > 0
+    assert 0 < two["aggregate_drone_ctrl_steps_per_s"] <= sum(each) + 1
