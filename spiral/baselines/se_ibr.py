@@ -69,17 +69,19 @@ class SEIBRCfg(StrictModel):
 def dynamic_limits(env: RaceEnv, cfg: SEIBRCfg) -> tuple[float, float]:
     """Speed and acceleration bounds (v_max [m/s], a_max [m/s²]) from the airframe, its PID and the action.
 
-    ``a_max = accel_frac·g·√(TWR² − 1)``; ``v_max`` is ``speed_frac`` times the fastest steady speed whose PID
-    target, with room for ``a_max`` of feed-forward, fits in the action: ``min_axis (K_p·reach − a_max)/K_d``.
+    ``a_max = accel_frac·g·√(TWR² − 1)`` (capped at ``K_p·reach/2``); ``v_max`` is ``speed_frac`` times the fastest
+    steady speed whose PID target, with room for ``a_max`` of feed-forward, fits in the action:
+    ``min_axis (K_p·reach − a_max)/K_d``. ``reach`` is ``pos_scale`` in relative mode, half the arena's smallest
+    extent in absolute mode.
     """
     air, act, track = env.world.airframe, env.cfg.action, env.track
     kp, kd = np.asarray(air.pid.pos_p, float), np.asarray(air.pid.pos_d, float)
     reach = act.pos_scale if act.mode == "relative" else 0.5 * float(np.min(np.subtract(track.bounds.max,
                                                                                       track.bounds.min)))
-    a_max = cfg.accel_frac * env.world.sim.gravity * math.sqrt(air.thrust_to_weight**2 - 1.0)
+    # A short action reach also caps the acceleration: at most half of it goes to acceleration feed-forward.
+    a_max = min(cfg.accel_frac * env.world.sim.gravity * math.sqrt(air.thrust_to_weight**2 - 1.0),
+                0.5 * float(np.min(kp)) * reach)
     v_max = cfg.speed_frac * float(np.min((kp * reach - a_max) / kd))
-    if v_max <= 0:
-        raise ValueError("the action's reach leaves no speed after the acceleration bound: lower accel_frac")
     return v_max, a_max
 
 
