@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from spiral.baselines import SEIBRPlanner, opponent_policy, se_ibr_policy
+from spiral.baselines import SEIBRCfg, SEIBRPlanner, opponent_policy, se_ibr_policy
 from spiral.baselines.best_response import BestResponseQP, RowData
 from spiral.baselines.game import plan_phases
+from spiral.baselines.se_ibr import dynamic_limits
 from spiral.config import AIRFRAMES, EnvCfg, SimCfg, TrackSpec
 from spiral.env import RaceEnv, run_races
 
@@ -163,3 +164,14 @@ def test_opponent_policy_drives_the_opponent_slot(oval2):
     res = run_races(env, learner)
     assert bool(res.present.all()) and bool(res.finished.all())
     assert learner(env.get_observations()).shape == (1, 4)
+
+
+def test_limits_follow_the_airframe_pid_and_action(circuit6):
+    """Derive a_max = 0.35·g·√(TWR² − 1) and v_max = min((K_p·reach − a_max)/K_d) by hand; cap a_max at K_p·reach/2."""
+    env = make_env(circuit6)
+    v_max, a_max = dynamic_limits(env, SEIBRCfg())
+    assert a_max == pytest.approx(0.35 * 9.81 * np.sqrt(2.25**2 - 1.0))  # 6.920 m/s²
+    assert v_max == pytest.approx(min((8.0 * 2.0 - a_max) / 4.0, (10.0 * 2.0 - a_max) / 5.0))  # 2.270 m/s
+    short = RaceEnv(circuit6, CF2X, SimCfg(), EnvCfg(action={"pos_scale": 1.0}), world_count=1, drones_per_world=1,
+                    seed=0, auto_reset=False)
+    assert dynamic_limits(short, SEIBRCfg()) == pytest.approx((1.0, 4.0))
