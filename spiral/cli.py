@@ -182,9 +182,9 @@ def _parse_method(text: str) -> tuple[str, str]:
 @handles_errors
 def evaluate(
     track: Annotated[Path, typer.Option("--track", help="Track YAML")],
-    method: Annotated[list[str], typer.Option("--method", help="NAME=CHECKPOINT (repeatable)")],
+    method: Annotated[list[str], typer.Option("--method", help="NAME=CHECKPOINT or se-ibr (repeatable)")],
     scenario: Annotated[str, typer.Option("--scenario", help="solo, 1v1 or 2v2")] = "solo",
-    against: Annotated[str | None, typer.Option("--against", help="NAME=CHECKPOINT: cross-play opponent team")] = None,
+    against: Annotated[str | None, typer.Option("--against", help="NAME=CHECKPOINT or se-ibr: opponent team")] = None,
     runs: Annotated[int, typer.Option("--runs", min=1, help="Races")] = 50,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the start placements")] = 0,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
@@ -232,6 +232,67 @@ def export(
     from spiral.train.export import export_policy
 
     typer.echo(f"wrote {export_policy(checkpoint, out, fmt=fmt)}")  # type: ignore[arg-type]
+
+
+@track_app.command("bound")
+@handles_errors
+def track_bound(
+    track: Path,
+    airframe: Annotated[str, typer.Option("--airframe", help="Built-in airframe name")] = "cf2x",
+    model: Annotated[str, typer.Option("--model", help="thrust (thrust ball and tilt cone) or ball")] = "thrust",
+    steps: Annotated[int, typer.Option("--steps", min=2, help="Mean time steps per gate-to-gate segment")] = 24,
+    json_out: JsonOut = None,
+) -> None:
+    """Minimum-time lap of a point mass with the airframe's acceleration limits: the lap-time reference."""
+    from spiral.config import resolve_airframe
+    from spiral.eval.bound import format_bound, lap_time_bound
+
+    if model not in ("thrust", "ball"):
+        raise ValueError(f"--model: expected thrust or ball, got {model!r}")
+    result = lap_time_bound(load_track(track), resolve_airframe(airframe), model=model, steps_per_segment=steps)
+    typer.echo(format_bound(result))
+    _write_json(json_out, result.to_json(trajectory=True))
+
+
+@app.command()
+@handles_errors
+def report(
+    run_dir: Annotated[Path, typer.Argument(help="A pipeline's run folder, runs/<pipeline>")],
+    out: Annotated[Path | None, typer.Option("--out", help="Report folder [default: RUN_DIR/report]")] = None,
+    track: Annotated[Path | None, typer.Option("--track", help="Track YAML [default: the run's]")] = None,
+    se_ibr: Annotated[bool, typer.Option("--se-ibr", help="Run SE-IBR where no evaluation exists (slow)")] = False,
+    runs: Annotated[int | None, typer.Option("--runs", min=1, help="Races [default: the pipeline's]")] = None,
+    device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
+) -> None:
+    """Write results.md (the paper's tables, cross-play, lap-time reference), results.csv and figures."""
+    from spiral.eval.report import build_report, track_of_run
+
+    spec = load_track(track) if track is not None else track_of_run(run_dir)
+    command = f"spiral report {run_dir}" + (" --se-ibr" if se_ibr else "") + (f" --runs {runs}" if runs else "")
+    path = build_report(run_dir, spec, out or run_dir / "report", runs=runs, device=device, se_ibr=se_ibr,
+                        command=command)
+    typer.echo(f"wrote {path}")
+
+
+@app.command()
+@handles_errors
+def race(
+    track: Annotated[Path, typer.Option("--track", help="Track YAML")],
+    method: Annotated[str, typer.Option("--method", help="NAME=CHECKPOINT or se-ibr: every drone, or team A")],
+    against: Annotated[str | None, typer.Option("--against", help="NAME=CHECKPOINT or se-ibr: team B")] = None,
+    scenario: Annotated[str, typer.Option("--scenario", help="solo, 1v1 or 2v2")] = "solo",
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the start placement")] = 0,
+    out: Annotated[Path, typer.Option("--out", help="race.gif or race.mp4")] = Path("race.gif"),
+    fps: Annotated[float, typer.Option("--fps", min=1, help="Frames per second of race time")] = 15.0,
+    device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
+) -> None:
+    """Render one race: top and side views, gates, trails by team, time and lap counters, crash marks."""
+    from spiral.eval.replay import record_race, render_race
+
+    opponent = _parse_method(against) if against else None
+    rec = record_race(load_track(track), scenario, _parse_method(method), opponent, seed=seed, device=device)
+    frames = render_race(rec, out, fps=fps)
+    typer.echo(f"wrote {out}: {frames} frames, {rec.duration:.2f} s of racing")
 
 
 def main() -> None:

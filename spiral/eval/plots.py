@@ -1,7 +1,10 @@
-"""Figures: track layouts in top and side view."""
+"""Figures: track layouts, the speed-vs-reliability trade-off and learning curves."""
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +15,7 @@ from matplotlib.patches import Rectangle
 
 from spiral.config.track import TrackSpec
 
-__all__ = ["plot_track"]
+__all__ = ["TradeoffPoint", "plot_learning_curves", "plot_speed_vs_reliability", "plot_track"]
 
 _VIEWS = (("top view (x-y)", 0, 1, "y [m]"), ("side view (x-z)", 0, 2, "z [m]"))
 """Title, horizontal axis, vertical axis and vertical label of each panel."""
@@ -28,7 +31,7 @@ _ARROW_LENGTH = 0.6
 """Length of a passing-direction arrow before projection [m]."""
 
 
-def plot_track(track: TrackSpec, out: Path) -> Path:
+def plot_track(track: TrackSpec, out: Path, *, path: np.ndarray | None = None, path_label: str = "path") -> Path:
     """Draw ``track`` in top (x-y) and side (x-z) view and save it as an image.
 
     Each view shows the arena bounds, the start box, the centreline through the gate centres, every gate's
@@ -37,6 +40,8 @@ def plot_track(track: TrackSpec, out: Path) -> Path:
     Args:
         track: Track to draw.
         out: Image file to write; its suffix picks the format (e.g. ``.png``). Parent folders are created.
+        path: Optional positions (T, 3) drawn over both views (e.g. the lap-time reference's flight).
+        path_label: Legend label of ``path``.
 
     Returns:
         The path written.
@@ -48,6 +53,8 @@ def plot_track(track: TrackSpec, out: Path) -> Path:
     axes = [fig.add_axes(rect) for rect in rects]
     for ax, (title, h, v, ylabel) in zip(axes, _VIEWS, strict=True):
         _draw_view(ax, track, h, v)
+        if path is not None:
+            ax.plot(path[:, h], path[:, v], "-", color="tab:purple", lw=1.4, label=path_label)
         ax.set_title(title, fontsize=11)
         ax.set_xlabel("x [m]")
         ax.set_ylabel(ylabel)
@@ -128,3 +135,121 @@ def _draw_gates(ax: Axes, track: TrackSpec, h: int, v: int) -> None:
         ax.text(*at, str(i), ha="center", va="center", fontsize=11, fontweight="bold",
                 bbox={"boxstyle": "circle,pad=0.2", "fc": "white", "ec": _GATE_COLOUR})
     ax.plot([], [], color=_ARROW_COLOUR, marker=">", label="passing direction")
+
+
+@dataclass(frozen=True)
+class TradeoffPoint:
+    """One method in one scenario on the speed-vs-reliability plot."""
+
+    label: str
+    """Method name (one colour per label)."""
+    scenario: str
+    """``1v1`` (circle) or ``2v2`` (square)."""
+    lap_time: float
+    """Mean lap time of successful drones [s]."""
+    success: float
+    """Success ratio."""
+    lap_std: float = 0.0
+    """Horizontal error bar [s]."""
+    success_ci: tuple[float, float] | None = None
+    """Vertical error bar (e.g. the 95% Wilson interval)."""
+    paper: bool = False
+    """A number quoted from the paper (hollow marker) rather than measured here."""
+
+
+_MARKERS = {"solo": "^", "1v1": "o", "2v2": "s"}
+_PALETTE = ("tab:red", "tab:blue", "tab:gray", "tab:green", "tab:purple", "tab:brown")
+
+
+def plot_speed_vs_reliability(points: Sequence[TradeoffPoint], out: Path, *, bound: float | None = None,
+                              title: str = "Speed vs. reliability") -> Path:
+    """The paper's Fig. 3: lap time (x, lower is better) against success ratio (y), 1v1 circles, 2v2 squares.
+
+    Measured points are filled with error bars; the paper's numbers are hollow. ``bound`` draws the point-mass
+    lap-time reference as a vertical line.
+    """
+    fig = Figure(figsize=(7.5, 5.2))
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    colours = {label: _PALETTE[i % len(_PALETTE)] for i, label in enumerate(dict.fromkeys(p.label for p in points))}
+    for p in points:
+        c, m = colours[p.label], _MARKERS.get(p.scenario, "D")
+        if p.paper:
+            ax.plot(p.lap_time, p.success, m, mfc="none", mec=c, ms=10, mew=1.5, alpha=0.7)
+            continue
+        yerr = None
+        if p.success_ci is not None:
+            yerr = [[max(p.success - p.success_ci[0], 0.0)], [max(p.success_ci[1] - p.success, 0.0)]]
+        ax.errorbar(p.lap_time, p.success, xerr=p.lap_std or None, yerr=yerr, fmt=m, color=c, ms=9, capsize=3,
+                    elinewidth=1)
+    if bound is not None:
+        ax.axvline(bound, ls="--", color="0.3", lw=1)
+        ax.text(bound, 0.02, " point-mass bound", fontsize=8, va="bottom", ha="left", color="0.3", rotation=90)
+    handles = [ax.plot([], [], "o", color=c, label=label)[0] for label, c in colours.items()]
+    handles += [ax.plot([], [], _MARKERS[s], color="0.3", label=s)[0] for s in ("1v1", "2v2")
+                if any(p.scenario == s for p in points)]
+    if any(p.paper for p in points):
+        handles.append(ax.plot([], [], "o", mfc="none", mec="0.3", label="paper (hollow)")[0])
+    ax.legend(handles=handles, fontsize=8, loc="lower right", frameon=False)
+    ax.set_xlabel("lap time [s] (lower is better)")
+    ax.set_ylabel("success ratio (higher is better)")
+    ax.set_ylim(-0.02, 1.08)
+    ax.text(0.01, 0.98, "ideal region ↖", transform=ax.transAxes, fontsize=8, va="top", color="0.4")
+    ax.grid(True, color="0.9", lw=0.6)
+    ax.set_title(title, fontsize=11)
+    return _save(fig, out)
+
+
+_CURVES = (("reward_per_step", "reward per step"), ("success", "success ratio (training episodes)"),
+           ("lap_time", "lap time [s] (successful episodes)"))
+
+
+def plot_learning_curves(logs: dict[str, list[dict[str, float]]], out: Path, *, smooth: int = 5) -> Path:
+    """Reward, success and lap time per PPO iteration, one line per stage (raw faint, moving average bold).
+
+    Args:
+        logs: Rows of each stage's ``train_log.jsonl`` by stage name (``iteration`` and the plotted keys).
+        out: Image file to write.
+        smooth: Window of the moving average [iterations].
+    """
+    fig = Figure(figsize=(8.5, 8))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(len(_CURVES), 1, sharex=True)
+    for i, (stage, rows) in enumerate(logs.items()):
+        colour = _PALETTE[i % len(_PALETTE)]
+        it = np.array([r.get("iteration", k) for k, r in enumerate(rows)], dtype=float)
+        for ax, (key, _) in zip(axes, _CURVES, strict=True):
+            y = np.array([_number(r.get(key)) for r in rows])
+            if not np.isfinite(y).any():
+                continue
+            ax.plot(it, y, color=colour, lw=0.6, alpha=0.3)
+            ax.plot(it, _moving_average(y, smooth), color=colour, lw=1.6, label=stage)
+    for ax, (_, label) in zip(axes, _CURVES, strict=True):
+        ax.set_ylabel(label, fontsize=9)
+        ax.grid(True, color="0.9", lw=0.6)
+    axes[0].legend(fontsize=8, frameon=False, ncol=max(1, min(len(logs), 5)))
+    axes[-1].set_xlabel("PPO iteration (per stage)")
+    fig.suptitle("Learning curves", fontsize=12)
+    return _save(fig, out)
+
+
+def _number(value: object) -> float:
+    return float(value) if isinstance(value, int | float) and math.isfinite(value) else float("nan")
+
+
+def _moving_average(y: np.ndarray, window: int) -> np.ndarray:
+    """Trailing mean over the finite values of the last ``window`` entries (NaN where there are none)."""
+    out = np.full_like(y, np.nan)
+    for k in range(len(y)):
+        chunk = y[max(0, k - window + 1):k + 1]
+        chunk = chunk[np.isfinite(chunk)]
+        if chunk.size:
+            out[k] = chunk.mean()
+    return out
+
+
+def _save(fig: Figure, out: Path) -> Path:
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=130)
+    return out

@@ -1,0 +1,56 @@
+"""Eval fixtures: a short 2-gate sprint track and a tiny checkpoint trained for one iteration on it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from spiral.config import AIRFRAMES, SimCfg, StageSpec, TrackSpec
+from spiral.train import StageTrainer
+
+SPRINT = {
+    "kind": "track",
+    "name": "sprint2",
+    "gates": [
+        {"position": [0.0, 0.0, 1.0], "rpy_deg": [0, 0, 0], "direction": 1},
+        {"position": [2.5, 0.0, 1.0], "rpy_deg": [0, 0, 0], "direction": 1},
+    ],
+    "start": {"center": [-1.2, 0.0, 1.0], "size": [0.8, 0.8, 0.3], "min_separation": 0.25},
+    "bounds": {"min": [-3.0, -3.0, 0.0], "max": [5.0, 3.0, 2.5]},
+    "time_limit_s": 2.0,
+}
+"""Two gates ahead of a start box roomy enough for four drones; races last at most 2 s."""
+
+
+def tiny_stage(scenario: str = "solo", *, name: str = "tiny", mode: str = "pool") -> StageSpec:
+    """A one-iteration stage with a compact observation and a small network."""
+    return StageSpec.model_validate({
+        "name": name, "scenario": scenario, "worlds": 4, "iterations": 1,
+        "env": {"obs": {"history_len": 1, "gate_normals": True, "pid_integral": True}},
+        "ppo": {"num_steps_per_env": 8, "actor_hidden_dims": [16, 16], "critic_hidden_dims": [16, 16]},
+        "selection": {"interval": 1, "races": 2}, "selfplay": {"mode": mode}})
+
+
+@pytest.fixture(scope="session")
+def sprint() -> TrackSpec:
+    """The 2-second sprint track."""
+    return TrackSpec.model_validate(SPRINT)
+
+
+@pytest.fixture(scope="session")
+def sprint_yaml(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The sprint track as a YAML file."""
+    path = tmp_path_factory.mktemp("tracks") / "sprint2.yaml"
+    path.write_text(yaml.safe_dump(SPRINT))
+    return path
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint(sprint: TrackSpec, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """best.pt of one PPO iteration on the sprint track (an almost untrained policy that hovers)."""
+    run_dir = tmp_path_factory.mktemp("tiny")
+    result = StageTrainer(sprint, AIRFRAMES["cf2x"], SimCfg(), tiny_stage(), run_dir, seed=0, progress=False,
+                          log=lambda _: None).train()
+    return result.best_path

@@ -1,0 +1,66 @@
+"""Evaluation protocol: identical start placements for every method, deterministic eval JSON, planner methods."""
+
+from __future__ import annotations
+
+import json
+
+import torch
+from typer.testing import CliRunner
+
+from spiral.cli import app
+from spiral.eval.evaluate import SE_IBR, EvalLayout, evaluate_methods, load_agent, setup_race
+
+runner = CliRunner()
+
+
+def test_every_method_races_from_the_same_start_placements(sprint, tiny_checkpoint):
+    """Start a learned policy, the planner and a cross-play pairing from identical 2v2 placements for one seed."""
+    policy = load_agent(tiny_checkpoint)
+    starts = []
+    for agent, opponent in ((policy, None), (SE_IBR, None), (policy, SE_IBR), (SE_IBR, policy)):
+        env, _ = setup_race(sprint, "2v2", 3, 7, agent, opponent)
+        env.reset()  # what run_races does first
+        starts.append(env.pos.clone())
+    for other in starts[1:]:
+        assert torch.equal(starts[0], other)
+    env, _ = setup_race(sprint, "2v2", 3, 8, policy)
+    env.reset()
+    assert not torch.equal(env.pos, starts[0])
+    separation = torch.cdist(starts[0].view(3, 4, 3), starts[0].view(3, 4, 3))
+    assert float((separation + 9 * torch.eye(4)).min()) >= sprint.start.min_separation - 1e-6
+
+
+def test_planner_racing_a_policy_uses_the_policy_layout(sprint, tiny_checkpoint):
+    """Build the planner-vs-policy env with the policy's observation layout, not the default one."""
+    policy = load_agent(tiny_checkpoint)
+    env, _ = setup_race(sprint, "1v1", 1, 0, SE_IBR, policy)
+    assert env.cfg.obs == EvalLayout.of_policy(policy).env.obs
+    assert env.obs_dim == policy.meta["obs_layout"]["obs_dim"]
+    assert env.cfg.obs != EvalLayout.default().env.obs
+
+
+def test_same_eval_command_twice_writes_identical_json(sprint_yaml, tiny_checkpoint, tmp_path):
+    """Write byte-identical JSON from two runs of one cross-play command (learned policy vs SE-IBR)."""
+    outputs = []
+    for i in range(2):
+        out = tmp_path / f"eval{i}.json"
+        result = runner.invoke(app, ["eval", "--track", str(sprint_yaml), "--method", f"tiny={tiny_checkpoint}",
+                                     "--against", "se-ibr", "--scenario", "1v1", "--runs", "2", "--seed", "3",
+                                     "--json", str(out)])
+        assert result.exit_code == 0, result.output
+        outputs.append(out.read_text())
+    assert outputs[0] == outputs[1]
+    data = json.loads(outputs[0])
+    assert data["against"] == {"name": "se-ibr", "checkpoint": "se-ibr"}
+    entry = data["methods"]["tiny"]
+    assert entry["drones"] == 2 and entry["opponent"]["drones"] == 2
+    assert entry["win_rate"] + entry["loss_rate"] + entry["draws"] == 1.0
+
+
+def test_planner_self_match_reports_its_layout(sprint):
+    """Evaluate `se-ibr` alone with default settings and say so in the entry."""
+    data = evaluate_methods(sprint, {"planner": "se-ibr"}, scenario="solo", runs=1, seed=0)
+    entry = data["methods"]["planner"]
+    assert entry["checkpoint"] == "se-ibr" and entry["layout"] == "defaults"
+    assert entry["drones"] == 1
+    assert sum(entry["crashes"].values()) + round(entry["success_ratio"]) == 1

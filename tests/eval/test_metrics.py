@@ -1,0 +1,53 @@
+"""Metrics: Wilson intervals against hand-computed values, lap statistics over successful laps only."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from spiral.env.racing import RaceResults
+from spiral.eval.metrics import lap_statistics, summarize_races, wilson_interval
+
+
+@pytest.mark.parametrize(("k", "n", "expected"), [
+    # p = 0.8, z² = 3.8415: centre (0.8 + 0.19208)/1.38415 = 0.71682, half 1.96·√0.025604/1.38415 = 0.22658
+    (8, 10, (0.4902, 0.9433)),
+    # p = 0: centre 0.19208/1.38415 = 0.13877, half 1.96·√(3.8415/400)/1.38415 = 0.13877
+    (0, 10, (0.0, 0.2775)),
+    # p = 1 over 50: centre 1.038415/1.07683 = 0.96433, half 0.038415/1.07683 = 0.03567
+    (50, 50, (0.9287, 1.0)),
+    (0, 0, (0.0, 1.0)),
+])
+def test_wilson_interval_matches_hand_computed_values(k, n, expected):
+    """Give the 95% Wilson score interval to four decimals for hand-computed cases."""
+    lo, hi = wilson_interval(k, n)
+    assert lo == pytest.approx(expected[0], abs=1e-4)
+    assert hi == pytest.approx(expected[1], abs=1e-4)
+
+
+def test_lap_statistics_ignore_failed_laps():
+    """Average only the lap times of drones that finished, whatever the others' times say."""
+    laps = torch.tensor([10.0, 12.0, 0.0, 99.0])
+    finished = torch.tensor([True, True, False, False])
+    assert lap_statistics(laps, finished) == (pytest.approx(11.0), pytest.approx(1.0))
+    assert lap_statistics(laps, torch.zeros(4, dtype=torch.bool)) == (None, None)
+
+
+def test_race_summary_counts_successes_crashes_and_speed():
+    """Count one success, one gate crash and one timeout among three present drones; the absent one is ignored."""
+    res = RaceResults(
+        finished=torch.tensor([[True, False], [False, False]]),
+        crashed=torch.tensor([[False, True], [False, False]]),
+        crash_kind=torch.tensor([[0, 4], [0, 0]], dtype=torch.int32),
+        lap_time=torch.tensor([[8.0, 0.0], [0.0, 0.0]]),
+        gates_passed=torch.tensor([[7, 2], [1, 0]]),
+        distance=torch.tensor([[20.0, 3.0], [2.0, 0.0]]),
+        present=torch.tensor([[True, True], [True, False]]),
+    )
+    s = summarize_races(res)
+    assert s["drones"] == 3
+    assert s["success_ratio"] == pytest.approx(1 / 3)
+    assert s["lap_time_mean"] == pytest.approx(8.0)
+    assert s["mean_speed"] == pytest.approx(2.5)
+    assert s["crashes"] == {"ground": 0, "bounds": 0, "gate": 1, "drone": 0, "timeout": 1}
+    assert summarize_races(res, [0])["success_ratio"] == pytest.approx(0.5)

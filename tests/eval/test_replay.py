@@ -1,0 +1,34 @@
+"""Race replays: a recorded race renders to a GIF with one frame per 1/fps seconds of race time."""
+
+from __future__ import annotations
+
+import pytest
+from PIL import Image
+
+from spiral.eval.replay import frame_count, record_race, render_race
+
+
+def test_two_second_race_writes_a_gif_with_the_expected_frame_count(sprint, tiny_checkpoint, tmp_path):
+    """Record a 2 s 1v1 race (policy vs planner) and write 2·15 + 1 = 31 frames at 15 fps."""
+    rec = record_race(sprint, "1v1", ("tiny", str(tiny_checkpoint)), ("planner", "se-ibr"), seed=0)
+    assert rec.duration == pytest.approx(2.0)  # the sprint's time limit: nobody finishes a lap in 2 s
+    assert rec.pos.shape == (97, 2, 3)
+    out = tmp_path / "race.gif"
+    frames = render_race(rec, out, fps=15)
+    assert frames == frame_count(2.0, 15) == 31
+    with Image.open(out) as gif:
+        assert gif.n_frames == 31
+        assert gif.size == (800, 416)
+        delays = []
+        for i in range(gif.n_frames):
+            gif.seek(i)
+            delays.append(gif.info["duration"])
+    assert sum(delays[:-1]) == 2000  # real time: 30 intervals of 1/15 s
+    assert delays[-1] == 1500  # the final state is held
+
+
+def test_replay_refuses_unknown_formats(sprint, tmp_path):
+    """Reject an output suffix other than .gif and .mp4 before rendering."""
+    rec = record_race(sprint, "solo", ("planner", "se-ibr"), seed=0)
+    with pytest.raises(ValueError, match=r"\.gif or \.mp4"):
+        render_race(rec, tmp_path / "race.avi")

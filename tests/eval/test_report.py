@@ -1,0 +1,73 @@
+"""Report: tables with our and the paper's numbers, missing cells, evaluations run and cached, figures, CSV."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+from pathlib import Path
+
+from spiral.config import AIRFRAMES, SimCfg, TrackSpec
+from spiral.eval.report import build_report
+from tests.eval.conftest import tiny_stage
+
+PNG = b"\x89PNG\r\n\x1a\n"
+
+FAKE_EVAL = {"checkpoint": "best.pt", "drones": 4, "success_ratio": 0.75, "success_ci95": [0.3, 0.95],
+             "lap_time_mean": 9.87, "lap_time_std": 0.12, "mean_speed": 3.2,
+             "crashes": {"ground": 0, "bounds": 0, "gate": 1, "drone": 0, "timeout": 0}}
+
+
+def fake_run(root: Path, track: TrackSpec, checkpoint: Path) -> None:
+    """A run folder with a self-play 1v1 stage (evaluated) and a frozen 2v2 stage (trained, not evaluated)."""
+    for name, scenario, mode in (("1v1", "1v1", "pool"), ("2v2-noselfplay", "2v2", "frozen")):
+        train = root / f"train-{name}"
+        train.mkdir(parents=True)
+        spec = {"stage": tiny_stage(scenario, name=name, mode=mode).model_dump(), "track": track.model_dump(),
+                "airframe": AIRFRAMES["cf2x"].model_dump(), "sim": SimCfg().model_dump(), "device": "cpu", "seed": 0}
+        (train / "spec.json").write_text(json.dumps(spec))
+        shutil.copyfile(checkpoint, train / "best.pt")
+        shutil.copyfile(checkpoint.with_suffix(".json"), train / "best.json")
+        rows = [{"iteration": i, "reward_per_step": 0.01 * i, "success": i / 10,
+                 "lap_time": float("nan") if i < 3 else 12.0 - 0.2 * i} for i in range(10)]
+        (train / "train_log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows) + '{"iteration": 1')
+    (root / "eval-1v1").mkdir()
+    (root / "eval-1v1" / "eval.json").write_text(json.dumps(
+        {"track": track.name, "scenario": "1v1", "runs": 2, "seed": 0, "methods": {"spiral": FAKE_EVAL}}))
+
+
+def test_report_builds_tables_figures_and_csv_from_a_tiny_run(sprint, tiny_checkpoint, tmp_path):
+    """Fill found cells, run the missing evaluation, mark absent approaches, and reuse cached runs next time."""
+    root, out = tmp_path / "runs" / "tiny", tmp_path / "report"
+    fake_run(root, sprint, tiny_checkpoint)
+    logs: list[str] = []
+    md_path = build_report(root, sprint, out, bound_steps=8, log=logs.append)
+    md = md_path.read_text()
+    bound = json.loads((out / "bound.json").read_text())["lap_time"]
+
+    assert f"| PPO Selfplay (SPIRAL) | 9.87 ± 0.12 | 0.75 [0.30, 0.95] | {9.87 / bound:.2f} | 13.7124 ± 0.0005 |" in md
+    assert "| PPO No Selfplay | missing | missing | – | 16.3134 ± 0.0727 | 0.8000 ± 0.0200 |" in md
+    assert "| PPO No Selfplay | – (no finished lap) | 0.00 [0.00, 0.32] | – | 17.82 ± 0.27 | 0.31 ± 0.12 |" in md
+    assert "no pool-mode 2v2 stage" in md and "pass --se-ibr" in md
+    assert md.count("(draws ") == 2  # one pairing per scenario: each scenario has one learned approach
+    assert sorted(logs) == ["report: running cross-1v1-spiral-vs-spiral (2 races, seed 0)",
+                            "report: running cross-2v2-noselfplay-vs-noselfplay (2 races, seed 0)",
+                            "report: running self-2v2-noselfplay (2 races, seed 0)"]
+
+    with open(out / "results.csv") as f:
+        rows = {(r["scenario"], r["approach"]): r for r in csv.DictReader(f)}
+    assert len(rows) == 6
+    spiral = rows[("1v1", "PPO Selfplay (SPIRAL)")]
+    assert float(spiral["lap_time_mean"]) == 9.87 and float(spiral["paper_lap_time"]) == 13.7124
+    assert float(spiral["lap_over_bound"]) == 9.87 / bound
+    frozen = rows[("2v2", "PPO No Selfplay")]
+    assert int(frozen["drones"]) == 8 and frozen["source"].endswith("evals/self-2v2-noselfplay.json")
+    assert rows[("2v2", "SE-IBR (Baseline)")]["success_ratio"] == ""
+
+    for name in ("speed_vs_reliability.png", "learning_curves.png", "track.png"):
+        assert (out / name).read_bytes()[:8] == PNG
+
+    again: list[str] = []
+    second = build_report(root, sprint, out, bound_steps=8, log=again.append).read_text()
+    assert second.split("\n")[3:] == md.split("\n")[3:]  # line 3 names the git commit, which others may move
+    assert again == []
