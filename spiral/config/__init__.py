@@ -7,7 +7,7 @@ from spiral.config.base import StrictModel
 from spiral.config.env import ActionCfg, EnvCfg, EpisodeCfg, ObsCfg, RewardCfg
 from spiral.config.errors import SpecError
 from spiral.config.load import KINDS, load_pipeline, load_spec, load_track
-from spiral.config.pipeline import EvaluationCfg, PipelineSpec
+from spiral.config.pipeline import EvaluationCfg, PipelineSpec, ReportCfg
 from spiral.config.ppo import PPOCfg
 from spiral.config.sim import SimCfg
 from spiral.config.stage import SCENARIO_DRONES, PromotionCfg, SelectionCfg, SelfPlayCfg, StageSpec
@@ -30,6 +30,7 @@ __all__ = [
     "PPOCfg",
     "PipelineSpec",
     "PromotionCfg",
+    "ReportCfg",
     "RewardCfg",
     "SelectionCfg",
     "SelfPlayCfg",

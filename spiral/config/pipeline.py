@@ -12,7 +12,7 @@ from spiral.config.base import PosInt, StrictModel
 from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 
-__all__ = ["PIPELINE_VERSION", "EvaluationCfg", "PipelineSpec"]
+__all__ = ["PIPELINE_VERSION", "EvaluationCfg", "PipelineSpec", "ReportCfg"]
 
 PIPELINE_VERSION = 1
 """Schema version of pipeline files; older versions are migrated on load, newer ones refused."""
@@ -23,6 +23,14 @@ class EvaluationCfg(StrictModel):
 
     runs: PosInt = Field(default=50, description="Races per scenario")
     seed: int = Field(default=0, ge=0, description="Seed of the start placements")
+
+
+class ReportCfg(StrictModel):
+    """The pipeline's final report step (``runs/<name>/report/results.md`` and figures)."""
+
+    enabled: bool = Field(default=True, description="Add the report step")
+    se_ibr: bool = Field(default=False, description="Race the SE-IBR planner for the tables (minutes on a CPU)")
+    cross_play: bool = Field(default=True, description="Cross-play win-rate matrices")
 
 
 class PipelineSpec(StrictModel):
@@ -38,6 +46,7 @@ class PipelineSpec(StrictModel):
     sim: SimCfg = Field(default_factory=SimCfg)
     stages: list[StageSpec] = Field(min_length=1, description="Training stages in curriculum order")
     evaluation: EvaluationCfg = Field(default_factory=EvaluationCfg)
+    report: ReportCfg = Field(default_factory=ReportCfg)
 
     @model_validator(mode="after")
     def _stage_references(self) -> PipelineSpec:

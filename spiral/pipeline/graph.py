@@ -54,6 +54,10 @@ class PipelinePlan:
                            {"stage": stage.name, "dest": str(self.publish_root / stage.name),
                             "publish_as": stage.publish_as})
             steps += [train, evaluate, promote]
+        if self.spec.report.enabled:
+            inputs = [s.name for s in steps if not s.name.startswith("promote:")]
+            steps.append(Step("report", self._report_fn(), inputs,
+                              {"report": self.spec.report.model_dump(), **self.spec.evaluation.model_dump()}))
         return steps
 
     def _last_pool_stage(self) -> str | None:
@@ -95,6 +99,19 @@ class PipelinePlan:
             m = result["methods"]["spiral"]
             ctx.log(f"eval:{stage.name}: success {m['success_ratio']:.2f}, lap {m['lap_time_mean']}")
             return {"eval": out}, {"success_ratio": m["success_ratio"], "lap_time_mean": m["lap_time_mean"]}
+        return run
+
+    def _report_fn(self):
+        def run(ctx: StepContext) -> tuple[dict[str, Path], dict[str, Any]]:
+            from spiral.eval.report import build_report
+
+            cfg, ev = self.spec.report, self.spec.evaluation
+            results = build_report(self.run_root, self.track, ctx.step_dir, runs=ev.runs, seed=ev.seed,
+                                   device=self.spec.device, se_ibr=cfg.se_ibr, cross_play=cfg.cross_play,
+                                   airframe=resolve_airframe(self.spec.airframe),
+                                   command=f"spiral run {self.source}", log=ctx.log)
+            ctx.log(f"report: {results}")
+            return {"results": results, "csv": results.with_name("results.csv")}, {}
         return run
 
     def _promote_fn(self, stage: StageSpec):
