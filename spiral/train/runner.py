@@ -214,7 +214,8 @@ class StageTrainer:
                 t_collect = time.perf_counter() - t0
                 losses = alg.update()
                 self.runner.current_learning_iteration = it
-                row = {"iteration": it, "collect_s": t_collect, "learn_s": time.perf_counter() - t0 - t_collect,
+                row = {"iteration": it, "wall_s": time.perf_counter() - t_start, "collect_s": t_collect,
+                       "learn_s": time.perf_counter() - t0 - t_collect,
                        "fps": steps_per_it / (time.perf_counter() - t0),
                        "reward_per_step": float(reward_sum) / steps_per_it,
                        "action_std": float(alg.get_policy().output_std.detach().mean()),
