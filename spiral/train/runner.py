@@ -159,12 +159,22 @@ class StageTrainer:
             if best.get("iteration", -1) >= 0:
                 lap = best.get("lap_time")
                 self.best = EvalScore(best["success"], -lap if lap is not None else -math.inf, best["iteration"])
+            self._truncate_log(self.start_iteration)
             self.log(f"resuming stage '{self.stage.name}' from {newest.name} (iteration {self.start_iteration})")
         elif init_checkpoint is not None:
             data = load_checkpoint(init_checkpoint, map_location=self.device)
             self._check_layout(data, init_checkpoint)
             self.runner.alg.load(data, {"actor": True, "critic": True}, strict=True)
             self.log(f"stage '{self.stage.name}' starts from {init_checkpoint}")
+
+    def _truncate_log(self, start: int) -> None:
+        """Drop log rows of iterations that will be trained again after a resume."""
+        path = self.run_dir / "train_log.jsonl"
+        if not path.exists() or not self.dist.is_main:
+            return
+        rows = [line for line in path.read_text().splitlines() if line.strip()]
+        kept = [line for line in rows if json.loads(line)["iteration"] < start]
+        path.write_text("".join(line + "\n" for line in kept))
 
     def _check_layout(self, data: dict[str, Any], path: Path) -> None:
         from spiral.train.checkpoint import CheckpointError

@@ -82,6 +82,8 @@ def test_killed_training_step_resumes_and_ends_with_the_full_iteration_count(tmp
     assert ran[0] == "train:solo"
     assert any("resuming" in line and f"iteration {killed_at + 1}" in line for line in logs)
     assert list_checkpoints(ckpt_dir)[0][0] == 29
+    rows = (tmp_path / "runs" / "smoke" / "train-solo" / "train_log.jsonl").read_text().splitlines()
+    assert [json.loads(r)["iteration"] for r in rows] == list(range(30))
     manifest = json.loads((tmp_path / "runs" / "smoke" / "train-solo" / "manifest.json").read_text())
     assert manifest["info"]["iterations"] == 30
 
