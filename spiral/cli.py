@@ -295,6 +295,27 @@ def race(
     typer.echo(f"wrote {out}: {frames} frames, {rec.duration:.2f} s of racing")
 
 
+@bench_app.command("train")
+@handles_errors
+def bench_train(
+    track: Annotated[Path, typer.Option("--track", help="Track YAML")] = Path("tracks/circuit6.yaml"),
+    worlds: Annotated[int, typer.Option("--worlds", min=1, help="Parallel worlds")] = 1024,
+    iterations: Annotated[int, typer.Option("--iterations", min=1, help="Timed PPO iterations")] = 10,
+    device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
+    json_out: JsonOut = None,
+) -> None:
+    """End-to-end PPO throughput for the compact and the paper's observation layout."""
+    from spiral.config import AIRFRAMES, SimCfg
+    from spiral.train.bench import run_train_bench
+
+    result = run_train_bench(load_track(track), AIRFRAMES["cf2x"], SimCfg(), worlds=worlds, iterations=iterations,
+                             device=device)
+    for r in result["results"]:
+        typer.echo(f"{r['layout']:<8} {r['obs_dim']:>4} inputs: {r['env_steps_per_s']:>8.0f} env-steps/s, "
+                   f"update {100 * r['update_share']:.0f}% of the iteration")
+    _write_json(json_out, result)
+
+
 def main() -> None:
     """Console-script entry point."""
     app()
