@@ -5,6 +5,7 @@ are constants. Constraints (Clarabel form ``A·x + s = b``, ``s`` in a cone):
 
 - arena         ``lo ≤ p_k ≤ hi``                                   (non-negative cone)
 - gate          ``g_{k,j}·p_k ≤ b_{k,j}``, up to four per waypoint  (non-negative cone)
+- frame         up to four more per waypoint: other gates' frames  (non-negative cone)
 - collision     ``β_{k,o}·p_k ≤ b_{k,o}``, one per other player     (non-negative cone)
 - guard         the same against drones flown by another planner, extrapolated at constant velocity
 - speed         ``‖p_k − p_{k−1}‖ ≤ max(v_max, ‖v_0‖ − k·a_max·Δt)·Δt`` (second-order cones)
@@ -58,6 +59,10 @@ class RowData:
     """Extra half-planes against other drones' constant-velocity extrapolation (N, O, 3); no sensitivity."""
     guard_b: np.ndarray | None = None
     """Their upper bounds (N, O); infinite = left out."""
+    frame_a: np.ndarray | None = None
+    """Rows keeping segments that cross another gate's plane off its frame (N, 4, 3)."""
+    frame_b: np.ndarray | None = None
+    """Their upper bounds (N, 4); infinite = left out."""
 
 
 @dataclass
@@ -129,21 +134,23 @@ class BestResponseQP:
         gb, cb = d.gate_b.ravel(), d.coll_b.ravel()
         ub = d.guard_b.ravel() if d.guard_b is not None else np.zeros(0)
         ua = d.guard_a.reshape(-1, 3) if d.guard_a is not None else np.zeros((0, 3))
-        g_act, c_act, u_act = (np.nonzero(np.isfinite(x) & (x < 1e20))[0] for x in (gb, cb, ub))
+        fb = d.frame_b.ravel() if d.frame_b is not None else np.zeros(0)
+        fa = d.frame_a.reshape(-1, 3) if d.frame_a is not None else np.zeros((0, 3))
+        g_act, c_act, u_act, f_act = (np.nonzero(np.isfinite(x) & (x < 1e20))[0] for x in (gb, cb, ub, fb))
         n_box = self.box.shape[0]
-        coef = np.concatenate([d.gate_a.reshape(-1, 3)[g_act], d.coll_a.reshape(-1, 3)[c_act], ua[u_act]])
-        wp = np.concatenate([g_act // 4, c_act // self.O, u_act // self.O])
+        coef = np.concatenate([d.gate_a.reshape(-1, 3)[g_act], fa[f_act], d.coll_a.reshape(-1, 3)[c_act], ua[u_act]])
+        wp = np.concatenate([g_act // 4, f_act // 4, c_act // self.O, u_act // self.O])
         r = n_box + np.repeat(np.arange(len(wp)), 3)
         c = (3 * wp[:, None] + np.arange(3)).ravel()
         rows = np.concatenate([self.box.row, r])
         cols = np.concatenate([self.box.col, c])
         vals = np.concatenate([self.box.data, coef.ravel()])
-        b = np.concatenate([self.box_b, gb[g_act], cb[c_act], ub[u_act]])
+        b = np.concatenate([self.box_b, gb[g_act], fb[f_act], cb[c_act], ub[u_act]])
         w = _SLACK_WEIGHT
-        weight = np.concatenate([np.full(n_box + len(g_act), w["geometry"]), np.full(len(c_act) + len(u_act),
-                                                                                       w["separation"])])
+        n_geo, n_sep = n_box + len(g_act) + len(f_act), len(c_act) + len(u_act)
+        weight = np.concatenate([np.full(n_geo, w["geometry"]), np.full(n_sep, w["separation"])])
         self._weight = weight
-        return (rows, cols, vals), b, c_act, n_box + len(g_act) + np.arange(len(c_act))
+        return (rows, cols, vals), b, c_act, n_box + len(g_act) + len(f_act) + np.arange(len(c_act))
 
     def solve(self, d: RowData) -> Solution:
         """Best response for ``d``: the hard problem, or the soft fallback when that is not solved."""

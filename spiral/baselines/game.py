@@ -43,6 +43,8 @@ class GameParams:
     guard_steps: int = 3
     """Waypoints over which an owned drone also avoids the constant-velocity extrapolation of drones it does not
     fly (their own planner may not do what this game predicts)."""
+    frame_clear: float = 0.49
+    """Lateral distance from a gate's centre beyond which a drone clears its frame: outer/2 + radius + margin [m]."""
     sensitivity: bool = True
     """Compute the sensitivity term at all (False skips that code path; α = 0 must give the same plans)."""
 
@@ -124,8 +126,8 @@ def gate_row_table(line: Centreline, gp: GameParams) -> tuple[np.ndarray, np.nda
 
 
 def _gate_constraints(line: Centreline, table: tuple[np.ndarray, np.ndarray], pl: Player, gp: GameParams
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Gate rows (N, 4, 3), (N, 4) of player ``pl``'s next plan, and the phase of each waypoint.
+                      ) -> tuple[np.ndarray, ...]:
+    """Gate rows (N, 4, 3), (N, 4) of player ``pl``'s next plan, the phase of each waypoint and the straddles.
 
     Per waypoint (linearised at the previous plan): both ends of a segment that crosses a gate plane get that
     gate's tube; else, within ``exit_reach`` of the gate just passed and past its plane, its
@@ -150,7 +152,42 @@ def _gate_constraints(line: Centreline, table: tuple[np.ndarray, np.ndarray], pl
     active = (straddle >= 0) | exit_ok | approach_ok
     ga, gb = np.zeros((N, 4, 3)), np.full((N, 4), _INF)
     ga[active], gb[active] = table[0][kind[active], gate[active]], table[1][kind[active], gate[active]]
-    return ga, gb, phase
+    return ga, gb, phase, before, after
+
+
+def _frame_constraints(line: Centreline, table: tuple[np.ndarray, np.ndarray], pl: Player, gp: GameParams,
+                       before: np.ndarray, after: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows (N, 4, 3), (N, 4) for segments of the previous plan that cross a gate plane other than as a pass.
+
+    A drone may cross a gate's plane backwards or beside the opening (turning back behind a passed gate, or
+    flying past a later one), but not through its frame. Both ends of such a segment get that gate's tube when
+    the crossing point is nearer the opening than the outside of the frame, else one row keeping them beyond
+    ``frame_clear`` on the side of the crossing's larger in-plane offset.
+    """
+    N = gp.steps
+    fa, fb = np.zeros((N, 4, 3)), np.full((N, 4), _INF)
+    rel = pl.plan[None, :, :] - line.center[:, None, :]  # (G, N + 1, 3)
+    depth = (rel * line.forward[:, None, :]).sum(-1)
+    side = np.sign(depth)
+    g_idx, k_idx = np.nonzero(side[:, 1:] != side[:, :-1])
+    for g, k in zip(g_idx.tolist(), (k_idx + 1).tolist(), strict=True):
+        if after[k] == g and before[k - 1] == g:
+            continue  # the pass itself: handled by the gate rows
+        t = depth[g, k - 1] / (depth[g, k - 1] - depth[g, k])
+        hit = rel[g, k - 1] + t * (rel[g, k] - rel[g, k - 1])
+        y, z = float(hit @ line.axis_y[g]), float(hit @ line.axis_z[g])
+        if max(abs(y), abs(z)) < 0.5 * (gp.gate_half[g] + gp.frame_clear):
+            a, b = table[0][_TUBE, g], table[1][_TUBE, g]
+        else:
+            axis = line.axis_y[g] if abs(y) >= abs(z) else line.axis_z[g]
+            s = np.sign(y if abs(y) >= abs(z) else z)
+            a = np.zeros((4, 3))
+            b = np.full(4, _INF)
+            a[0], b[0] = -s * axis, -gp.frame_clear - s * axis @ line.center[g]
+        for j in (k - 1, k):
+            if j >= 1 and (fb[j - 1] >= 1e20).all():  # first crossing found keeps the slot
+                fa[j - 1], fb[j - 1] = a, b
+    return fa, fb
 
 
 def _unit(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
@@ -162,7 +199,8 @@ def player_rows(line: Centreline, table: tuple[np.ndarray, np.ndarray], pl: Play
                 gp: GameParams) -> RowData:
     """The linearised best-response problem of ``pl`` against the latest plans of ``players`` (D = ``slots``)."""
     N = gp.steps
-    ga, gb, phase = _gate_constraints(line, table, pl, gp)
+    ga, gb, phase, before, after = _gate_constraints(line, table, pl, gp)
+    fa, fb = _frame_constraints(line, table, pl, gp, before, after)
     q = np.zeros((N, 3))
     target = np.array([(pl.next_gate + phase[N]) % line.gate_count])
     tangent = line.tangent[line.project(pl.plan[N:N + 1], target)[0]]
@@ -189,7 +227,8 @@ def player_rows(line: Centreline, table: tuple[np.ndarray, np.ndarray], pl: Play
             g_beta = _unit(cv - pl.plan[1:k + 1], fallback)
             ga2[:k, col] = g_beta
             gb2[:k, col] = (g_beta * cv).sum(-1) - gp.separation
-    return RowData(p0=pl.p0, v0=pl.v0, q=q, gate_a=ga, gate_b=gb, coll_a=ca, coll_b=cb, guard_a=ga2, guard_b=gb2)
+    return RowData(p0=pl.p0, v0=pl.v0, q=q, gate_a=ga, gate_b=gb, coll_a=ca, coll_b=cb, guard_a=ga2, guard_b=gb2,
+                   frame_a=fa, frame_b=fb)
 
 
 def iterate_best_responses(line: Centreline, table: tuple[np.ndarray, np.ndarray], players: list[Player], slots: int,

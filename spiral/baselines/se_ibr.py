@@ -94,7 +94,7 @@ def game_params(env: RaceEnv, cfg: SEIBRCfg, steps: int) -> GameParams:
         tube=max(track.gate_bar(i) for i in gates) / 2 + r + cfg.gate_margin, slope=cfg.funnel_slope,
         reach=cfg.funnel_reach, exit_reach=cfg.exit_reach, separation=2 * r + cfg.drone_margin,
         progress_weight=cfg.progress_weight, alpha=cfg.alpha, guard_steps=cfg.guard_steps,
-        sensitivity=cfg.sensitivity)
+        frame_clear=max(track.gate_size(i) for i in gates) / 2 + r + cfg.gate_margin, sensitivity=cfg.sensitivity)
 
 
 class SEIBRPlanner:
