@@ -20,7 +20,7 @@ from spiral.baselines.se_ibr import PlannerPolicy, opponent_policy, se_ibr_polic
 from spiral.config import AIRFRAMES, EnvCfg, SimCfg, TrackSpec, load_track
 from spiral.env import RaceEnv, RaceResults, run_races
 
-__all__ = ["duel_statistics", "head_to_head", "race_progress", "self_match"]
+__all__ = ["duel_statistics", "head_to_head", "paired_duel", "race_progress", "self_match", "winners"]
 
 
 def _env(track: TrackSpec, drones: int, runs: int, seed: int, learners: list[int]) -> RaceEnv:
@@ -91,8 +91,8 @@ def duel_statistics(track: TrackSpec, res: RaceResults, *, a: int = 0, b: int = 
     """
     fin, lap = res.finished.numpy(), res.lap_time.numpy()
     runs = fin.shape[0]
-    a_wins = fin[:, a] & (~fin[:, b] | (lap[:, a] < lap[:, b]))
-    b_wins = fin[:, b] & (~fin[:, a] | (lap[:, b] < lap[:, a]))
+    won = winners(res, a=a, b=b)
+    a_wins, b_wins = won == a, won == b
     traj = res.trajectory
     assert traj is not None, "duel statistics need recorded trajectories"
     step = (traj[1:] - traj[:-1]).norm(dim=-1).numpy()  # frozen (crashed or finished) drones do not move
@@ -121,6 +121,35 @@ def duel_statistics(track: TrackSpec, res: RaceResults, *, a: int = 0, b: int = 
         "close_share": float(close.sum() / max(both.sum(), 1)),
         "a_ahead_when_close": float((lead[close] > 0).mean()) if close.any() else None,
     }
+
+
+def winners(res: RaceResults, *, a: int = 0, b: int = 1) -> np.ndarray:
+    """Winning slot of each 1v1 race (first to finish; a finisher beats a crashed or timed-out drone), −1 if none."""
+    fin, lap = res.finished.numpy(), res.lap_time.numpy()
+    a_wins = fin[:, a] & (~fin[:, b] | (lap[:, a] < lap[:, b]))
+    b_wins = fin[:, b] & (~fin[:, a] | (lap[:, b] < lap[:, a]))
+    return np.where(a_wins, a, np.where(b_wins, b, -1))
+
+
+def paired_duel(res: RaceResults, control: RaceResults, *, slot: int) -> dict[str, Any]:
+    """How the drone in ``slot`` of ``res`` did against the same slot of ``control`` over the same start placements.
+
+    Races whose winner changed, how many the slot gained or lost, and the mean lap-time change of each slot over
+    the races both runs finished.
+    """
+    w, wc = winners(res), winners(control)
+    fin, finc = res.finished.numpy(), control.finished.numpy()
+    lap, lapc = res.lap_time.numpy(), control.lap_time.numpy()
+    other = 1 - slot
+
+    def lap_change(s: int) -> float:
+        both = fin[:, s] & finc[:, s]
+        return float((lap[both, s] - lapc[both, s]).mean()) if both.any() else float("nan")
+
+    return {"races": len(w), "wins": int((w == slot).sum()), "control_wins": int((wc == slot).sum()),
+            "winner_changed": int((w != wc).sum()), "gained": int(((w == slot) & (wc != slot)).sum()),
+            "lost": int(((w != slot) & (wc == slot)).sum()), "lap_change": lap_change(slot),
+            "other_lap_change": lap_change(other)}
 
 
 def _summary(res: RaceResults, slots: list[int] | None = None) -> dict[str, Any]:

@@ -8,7 +8,7 @@ import torch
 
 from spiral.baselines import SEIBRCfg, SEIBRPlanner, opponent_policy, se_ibr_policy
 from spiral.baselines.best_response import BestResponseQP, RowData
-from spiral.baselines.game import plan_phases
+from spiral.baselines.game import Player, plan_phases, player_rows
 from spiral.baselines.se_ibr import dynamic_limits
 from spiral.config import AIRFRAMES, EnvCfg, SimCfg, TrackSpec
 from spiral.env import RaceEnv, run_races
@@ -175,3 +175,22 @@ def test_limits_follow_the_airframe_pid_and_action(circuit6):
     short = RaceEnv(circuit6, CF2X, SimCfg(), EnvCfg(action={"pos_scale": 1.0}), world_count=1, drones_per_world=1,
                     seed=0, auto_reset=False)
     assert dynamic_limits(short, SEIBRCfg()) == pytest.approx((1.0, 4.0))
+
+
+@pytest.mark.parametrize(("dz", "inside", "outside"), [(0.25, 1.10, 1.25), (0.60, 1.60, 1.30)])
+def test_segment_recrossing_a_passed_gate_keeps_off_its_frame(line2, dz, inside, outside):
+    """Give both ends of a segment re-crossing gate 0's plane near its bar the tube, or beyond the frame when wide."""
+    planner = SEIBRPlanner(make_env(line2))
+    n = planner.N
+    plan = np.zeros((n + 1, 3))
+    plan[:, 0] = np.linspace(0.5, -0.7, n + 1)  # turning back through gate 0's plane (x = 0) after passing it
+    plan[:, 2] = 1.0 + dz
+    pl = Player(slot=0, p0=plan[0], v0=np.zeros(3), next_gate=1, passed_any=True, plan=plan,
+                duals=np.zeros((1, n)), qp=planner._qp(0, 0))
+    rows = player_rows(planner.line, planner.gate_table, pl, [pl], 1, planner.params)
+    constrained = np.nonzero((rows.frame_b < 1e20).any(axis=1))[0] + 1  # waypoint indices with frame rows
+    k = int(np.nonzero(plan[1:, 0] < 0)[0][0]) + 1
+    assert constrained.tolist() == [k - 1, k]
+    a, b = rows.frame_a[k - 1], rows.frame_b[k - 1]
+    assert np.all(a @ np.array([-0.1, 0.0, inside]) <= b)
+    assert np.any(a @ np.array([-0.1, 0.0, outside]) > b)
