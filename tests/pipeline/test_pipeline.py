@@ -29,6 +29,7 @@ def write_pipeline(tmp_path: Path, *, iterations: int = 2, lr: float = 1e-3, sta
     data = yaml.safe_load((ROOT / "pipelines" / "smoke.yaml").read_text())
     data = json.loads(json.dumps({k: v for k, v in data.items() if not k.startswith("x-")}))  # unshare anchors
     data["track"] = str(ROOT / "tracks" / "oval4.yaml")
+    data["report"] = {"enabled": False}
     data["stages"] = data["stages"][:stages]
     data["stages"][0]["iterations"] = iterations
     data["stages"][0]["ppo"]["learning_rate"] = lr
