@@ -26,7 +26,7 @@ from spiral.env.race_env import OpponentPolicy, RaceEnv
 from spiral.env.racing import run_races
 from spiral.env.vec_env import RaceVecEnv
 from spiral.train import distributed
-from spiral.train.checkpoint import load_checkpoint, newest_valid_checkpoint, save_checkpoint
+from spiral.train.checkpoint import CheckpointError, load_checkpoint, newest_valid_checkpoint, save_checkpoint
 
 __all__ = ["EvalScore", "StageTrainer", "TrainResult", "seed_everything"]
 
@@ -177,8 +177,6 @@ class StageTrainer:
         path.write_text("".join(line + "\n" for line in kept))
 
     def _check_layout(self, data: dict[str, Any], path: Path) -> None:
-        from spiral.train.checkpoint import CheckpointError
-
         stored = data["spiral"]["obs_layout"]
         if stored != self.env.obs_builder.layout():
             raise CheckpointError(f"{path}: observation layout {stored} differs from this stage's")
