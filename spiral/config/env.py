@@ -36,7 +36,8 @@ class ActionCfg(StrictModel):
 
 
 class RewardCfg(StrictModel):
-    """Weights of the paper's reward terms; each term is logged as ``Episode_Reward/<term>``."""
+    """Weights of the paper's reward terms (and an optional proximity penalty); each term is logged as
+    ``Episode_Reward/<term>``."""
 
     progress: NonNegFloat = Field(default=1.0, description="Per metre of progress towards the next gate")
     progress_lateral: float = Field(
@@ -51,6 +52,12 @@ class RewardCfg(StrictModel):
     alignment: NonNegFloat = Field(default=0.002, description="Weight ζ of max(0, cos θ − cos θ_th) per step")
     alignment_threshold_deg: float = Field(default=60.0, gt=0, le=180, description="θ_th [deg]")
     lap: NonNegFloat = Field(default=1.0, description="Weight of 100 / lap_time at a completed lap")
+    proximity: NonNegFloat = Field(
+        default=0.0,
+        description="Weight of the per-step penalty max(0, 1 − d/proximity_distance), d the distance to the nearest "
+        "other drone (not in the paper; 0 leaves the paper's reward)",
+    )
+    proximity_distance: PosFloat = Field(default=0.5, description="Distance where the proximity penalty starts [m]")
 
 
 class EpisodeCfg(StrictModel):

@@ -31,6 +31,11 @@ class PromotionCfg(StrictModel):
     min_races: PosInt = Field(default=64, description="Fewest races a promotion may rest on")
     min_win_rate: float = Field(default=0.55, ge=0, le=1, description="Win rate needed over the current best")
     max_success_drop: float = Field(default=0.02, ge=0, le=1, description="Largest success-ratio drop allowed")
+    self_match: bool = Field(
+        default=True,
+        description="Also require the learner's self-match success (every drone runs it) to be no more than "
+        "max_success_drop below the best's",
+    )
     elo_k: float = Field(default=16.0, gt=0, description="Elo K-factor applied per evaluation (match score)")
 
 
@@ -42,9 +47,20 @@ class SelfPlayCfg(StrictModel):
     """
 
     mode: Literal["pool", "frozen"] = Field(default="pool")
+    p_self: float = Field(
+        default=0.0, ge=0, le=1,
+        description="Probability that a world's opponents are the learner's current policy (mirror self-play, "
+        "pool mode only); the rest are drawn from the pool",
+    )
     p_latest: float = Field(default=0.5, ge=0, le=1, description="Probability of racing the latest best")
     sampling: Literal["uniform", "prioritized"] = Field(default="prioritized", description="Other draws")
     promotion: PromotionCfg = Field(default_factory=PromotionCfg)
+
+    @model_validator(mode="after")
+    def _mirror_needs_pool(self) -> SelfPlayCfg:
+        if self.mode == "frozen" and self.p_self > 0:
+            raise ValueError("p_self: frozen opponents (PPO without self-play) cannot race the learner itself")
+        return self
 
 
 class StageSpec(StrictModel):

@@ -248,10 +248,19 @@ class RaceEnv:
             heading=_heading(self.quat),
             to_gate=self.gate_center[self.next_gate.long()] - self.pos,
             lap_time=torch.where(finished_now, self.lap_time, torch.zeros_like(self.lap_time)),
+            nearest=self._nearest_distance() if self.cfg.reward.proximity > 0 else None,
         )
         for name in ("dist_before", "dist_after"):  # no reward for frozen drones
             setattr(outcome, name, torch.where(racing, getattr(outcome, name), torch.zeros_like(dist_before)))
         return outcome, crashed_now, finished_now
+
+    def _nearest_distance(self) -> torch.Tensor:
+        """Distance of every racing drone to the nearest other drone of its world still racing (else inf)."""
+        w, d = self.world_count, self.drones_per_world
+        dist = torch.cdist(self.pos.view(w, d, 3), self.pos.view(w, d, 3))
+        out = (self.out != 0).view(w, d)
+        gone = torch.eye(d, dtype=torch.bool, device=self.device)[None] | out[:, None, :] | out[:, :, None]
+        return dist.masked_fill(gone, float("inf")).amin(dim=-1).flatten()
 
     def _gate_distance(self, gate: torch.Tensor) -> torch.Tensor:
         """Funnel distance sqrt(a² + κ²·l²) of every drone to ``gate``: a along the gate's normal, l across it.

@@ -30,6 +30,8 @@ class StepOutcome:
     """Vector from the drone to its next gate (N, 3) [m]."""
     lap_time: torch.Tensor
     """Lap time for drones that completed their lap during the step, else 0 [s]."""
+    nearest: torch.Tensor | None = None
+    """Distance to the nearest other drone still racing after the step, inf when there is none [m]."""
 
 
 def _reward_progress(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
@@ -53,6 +55,13 @@ def _reward_alignment(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
     return (cos - math.cos(math.radians(cfg.alignment_threshold_deg))).clamp(min=0.0)
 
 
+def _reward_proximity(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
+    """−max(0, 1 − d / d_safe) per step, d the distance to the nearest other racing drone (not in the paper)."""
+    if o.nearest is None:
+        return torch.zeros_like(o.dist_before)
+    return -(1.0 - o.nearest / cfg.proximity_distance).clamp(min=0.0)
+
+
 def _reward_lap(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
     """100 / T_lap at the step a lap is completed."""
     done = o.lap_time > 0
@@ -64,6 +73,7 @@ REWARD_TERMS = {
     "gate": _reward_gate,
     "collision": _reward_collision,
     "alignment": _reward_alignment,
+    "proximity": _reward_proximity,
     "lap": _reward_lap,
 }
 """Reward term functions by the name of their weight in ``RewardCfg``."""

@@ -73,7 +73,7 @@ def run_stage(
     matchmaker = Matchmaker(len(ids), latest=latest, p_latest=stage.selfplay.p_latest,
                             mode=stage.selfplay.sampling, device=device)
     opponents = PoolOpponents([policies[i] for i in ids], matchmaker, world_count=stage.worlds,
-                              per_world=opp_per_world, generator=generator)
+                              per_world=opp_per_world, generator=generator, p_self=stage.selfplay.p_self)
 
     def add_opponent(path: Path) -> None:
         opponents.policies.append(load_policy(path, device=device))
@@ -87,4 +87,5 @@ def run_stage(
     trainer = StageTrainer(track, airframe, sim, stage, run_dir, device=device, seed=seed,
                            init_checkpoint=init_checkpoint, opponent=opponents, selector=selector,
                            selection_interval=selector.interval, log=log, progress=progress)
+    opponents.live = trainer.runner.alg.get_policy()  # deterministic output: mirror opponents race the mean action
     return trainer.train()

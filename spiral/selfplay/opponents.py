@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from tensordict import TensorDict
 
@@ -15,32 +17,47 @@ class PoolOpponents:
     """An ``OpponentPolicy`` over several frozen policies; each world keeps its drawn member for the episode.
 
     Opponent rows arrive world-major (``per_world`` rows per world). All worlds that share a member go through
-    that member's network in one forward pass, without gradients.
+    that member's network in one forward pass, without gradients. With ``p_self > 0`` a world races copies of the
+    learner's current policy instead (mirror self-play) with that probability; ``live`` must then be set to the
+    learner's deterministic policy before the first step. Mirror races are not counted by the matchmaker.
     """
 
     def __init__(self, policies: list[FrozenPolicy], matchmaker: Matchmaker, *, world_count: int, per_world: int,
-                 generator: torch.Generator) -> None:
+                 generator: torch.Generator, p_self: float = 0.0) -> None:
         self.policies, self.matchmaker = policies, matchmaker
-        self.per_world, self.generator = per_world, generator
-        self.assignment = matchmaker.draw(world_count, generator)
+        self.per_world, self.generator, self.p_self = per_world, generator, p_self
+        self.live: Callable[[TensorDict], torch.Tensor] | None = None
+        """The learner's current policy, for mirror worlds."""
+        self.assignment = torch.zeros(world_count, dtype=torch.long, device=matchmaker.races.device)
         """Member index of each world."""
+        self.mirror = torch.zeros(world_count, dtype=torch.bool, device=matchmaker.races.device)
+        """Worlds whose opponents are the learner's current policy."""
+        self.reset(torch.ones(world_count, dtype=torch.bool, device=matchmaker.races.device))
 
     @torch.no_grad()
     def __call__(self, obs: TensorDict) -> torch.Tensor:
         """Actions of every opponent drone."""
         member_of_row = self.assignment.repeat_interleave(self.per_world)
+        mirror_row = self.mirror.repeat_interleave(self.per_world)
         actions = torch.zeros(obs.batch_size[0], 4, device=member_of_row.device)
-        for m in torch.unique(member_of_row).tolist():
-            rows = member_of_row == m
+        if mirror_row.any():
+            if self.live is None:
+                raise RuntimeError("mirror worlds need the learner's policy: set PoolOpponents.live")
+            actions[mirror_row] = self.live(obs[mirror_row])
+        for m in torch.unique(member_of_row[~mirror_row]).tolist():
+            rows = (member_of_row == m) & ~mirror_row
             actions[rows] = self.policies[m](obs[rows])
         return actions
 
     def reset(self, worlds: torch.Tensor) -> None:
-        """Draw new members for the worlds in the bool mask ``worlds``."""
+        """Draw new members (or mirror races) for the worlds in the bool mask ``worlds``."""
         count = int(worlds.sum())
         if count:
             self.assignment[worlds] = self.matchmaker.draw(count, self.generator)
+            u = torch.rand(count, generator=self.generator, device=self.mirror.device)
+            self.mirror[worlds] = u < self.p_self
 
     def record(self, worlds: torch.Tensor, learner_won: torch.Tensor) -> None:
-        """Feed race outcomes of ended worlds (indices) to the matchmaker."""
-        self.matchmaker.record(self.assignment[worlds], learner_won)
+        """Feed race outcomes of ended pool worlds (indices) to the matchmaker."""
+        pooled = ~self.mirror[worlds]
+        self.matchmaker.record(self.assignment[worlds][pooled], learner_won[pooled])

@@ -11,7 +11,7 @@ from spiral.config.sim import SimCfg
 from spiral.config.stage import PromotionCfg, StageSpec
 from spiral.config.track import TrackSpec
 from spiral.env.race_env import RaceEnv
-from spiral.env.racing import Policy, race_winners, run_races
+from spiral.env.racing import Policy, RaceResults, race_winners, run_races
 from spiral.selfplay.pool import Pool
 from spiral.train.checkpoint import FrozenPolicy, load_policy
 from spiral.train.runner import StageTrainer
@@ -53,11 +53,20 @@ def head_to_head(env: RaceEnv, challenger: Policy, holder: Policy) -> HeadToHead
                       draws=int((winners == -1).sum()), a_success=float(a), b_success=float(b))
 
 
-def should_promote(result: HeadToHead, cfg: PromotionCfg) -> bool:
+def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[float, float] | None = None) -> bool:
     """Win rate at least ``min_win_rate`` over at least ``min_races`` races, success not below the holder's by more
-    than ``max_success_drop``."""
-    return (result.races >= cfg.min_races and result.win_rate >= cfg.min_win_rate
-            and result.a_success >= result.b_success - cfg.max_success_drop)
+    than ``max_success_drop``; with ``self_match = (learner, best)`` self-match success ratios and
+    ``cfg.self_match``, the learner's may not be below the best's by more than ``max_success_drop`` either."""
+    ok = (result.races >= cfg.min_races and result.win_rate >= cfg.min_win_rate
+          and result.a_success >= result.b_success - cfg.max_success_drop)
+    if cfg.self_match and self_match is not None:
+        ok = ok and self_match[0] >= self_match[1] - cfg.max_success_drop
+    return ok
+
+
+def _success(res: RaceResults) -> float:
+    """Share of the present drones that finished."""
+    return float(res.finished[res.present].float().mean())
 
 
 def elo_update(rating_a: float, rating_b: float, score_a: float, k: float) -> tuple[float, float]:
@@ -84,17 +93,24 @@ class PromotionSelector:
         self.env = RaceEnv(track, airframe, sim, stage.env, world_count=self.cfg.races, drones_per_world=d,
                            learner_slots=stage.learner_slots(), device=device, seed=seed + 20_000, auto_reset=False)
         self.interval = self.cfg.interval
+        self.best_self_success: float | None = None
+        """Self-match success of the current best (measured at the first evaluation, then on promotion)."""
 
     def __call__(self, trainer: StageTrainer, it: int) -> dict[str, float]:
-        """Race the learner against the best; promote it when the rule holds."""
+        """Race the learner against the best and in a self-match; promote it when the rule holds."""
+        if self.best_self_success is None:
+            self.best_self_success = _success(run_races(trainer.eval_env, self.best))
+        own = trainer.evaluate(it)
         learner = trainer.runner.get_inference_policy(device=self.device)
         result = head_to_head(self.env, learner, self.best)
         trainer.runner.alg.train_mode()
         learner_rating, best_rating = elo_update(self.best_rating, self.best_rating, result.score, self.cfg.elo_k)
         row = {"h2h/win_rate": result.win_rate, "h2h/draws": result.draws / max(result.races, 1),
                "h2h/learner_success": result.a_success, "h2h/best_success": result.b_success,
-               "h2h/promoted": 0.0}
-        if should_promote(result, self.cfg):
+               "h2h/promoted": 0.0, "eval/success": own.success,
+               "eval/lap_time": own.lap_time if own.lap_time is not None else float("nan"),
+               "eval/best_success": self.best_self_success}
+        if should_promote(result, self.cfg, (own.success, self.best_self_success)):
             path = trainer.save_best(it)
             if self.pool is not None:
                 if self.pool.latest_best is not None:
@@ -102,9 +118,10 @@ class PromotionSelector:
                 self.pool.add(path, stage=self.stage.name, iteration=it, evaluation=asdict(result),
                               rating=learner_rating)
             self.best, self.best_rating = load_policy(path, device=self.device), learner_rating
+            self.best_self_success = own.success
             if self.on_promote is not None:
                 self.on_promote(path)
             self.log(f"iteration {it}: promoted (win rate {result.win_rate:.2f}, success "
-                     f"{result.a_success:.2f} vs {result.b_success:.2f})")
+                     f"{result.a_success:.2f} vs {result.b_success:.2f}, self-match {own.success:.2f})")
             row["h2h/promoted"] = 1.0
         return row

@@ -112,6 +112,22 @@ def test_reward_terms_on_a_hand_made_transition():
     assert total.tolist() == pytest.approx([24.5, -10.0])
 
 
+def test_proximity_penalty_grows_linearly_inside_the_safe_distance(oval2):
+    """Pay −w·(1 − d/d_safe) for the nearest racing drone: 0.2 m apart with d_safe 0.5 m costs 0.6·w per step,
+    1 m apart costs nothing, and a lone drone pays nothing."""
+    reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, proximity=0.1, proximity_distance=0.5)
+    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), auto_reset=False, reward=reward)
+    env.reset()
+    for gap, expected in ((0.2, -0.06), (1.0, 0.0)):
+        place(env, [[-1.5, -1.0, 1.0], [-1.5, -1.0 + gap, 1.0]])
+        hold = torch.zeros(2, 4)
+        _, rewards, _, _ = env.step(hold)
+        assert rewards.tolist() == pytest.approx([expected, expected], abs=2e-3)
+    solo = make_env(oval2, worlds=1, auto_reset=False, reward=reward)
+    _, rewards, _, _ = solo.step(torch.zeros(1, 4))
+    assert float(solo.term_sums["proximity"][0]) == 0.0
+
+
 def test_scripted_lap_pays_each_gate_once_and_the_lap_bonus_once(oval2):
     """Fly gate 0, gate 1, gate 0 again: three gate bonuses, one lap bonus of 100 / lap time, success."""
     env = make_env(oval2, worlds=1, auto_reset=False, reward=RewardCfg(progress=0.0, alignment=0.0))

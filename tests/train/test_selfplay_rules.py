@@ -7,7 +7,9 @@ import json
 import pytest
 import torch
 
-from spiral.config import PromotionCfg
+from pydantic import ValidationError
+
+from spiral.config import PromotionCfg, SelfPlayCfg
 from spiral.selfplay import HeadToHead, Matchmaker, Pool, elo_update, should_promote
 
 
@@ -36,6 +38,21 @@ def test_promotion_rule_on_scripted_results():
     assert not should_promote(HeadToHead(64, 35, 20, 9, 0.95, 0.96), cfg)  # 0.547 < 0.55
     assert not should_promote(HeadToHead(64, 40, 20, 4, 0.90, 0.96), cfg)  # success drop 0.06
     assert not should_promote(HeadToHead(32, 30, 2, 0, 1.0, 1.0), cfg)  # too few races
+
+
+def test_promotion_also_needs_a_self_match_no_worse_than_the_best():
+    """Refuse a winner whose self-match success is more than 0.02 below the best's, unless the check is off."""
+    win = HeadToHead(64, 50, 10, 4, 0.95, 0.90)
+    assert should_promote(win, PromotionCfg(), (0.80, 0.81))
+    assert not should_promote(win, PromotionCfg(), (0.70, 0.81))
+    assert should_promote(win, PromotionCfg(self_match=False), (0.70, 0.81))
+
+
+def test_frozen_opponents_refuse_mirror_self_play():
+    """PPO without self-play never races the learner itself: p_self > 0 with frozen opponents is an error."""
+    with pytest.raises(ValidationError, match="p_self"):
+        SelfPlayCfg(mode="frozen", p_self=0.5)
+    assert SelfPlayCfg(mode="pool", p_self=0.5).p_self == 0.5
 
 
 def test_elo_update_is_zero_sum_and_follows_the_expected_score():

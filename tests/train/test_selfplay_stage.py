@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 
+import pytest
 import torch
+from tensordict import TensorDict
 
 from spiral.config import AIRFRAMES, SimCfg, StageSpec
 from spiral.selfplay import Matchmaker, Pool, PoolOpponents, run_stage
@@ -53,11 +55,31 @@ def test_batched_opponents_match_one_by_one_inference(line2, tmp_path):
     opponents = PoolOpponents(policies, Matchmaker(2, latest=1, p_latest=0.5), world_count=6, per_world=2,
                               generator=gen)
     dim = policies[0].obs_layout["obs_dim"]
-    from tensordict import TensorDict
-
     obs = torch.randn(12, dim)
     batched = opponents(TensorDict({"policy": obs, "critic": obs}, batch_size=[12]))
     member = opponents.assignment.repeat_interleave(2)
     for row in range(12):
         single = TensorDict({"policy": obs[row:row + 1], "critic": obs[row:row + 1]}, batch_size=[1])
         assert torch.allclose(batched[row], policies[int(member[row])](single)[0], atol=1e-6)
+
+
+def test_mirror_worlds_race_the_live_policy_and_stay_out_of_matchmaking(line2, tmp_path):
+    """Drive about p_self of the worlds with the learner's policy; only pool worlds feed the loss statistics."""
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
+    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "a", pool_dir=tmp_path / "p", init_checkpoint=None,
+              progress=False)
+    frozen = load_policy(tmp_path / "a" / "best.pt")
+    gen = torch.Generator().manual_seed(0)
+    mm = Matchmaker(1, latest=0, p_latest=0.5)
+    opponents = PoolOpponents([frozen], mm, world_count=4000, per_world=1, generator=gen, p_self=0.3)
+    assert opponents.mirror.float().mean().item() == pytest.approx(0.3, abs=0.03)
+    opponents.live = lambda obs: torch.full((obs.batch_size[0], 4), 0.5)
+    dim = frozen.obs_layout["obs_dim"]
+    obs = torch.randn(4000, dim)
+    actions = opponents(TensorDict({"policy": obs, "critic": obs}, batch_size=[4000]))
+    assert (actions[opponents.mirror] == 0.5).all()
+    pooled = ~opponents.mirror
+    single = TensorDict({"policy": obs[pooled], "critic": obs[pooled]}, batch_size=[int(pooled.sum())])
+    assert torch.allclose(actions[pooled], frozen(single), atol=1e-6)
+    opponents.record(torch.arange(4000), torch.zeros(4000, dtype=torch.bool))
+    assert mm.races.item() == int(pooled.sum()) and mm.losses.item() == int(pooled.sum())
