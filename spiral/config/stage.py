@@ -33,8 +33,13 @@ class PromotionCfg(StrictModel):
     max_success_drop: float = Field(default=0.02, ge=0, le=1, description="Largest success-ratio drop allowed")
     self_match: bool = Field(
         default=True,
-        description="Also require the learner's self-match success (every drone runs it) to be no more than "
-        "max_success_drop below the best's",
+        description="Also race the learner in a self-match (every drone runs it): its success may not be more than "
+        "max_success_drop below the best's, and a safer learner can be promoted (self_match_gain)",
+    )
+    self_match_gain: float | None = Field(
+        default=0.05, ge=0, le=1,
+        description="Promote as well a learner whose self-match success beats the best's by at least this much "
+        "while its head-to-head success is not below the best's by more than max_success_drop; null: never",
     )
     elo_k: float = Field(default=16.0, gt=0, description="Elo K-factor applied per evaluation (match score)")
 

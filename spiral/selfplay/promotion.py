@@ -54,14 +54,23 @@ def head_to_head(env: RaceEnv, challenger: Policy, holder: Policy) -> HeadToHead
 
 
 def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[float, float] | None = None) -> bool:
-    """Win rate at least ``min_win_rate`` over at least ``min_races`` races, success not below the holder's by more
-    than ``max_success_drop``; with ``self_match = (learner, best)`` self-match success ratios and
-    ``cfg.self_match``, the learner's may not be below the best's by more than ``max_success_drop`` either."""
-    ok = (result.races >= cfg.min_races and result.win_rate >= cfg.min_win_rate
-          and result.a_success >= result.b_success - cfg.max_success_drop)
-    if cfg.self_match and self_match is not None:
-        ok = ok and self_match[0] >= self_match[1] - cfg.max_success_drop
-    return ok
+    """Whether the learner (team A of ``result``) replaces the best.
+
+    Faster: win rate at least ``min_win_rate`` over at least ``min_races`` races with success not below the best's
+    by more than ``max_success_drop`` (and, given ``self_match = (learner, best)`` self-match success ratios and
+    ``cfg.self_match``, self-match success not below the best's by more than that either). Safer (with
+    ``cfg.self_match`` and ``cfg.self_match_gain``): self-match success at least ``self_match_gain`` above the
+    best's over at least ``min_races`` races, head-to-head success not below the best's by more than
+    ``max_success_drop``.
+    """
+    enough = result.races >= cfg.min_races
+    as_safe = result.a_success >= result.b_success - cfg.max_success_drop
+    faster = enough and as_safe and result.win_rate >= cfg.min_win_rate
+    if not cfg.self_match or self_match is None:
+        return faster
+    own, best = self_match
+    safer = cfg.self_match_gain is not None and enough and as_safe and own >= best + cfg.self_match_gain
+    return (faster and own >= best - cfg.max_success_drop) or safer
 
 
 def _success(res: RaceResults) -> float:

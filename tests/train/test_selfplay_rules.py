@@ -48,6 +48,15 @@ def test_promotion_also_needs_a_self_match_no_worse_than_the_best():
     assert should_promote(win, PromotionCfg(self_match=False), (0.70, 0.81))
 
 
+def test_a_safer_learner_is_promoted_without_winning_the_duel():
+    """Promote on a self-match gain of ≥ 0.05 when the duel success holds, even with few wins; not otherwise."""
+    slower = HeadToHead(64, 5, 40, 19, 0.72, 0.72)
+    assert should_promote(slower, PromotionCfg(), (0.84, 0.78))
+    assert not should_promote(slower, PromotionCfg(), (0.81, 0.78))  # gain 0.03 < 0.05
+    assert not should_promote(HeadToHead(64, 5, 40, 19, 0.60, 0.72), PromotionCfg(), (0.90, 0.78))  # duel less safe
+    assert not should_promote(slower, PromotionCfg(self_match_gain=None), (0.84, 0.78))
+
+
 def test_frozen_opponents_refuse_mirror_self_play():
     """PPO without self-play never races the learner itself: p_self > 0 with frozen opponents is an error."""
     with pytest.raises(ValidationError, match="p_self"):
