@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import runpy
 import sys
@@ -41,3 +42,24 @@ def test_gym_loop_steps_the_vector_and_the_single_env(script_env, capsys):
     assert "vector env: 8 drones, observation (78,)" in out and "autoreset SameStep" in out
     assert re.search(r"200 steps: \d+ episodes ended", out)
     assert re.search(r"single env: episode of \d+ steps", out)
+
+
+def test_stage_variant_trains_an_overridden_stage_and_evaluates_it(script_env, monkeypatch, capsys):
+    """Override the smoke pipeline's 1v1 stage (mirror self-play only), train it from a solo policy, evaluate."""
+    from spiral.config import load_pipeline, resolve_airframe
+    from spiral.selfplay import run_stage
+
+    pipeline = EXAMPLES.parent / "pipelines" / "smoke.yaml"
+    spec, track = load_pipeline(pipeline)
+    run_stage(track, resolve_airframe(spec.airframe), spec.sim, spec.stages[0], script_env / "solo",
+              pool_dir=script_env / "unused", init_checkpoint=None, progress=False)
+    out = script_env / "variant"
+    monkeypatch.setattr(sys, "argv", ["stage_variant.py", str(pipeline), "1v1", str(script_env / "solo" / "best.pt"),
+                                      str(out), "--set", "selfplay.p_self=1.0", "--set", "iterations=1"])
+    runpy.run_path(str(EXAMPLES / "stage_variant.py"), run_name="__main__")
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["overrides"] == ["selfplay.p_self=1.0", "iterations=1"]
+    assert 0.0 <= summary["success_ratio"] <= 1.0
+    assert set(summary["crashes"]) == {"ground", "bounds", "gate", "drone", "timeout"} and (out / "best.pt").exists()
+    assert len((out / "train_log.jsonl").read_text().splitlines()) == 1  # the iterations override took effect
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == summary
