@@ -230,11 +230,11 @@ class StageTrainer:
                        **{f"loss/{k}": float(v) for k, v in losses.items()}, **self.env.pop_stats()}
                 if main and ((it + 1) % self.selection_interval == 0 or it == total - 1):
                     row.update(self.selector(self, it))
+                if writer is not None:  # the row first: a resume drops rows past its checkpoint, never misses one
+                    self._write_row(writer, row, it)
                 if main and ((it + 1) % self.stage.ppo.save_interval == 0 or it == total - 1):
                     last_path = self.ckpt_dir / f"model_{it}.pt"
                     self._save(last_path, it)
-                if writer is not None:
-                    self._write_row(writer, row, it)
                 history.append(row)
                 progress.update(task, completed=it + 1, stats=self._status(row))
         if writer is not None:
