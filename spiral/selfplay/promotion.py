@@ -11,7 +11,7 @@ from spiral.config.sim import SimCfg
 from spiral.config.stage import PromotionCfg, StageSpec
 from spiral.config.track import TrackSpec
 from spiral.env.race_env import RaceEnv
-from spiral.env.racing import Policy, RaceResults, race_winners, run_races
+from spiral.env.racing import Policy, race_winners, run_races
 from spiral.selfplay.pool import Pool
 from spiral.train.checkpoint import FrozenPolicy, load_policy
 from spiral.train.runner import StageTrainer
@@ -73,11 +73,6 @@ def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[floa
     return (faster and own >= best - cfg.max_success_drop) or safer
 
 
-def _success(res: RaceResults) -> float:
-    """Share of the present drones that finished."""
-    return float(res.finished[res.present].float().mean())
-
-
 def elo_update(rating_a: float, rating_b: float, score_a: float, k: float) -> tuple[float, float]:
     """Elo update for a match in which A scored ``score_a`` in [0, 1] against B."""
     expected = 1.0 / (1.0 + 10.0 ** ((rating_b - rating_a) / 400.0))
@@ -108,7 +103,7 @@ class PromotionSelector:
     def __call__(self, trainer: StageTrainer, it: int) -> dict[str, float]:
         """Race the learner against the best and in a self-match; promote it when the rule holds."""
         if self.best_self_success is None:
-            self.best_self_success = _success(run_races(trainer.eval_env, self.best))
+            self.best_self_success = trainer.evaluate(it, self.best).success
         own = trainer.evaluate(it)
         learner = trainer.runner.get_inference_policy(device=self.device)
         result = head_to_head(self.env, learner, self.best)

@@ -23,7 +23,7 @@ from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
 from spiral.env.race_env import OpponentPolicy, RaceEnv
-from spiral.env.racing import run_races
+from spiral.env.racing import Policy, run_races
 from spiral.env.vec_env import RaceVecEnv
 from spiral.train import distributed
 from spiral.train.checkpoint import CheckpointError, load_checkpoint, newest_valid_checkpoint, save_checkpoint
@@ -183,9 +183,11 @@ class StageTrainer:
 
     # Evaluation
 
-    def evaluate(self, iteration: int) -> EvalScore:
-        """Race the deterministic policy from seeded start-box placements (self-match in multi-drone stages)."""
-        policy = self.runner.get_inference_policy(device=self.device)
+    def evaluate(self, iteration: int, policy: Policy | None = None) -> EvalScore:
+        """Race ``policy`` (the learner's deterministic policy by default) from seeded start-box placements
+        (self-match in multi-drone stages)."""
+        if policy is None:
+            policy = self.runner.get_inference_policy(device=self.device)
         res = run_races(self.eval_env, policy)
         self.runner.alg.train_mode()
         ok = res.finished[res.present]

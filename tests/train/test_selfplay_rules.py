@@ -6,7 +6,6 @@ import json
 
 import pytest
 import torch
-
 from pydantic import ValidationError
 
 from spiral.config import PromotionCfg, SelfPlayCfg
