@@ -23,7 +23,8 @@ __all__ = ["OpponentPolicy", "RaceEnv"]
 OpponentPolicy = Callable[[TensorDict], torch.Tensor]
 """Maps the observations of the opponent drones (TensorDict with ``policy``, world-major rows) to actions in
 [−1, 1]. Optional methods: ``reset(worlds: bool mask)`` at world resets (to draw new opponents) and
-``record(worlds: indices, learner_won: bool)`` when races end (for matchmaking statistics)."""
+``record(worlds: indices, learner_won: bool)`` when races end (for matchmaking statistics). An attribute ``live``
+is set by :class:`~spiral.train.StageTrainer` to the learner's current deterministic policy (mirror self-play)."""
 
 
 def _heading(quat: torch.Tensor) -> torch.Tensor:

@@ -87,5 +87,4 @@ def run_stage(
     trainer = StageTrainer(track, airframe, sim, stage, run_dir, device=device, seed=seed,
                            init_checkpoint=init_checkpoint, opponent=opponents, selector=selector,
                            selection_interval=selector.interval, log=log, progress=progress)
-    opponents.live = trainer.runner.alg.get_policy()  # deterministic output: mirror opponents race the mean action
     return trainer.train()

@@ -15,6 +15,8 @@ import torch
 from rsl_rl.models import MLPModel
 from tensordict import TensorDict
 
+from spiral.train.inputs import silence_inputs, unused_inputs
+
 __all__ = [
     "CheckpointError",
     "FrozenPolicy",
@@ -153,7 +155,11 @@ class FrozenPolicy(torch.nn.Module):
 
 
 def load_policy(path: Path, *, device: str = "cpu") -> FrozenPolicy:
-    """Rebuild the actor of a checkpoint for inference (its normaliser included)."""
+    """Rebuild the actor of a checkpoint for inference (its normaliser included).
+
+    Inputs that never varied while it trained (a solo policy's opponent slots) are silenced: the policy acts as it
+    did in its own stage and ignores them (:mod:`spiral.train.inputs`).
+    """
     data = load_checkpoint(path, map_location=device)
     meta = data["spiral"]
     ppo = meta["ppo"]
@@ -167,4 +173,5 @@ def load_policy(path: Path, *, device: str = "cpu") -> FrozenPolicy:
         actor.load_state_dict(data["actor_state_dict"])
     except (RuntimeError, KeyError) as exc:
         raise CheckpointError(f"{path}: actor weights do not match the stored layout: {exc}") from exc
+    silence_inputs(actor, unused_inputs(actor))
     return FrozenPolicy(actor.to(device), meta)

@@ -27,8 +27,12 @@ from spiral.env.racing import Policy, run_races
 from spiral.env.vec_env import RaceVecEnv
 from spiral.train import distributed
 from spiral.train.checkpoint import CheckpointError, load_checkpoint, newest_valid_checkpoint, save_checkpoint
+from spiral.train.inputs import calibrate_inputs, model_inputs, silence_inputs, unused_inputs
 
 __all__ = ["EvalScore", "StageTrainer", "TrainResult", "seed_everything"]
+
+WARMUP_S = 2.0
+"""Flight time of the rollout that measures the statistics of inputs new to a stage [s]."""
 
 
 def seed_everything(seed: int) -> None:
@@ -108,6 +112,8 @@ class StageTrainer:
         self.vec_env = RaceVecEnv(self.env)
         with contextlib.redirect_stdout(io.StringIO()):  # rsl-rl prints the model architecture
             self.runner = distributed.GroupRunner(self.vec_env, stage.ppo.to_rsl_rl(), log_dir=None, device=device)
+        if hasattr(opponent, "live"):  # mirror self-play: opponents that race the learner's current policy
+            opponent.live = self.runner.alg.get_policy()  # deterministic output: the mean action
         self.start_iteration = 0
         self.best = EvalScore(-1.0, -math.inf)
         self.selector = selector or StageTrainer.select_by_solo_eval
@@ -166,6 +172,33 @@ class StageTrainer:
             self._check_layout(data, init_checkpoint)
             self.runner.alg.load(data, {"actor": True, "critic": True}, strict=True)
             self.log(f"stage '{self.stage.name}' starts from {init_checkpoint}")
+            self._take_up_new_inputs()
+
+    def _take_up_new_inputs(self) -> None:
+        """Inputs the init policy never saw vary (e.g. the opponents of a solo policy) start with zero weights,
+        so the stage starts from exactly that policy, and with statistics from a short warm-up rollout in this
+        stage's worlds, so they train at unit scale from the first iteration (:mod:`spiral.train.inputs`)."""
+        models = {"actor": self.runner.alg.actor, "critic": self.runner.alg.critic}
+        unused = {name: unused_inputs(model) for name, model in models.items()}
+        if not any(mask.any() for mask in unused.values()):
+            return
+        for name, model in models.items():
+            silence_inputs(model, unused[name])
+        policy = self.runner.get_inference_policy(device=self.device)
+        obs = self.vec_env.get_observations().to(self.device)
+        batches = []
+        with torch.inference_mode():
+            for _ in range(math.ceil(WARMUP_S / self.env.dt)):
+                obs = self.vec_env.step(policy(obs))[0].to(self.device)
+                batches.append(obs)
+            self.env.reset()  # training starts from fresh races (env buffers are inference tensors by now)
+        inputs = {name: torch.cat([model_inputs(model, b) for b in batches]).clone() for name, model in models.items()}
+        calibrated = {name: calibrate_inputs(model, inputs[name], unused[name]) for name, model in models.items()}
+        self.runner.alg.train_mode()
+        self.env.pop_stats()
+        self.log(f"stage '{self.stage.name}': {int(unused['actor'].sum())} policy inputs were constant in the init "
+                 f"policy's stage; {int(calibrated['actor'].sum())} vary here and start with zero weights and "
+                 f"statistics from a {WARMUP_S:.0f} s warm-up")
 
     def _truncate_log(self, start: int) -> None:
         """Drop log rows of iterations that will be trained again after a resume."""
@@ -229,6 +262,7 @@ class StageTrainer:
                        "fps": steps_per_it / (time.perf_counter() - t0),
                        "reward_per_step": float(reward_sum) / steps_per_it,
                        "action_std": float(alg.get_policy().output_std.detach().mean()),
+                       "learning_rate": float(alg.learning_rate),
                        **{f"loss/{k}": float(v) for k, v in losses.items()}, **self.env.pop_stats()}
                 if main and ((it + 1) % self.selection_interval == 0 or it == total - 1):
                     row.update(self.selector(self, it))
