@@ -19,7 +19,8 @@ class PoolOpponents:
     Opponent rows arrive world-major (``per_world`` rows per world). All worlds that share a member go through
     that member's network in one forward pass, without gradients. With ``p_self > 0`` a world races copies of the
     learner's current policy instead (mirror self-play) with that probability; ``live`` must then be set to the
-    learner's deterministic policy before the first step (:class:`~spiral.train.StageTrainer` does). Mirror races are not counted by the matchmaker.
+    learner's deterministic policy before the first step (:class:`~spiral.train.StageTrainer` does). Mirror races
+    are not counted by the matchmaker.
     """
 
     def __init__(self, policies: list[FrozenPolicy], matchmaker: Matchmaker, *, world_count: int, per_world: int,
