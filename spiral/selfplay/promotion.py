@@ -97,14 +97,10 @@ class PromotionSelector:
         self.env = RaceEnv(track, airframe, sim, stage.env, world_count=self.cfg.races, drones_per_world=d,
                            learner_slots=stage.learner_slots(), device=device, seed=seed + 20_000, auto_reset=False)
         self.interval = self.cfg.interval
-        self.best_self_success: float | None = None
-        """Self-match success of the current best (measured at the first evaluation, then on promotion)."""
 
     def __call__(self, trainer: StageTrainer, it: int) -> dict[str, float]:
         """Race the learner against the best and in a self-match; promote it when the rule holds."""
-        if self.best_self_success is None:
-            self.best_self_success = trainer.evaluate(it, self.best).success
-        own = trainer.evaluate(it)
+        own, best_own = trainer.evaluate_pair(it, self.best)
         learner = trainer.runner.get_inference_policy(device=self.device)
         result = head_to_head(self.env, learner, self.best)
         trainer.runner.alg.train_mode()
@@ -113,8 +109,8 @@ class PromotionSelector:
                "h2h/learner_success": result.a_success, "h2h/best_success": result.b_success,
                "h2h/promoted": 0.0, "eval/success": own.success,
                "eval/lap_time": own.lap_time if own.lap_time is not None else float("nan"),
-               "eval/best_success": self.best_self_success}
-        if should_promote(result, self.cfg, (own.success, self.best_self_success)):
+               "eval/best_success": best_own.success}
+        if should_promote(result, self.cfg, (own.success, best_own.success)):
             path = trainer.save_best(it)
             if self.pool is not None:
                 if self.pool.latest_best is not None:
@@ -122,7 +118,6 @@ class PromotionSelector:
                 self.pool.add(path, stage=self.stage.name, iteration=it, evaluation=asdict(result),
                               rating=learner_rating)
             self.best, self.best_rating = load_policy(path, device=self.device), learner_rating
-            self.best_self_success = own.success
             if self.on_promote is not None:
                 self.on_promote(path)
             self.log(f"iteration {it}: promoted (win rate {result.win_rate:.2f}, success "

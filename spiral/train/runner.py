@@ -228,6 +228,16 @@ class StageTrainer:
         lap = float(laps.mean()) if laps.numel() else math.inf
         return EvalScore(float(ok.float().mean()), -lap, iteration)
 
+    def evaluate_pair(self, iteration: int, other: Policy) -> tuple[EvalScore, EvalScore]:
+        """Self-match scores of the learner and of ``other`` from the same fresh start placements.
+
+        A paired comparison: the best's score is not the lucky draw that got it promoted.
+        """
+        state = self.eval_env.generator.get_state()
+        own = self.evaluate(iteration)
+        self.eval_env.generator.set_state(state)
+        return own, self.evaluate(iteration, other)
+
     # Training loop
 
     def train(self) -> TrainResult:

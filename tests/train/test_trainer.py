@@ -88,3 +88,22 @@ def test_same_seed_gives_the_same_training_on_cpu(oval2, tmp_path):
     wa = load_checkpoint(tmp_path / "a" / "ckpt" / "model_1.pt")["actor_state_dict"]
     wb = load_checkpoint(tmp_path / "b" / "ckpt" / "model_1.pt")["actor_state_dict"]
     assert all(torch.equal(wa[k], wb[k]) for k in wa)
+
+
+def test_paired_evaluation_races_both_policies_from_the_same_fresh_placements(oval2, tmp_path):
+    """Start the learner's and the other policy's self-match from one draw, and the next pair from a new one."""
+    trainer = StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(2), tmp_path, seed=4, progress=False)
+    env, reset, starts = trainer.eval_env, trainer.eval_env.reset, []
+
+    def recording_reset():
+        obs = reset()
+        starts.append(env.pos.clone())
+        return obs
+
+    env.reset = recording_reset
+    own, other = trainer.evaluate_pair(0, trainer.runner.get_inference_policy())
+    assert (own.success, own.lap_time) == (other.success, other.lap_time)  # same policy, same placements
+    trainer.evaluate_pair(1, trainer.runner.get_inference_policy())
+    assert len(starts) == 4
+    assert torch.equal(starts[0], starts[1]) and torch.equal(starts[2], starts[3])
+    assert not torch.equal(starts[0], starts[2])
