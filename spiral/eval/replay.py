@@ -114,8 +114,9 @@ def _snapshot(env: RaceEnv) -> tuple[np.ndarray, ...]:
 
 
 def frame_count(duration: float, fps: float, *, speed: float = 1.0) -> int:
-    """Frames of a replay of ``duration`` seconds: one every ``speed / fps`` seconds of race time, both ends in."""
-    return math.floor(duration * fps / speed + 1e-9) + 1
+    """Frames of a replay of ``duration`` seconds: one every ``speed / fps`` seconds of race time from the start,
+    and one more at the end when the race does not end on a frame (it shows the final state)."""
+    return math.ceil(duration * fps / speed - 1e-9) + 1
 
 
 def render_race(rec: RaceRecording, out: Path, *, fps: float = 15.0, speed: float = 1.0, trail_s: float = 3.0,

@@ -32,3 +32,11 @@ def test_replay_refuses_unknown_formats(sprint, tmp_path):
     rec = record_race(sprint, "solo", ("planner", "se-ibr"), seed=0)
     with pytest.raises(ValueError, match=r"\.gif or \.mp4"):
         render_race(rec, tmp_path / "race.avi")
+
+
+@pytest.mark.parametrize("duration", [2.0, 4.1, 3.97, 0.05])
+def test_replay_frames_reach_the_end_of_the_race(duration):
+    """The last frame is at or past the race's end (rendered as its final state), never a frame short of it."""
+    count = frame_count(duration, 15)
+    assert (count - 1) / 15 >= duration - 1e-9
+    assert (count - 2) / 15 < duration
