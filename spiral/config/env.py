@@ -58,6 +58,12 @@ class RewardCfg(StrictModel):
         "other drone (not in the paper; 0 leaves the paper's reward)",
     )
     proximity_distance: PosFloat = Field(default=0.5, description="Distance where the proximity penalty starts [m]")
+    win: NonNegFloat = Field(
+        default=0.0,
+        description="Weight of the race outcome, at the step a drone first completes the lap: +1 to its team's "
+        "drones, -1 to the other team's drones still racing (start-box races against opponents only; not in the "
+        "paper; 0 leaves the paper's reward)",
+    )
 
 
 class EpisodeCfg(StrictModel):

@@ -70,6 +70,9 @@ class RaceEnv:
         base = torch.arange(world_count, device=self.device)[:, None] * drones_per_world
         self.learner_idx = (base + torch.tensor(self.learner_slots, device=self.device)).flatten()
         self.opponent_idx = (base + torch.tensor(self.opponent_slots, device=self.device, dtype=torch.long)).flatten()
+        self.slot_team = torch.tensor([s in self.opponent_slots for s in range(drones_per_world)],
+                                      dtype=torch.long, device=self.device)
+        """Team of each slot: 0 learners, 1 opponents."""
         self.num_envs = self.learner_idx.numel()
         self.dt = self.world.time_step
         self.time_limit = cfg.episode.time_limit_s or track.time_limit_s
@@ -108,6 +111,8 @@ class RaceEnv:
         self.crash_kind = torch.zeros(n, dtype=torch.int32, device=dev)
         self.episode_length_buf = torch.zeros(self.num_envs, dtype=torch.long, device=dev)
         self.term_sums = {name: torch.zeros(n, device=dev) for name in REWARD_TERMS}
+        self.contested = torch.zeros(self.world_count, dtype=torch.bool, device=dev)
+        """Start-box race against opponents whose winner is not known yet."""
         self._wp_mask = wp.zeros(self.world_count, dtype=wp.int32, device=self.world.device)
         self._wp_pos = wp.zeros(n, dtype=wp.vec3, device=self.world.device)
         self._wp_vel = wp.zeros(n, dtype=wp.vec3, device=self.world.device)
@@ -139,12 +144,14 @@ class RaceEnv:
         pos, yaw = sample_box_starts(self.track, w, d, self.generator, device=self.device)
         vel = torch.zeros_like(pos)
         gate = torch.zeros(w, d, dtype=torch.int32, device=self.device)
+        box = torch.ones(w, dtype=torch.bool, device=self.device)
         if self.auto_reset and self.cfg.episode.track_start_prob > 0:
             t_pos, t_vel, t_yaw, t_gate = sample_track_starts(
                 self.track, w, d, self.generator, max_speed=self.cfg.episode.track_start_speed, device=self.device)
             use = (torch.rand(w, generator=self.generator, device=self.device) < self.cfg.episode.track_start_prob)
             pos, vel = torch.where(use[:, None, None], t_pos, pos), torch.where(use[:, None, None], t_vel, vel)
             yaw, gate = torch.where(use[:, None], t_yaw, yaw), torch.where(use[:, None], t_gate.int(), gate)
+            box = ~use
         t = wp.to_torch
         t(self._wp_mask).copy_(worlds.int())
         t(self._wp_pos).copy_(pos.reshape(-1, 3))
@@ -155,6 +162,8 @@ class RaceEnv:
                          init_next_gate=self._wp_gate)
         drones = worlds.repeat_interleave(d)
         self._reset_drone_buffers(drones)
+        racing_teams = self.opponent_policy is not None and bool(self.opponent_slots)
+        self.contested = torch.where(worlds, box & racing_teams, self.contested)
         if hasattr(self.opponent_policy, "reset"):
             self.opponent_policy.reset(worlds)
 
@@ -250,10 +259,28 @@ class RaceEnv:
             to_gate=self.gate_center[self.next_gate.long()] - self.pos,
             lap_time=torch.where(finished_now, self.lap_time, torch.zeros_like(self.lap_time)),
             nearest=self._nearest_distance() if self.cfg.reward.proximity > 0 else None,
+            race_result=self._race_result(racing & ~crashed_now, finished_now) if self.cfg.reward.win > 0 else None,
         )
         for name in ("dist_before", "dist_after"):  # no reward for frozen drones
             setattr(outcome, name, torch.where(racing, getattr(outcome, name), torch.zeros_like(dist_before)))
         return outcome, crashed_now, finished_now
+
+    def _race_result(self, racing: torch.Tensor, finished_now: torch.Tensor) -> torch.Tensor:
+        """+1 / −1 per racing drone of the winning / losing team in the contested worlds decided this step.
+
+        The winner is the team of the step's earliest finisher (lap times are interpolated within the step);
+        drones already out (crashed, finished, absent) are not paid.
+        """
+        w, d = self.world_count, self.drones_per_world
+        fin = finished_now.view(w, d)
+        decided = self.contested & fin.any(dim=1)
+        result = torch.zeros(w, d, device=self.device)
+        if decided.any():
+            first = torch.where(fin, self.lap_time.view(w, d), torch.inf).argmin(dim=1)
+            same_team = self.slot_team[None, :] == self.slot_team[first][:, None]
+            result = torch.where(same_team, 1.0, -1.0) * (decided[:, None] & racing.view(w, d))
+            self.contested &= ~decided
+        return result.flatten()
 
     def _nearest_distance(self) -> torch.Tensor:
         """Distance of every racing drone to the nearest other drone of its world still racing (else inf)."""

@@ -32,6 +32,8 @@ class StepOutcome:
     """Lap time for drones that completed their lap during the step, else 0 [s]."""
     nearest: torch.Tensor | None = None
     """Distance to the nearest other drone still racing after the step, inf when there is none [m]."""
+    race_result: torch.Tensor | None = None
+    """+1 / −1 for the winning / losing team's drones at the step their race is decided, else 0."""
 
 
 def _reward_progress(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
@@ -68,6 +70,13 @@ def _reward_lap(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
     return torch.where(done, 100.0 / o.lap_time.clamp(min=1e-3), torch.zeros_like(o.lap_time))
 
 
+def _reward_win(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
+    """+1 to the team whose drone completes the lap first, −1 to the other team's racing drones (not in the paper)."""
+    if o.race_result is None:
+        return torch.zeros_like(o.dist_before)
+    return o.race_result
+
+
 REWARD_TERMS = {
     "progress": _reward_progress,
     "gate": _reward_gate,
@@ -75,6 +84,7 @@ REWARD_TERMS = {
     "alignment": _reward_alignment,
     "proximity": _reward_proximity,
     "lap": _reward_lap,
+    "win": _reward_win,
 }
 """Reward term functions by the name of their weight in ``RewardCfg``."""
 

@@ -29,10 +29,10 @@ def place(env: RaceEnv, positions: list[list[float]]) -> None:
     env.get_observations()
 
 
-def waypoint_policy(env: RaceEnv):
-    """Line up 0.5 m in front of the next gate, then fly 0.6 m past its centre."""
+def waypoint_policy(env: RaceEnv, drones: torch.Tensor | None = None):
+    """Line up 0.5 m in front of the next gate, then fly 0.6 m past its centre (the learner drones by default)."""
     def act(obs):
-        idx = env.learner_idx
+        idx = env.learner_idx if drones is None else drones
         gate = env.next_gate.long()[idx]
         center, forward = env.gate_center[gate], env.gate_forward[gate]
         rel_gate = env.pos[idx] - center
@@ -142,6 +142,48 @@ def test_scripted_lap_pays_each_gate_once_and_the_lap_bonus_once(oval2):
     lap = float(env.lap_time[0])
     assert float(env.term_sums["lap"][0]) == pytest.approx(100.0 / lap, rel=1e-5)
     assert (steps - 1) * env.dt < lap <= steps * env.dt + 1e-6
+
+
+@pytest.mark.parametrize("winner", ["learner", "opponent"])
+def test_race_outcome_pays_the_first_finishers_team_and_charges_the_other_once(oval2, winner):
+    """One drone flies the lap while the other holds its position far from the line: at the step the flyer
+    completes the lap it gets +w and the other team's racing drone −w, and nothing more afterwards."""
+    reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, lap=0.0, collision=0.0, win=5.0)
+    env = make_env(oval2, worlds=1, drones=2, learners=(0,), auto_reset=False, reward=reward)
+    flyer = 0 if winner == "learner" else 1
+    fly = waypoint_policy(env, torch.tensor([flyer]))
+    hold = torch.zeros(1, 4)
+    env.set_opponent_policy(lambda obs: fly(obs) if flyer == 1 else hold)
+    obs = env.reset()
+    assert env.contested.all()
+    place(env, [[-1.2, -1.0, 1.0], [2.5, -2.5, 1.0]] if flyer == 0 else [[2.5, -2.5, 1.0], [-1.2, -1.0, 1.0]])
+    paid_at = []
+    for step in range(env.max_episode_length):
+        before = env.term_sums["win"].clone()
+        obs, _, _, _ = env.step(fly(obs) if flyer == 0 else hold)
+        if (env.term_sums["win"] != before).any():
+            paid_at.append(step)
+        if env.finished[flyer]:
+            break
+    for _ in range(5):
+        env.step(hold)
+    assert bool(env.finished[flyer]) and not bool(env.crashed.any())
+    assert paid_at == [step]
+    assert env.term_sums["win"].tolist() == pytest.approx([5.0, -5.0] if flyer == 0 else [-5.0, 5.0])
+    assert not env.contested.any()
+
+
+def test_only_start_box_races_against_opponents_are_contested(oval2):
+    """Contest the winner of start-box races with opponents present, not of track starts or solo flights."""
+    def contested(track_start_prob: float, opponents: bool) -> torch.Tensor:
+        env = make_env(oval2, worlds=4, drones=2, learners=(0,), episode={"track_start_prob": track_start_prob})
+        env.set_opponent_policy((lambda obs: torch.zeros(len(obs["policy"]), 4)) if opponents else None)
+        env.reset()
+        return env.contested
+
+    assert contested(0.0, opponents=True).all()
+    assert not contested(1.0, opponents=True).any()
+    assert not contested(0.0, opponents=False).any()
 
 
 def test_crash_pays_the_penalty_once_and_ends_the_episode(oval2):
