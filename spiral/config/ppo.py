@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from spiral.config.base import NonNegFloat, PosFloat, PosInt, StrictModel
 
@@ -31,8 +31,17 @@ class PPOCfg(StrictModel):
     activation: Literal["elu", "relu", "tanh", "selu", "lrelu"] = Field(default="elu")
     init_noise_std: PosFloat = Field(default=0.5, description="Initial action noise (actions span [−1, 1])")
     min_noise_std: PosFloat = Field(default=0.05, description="Lower clamp of the action noise")
+    max_noise_std: PosFloat = Field(
+        default=10.0, description="Upper clamp of the action noise, also of the noise a stage takes over from its init"
+    )
     obs_normalization: bool = Field(default=True)
     save_interval: PosInt = Field(default=50, description="Iterations between periodic checkpoints")
+
+    @model_validator(mode="after")
+    def _noise_range(self) -> PPOCfg:
+        if self.min_noise_std > self.max_noise_std:
+            raise ValueError(f"min_noise_std {self.min_noise_std} is above max_noise_std {self.max_noise_std}")
+        return self
 
     def to_rsl_rl(self) -> dict:
         """The ``train_cfg`` dictionary of rsl-rl's ``OnPolicyRunner``."""
@@ -48,7 +57,7 @@ class PPOCfg(StrictModel):
                 cfg["distribution_cfg"] = {
                     "class_name": "rsl_rl.modules.distribution.GaussianDistribution",
                     "init_std": self.init_noise_std,
-                    "std_range": (self.min_noise_std, 10.0),
+                    "std_range": (self.min_noise_std, self.max_noise_std),
                 }
             return cfg
 

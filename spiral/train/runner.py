@@ -172,7 +172,18 @@ class StageTrainer:
             self._check_layout(data, init_checkpoint)
             self.runner.alg.load(data, {"actor": True, "critic": True}, strict=True)
             self.log(f"stage '{self.stage.name}' starts from {init_checkpoint}")
+            self._clamp_noise()
             self._take_up_new_inputs()
+
+    def _clamp_noise(self) -> None:
+        """Bring the action noise taken over from the init policy into this stage's range, where it trains."""
+        dist = self.runner.alg.actor.distribution
+        lo, hi = self.stage.ppo.min_noise_std, self.stage.ppo.max_noise_std
+        with torch.no_grad():
+            if hasattr(dist, "std_param"):
+                dist.std_param.clamp_(lo, hi)
+            elif hasattr(dist, "log_std_param"):
+                dist.log_std_param.clamp_(math.log(lo), math.log(hi))
 
     def _take_up_new_inputs(self) -> None:
         """Inputs the init policy never saw vary (e.g. the opponents of a solo policy) start with zero weights,

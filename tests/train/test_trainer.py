@@ -107,3 +107,23 @@ def test_paired_evaluation_races_both_policies_from_the_same_fresh_placements(ov
     assert len(starts) == 4
     assert torch.equal(starts[0], starts[1]) and torch.equal(starts[2], starts[3])
     assert not torch.equal(starts[0], starts[2])
+
+
+def test_stage_takes_over_its_init_noise_clamped_to_its_own_range_and_keeps_training_it(oval2, tmp_path):
+    """A stage whose max_noise_std is below its init policy's noise starts at that maximum, not stuck on it."""
+    first = tiny_stage(2).model_copy(update={"ppo": tiny_stage(2).ppo.model_copy(update={"init_noise_std": 0.4})})
+    init = StageTrainer(oval2, CF2X, SimCfg(), first, tmp_path / "a", seed=0, progress=False).train().best_path
+    quiet = tiny_stage(2)
+    quiet = quiet.model_copy(update={"ppo": quiet.ppo.model_copy(update={"max_noise_std": 0.1})})
+    trainer = StageTrainer(oval2, CF2X, SimCfg(), quiet, tmp_path / "b", seed=0, progress=False,
+                           init_checkpoint=init)
+    std = trainer.runner.alg.actor.distribution.std_param
+    assert torch.allclose(std, torch.full_like(std, 0.1))
+    trainer.train()
+    assert not torch.allclose(std, torch.full_like(std, 0.1))
+
+
+def test_noise_range_must_not_be_empty():
+    """Reject a maximum action noise below the minimum."""
+    with pytest.raises(ValueError, match="max_noise_std"):
+        PPOCfg(min_noise_std=0.2, max_noise_std=0.1)
