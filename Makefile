@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 run: install
-	$(BIN)/spiral run pipelines/full.yaml
+	$(BIN)/spiral run pipelines/full.yaml --jobs 2
 
 test: install
 	$(BIN)/python -m pytest

@@ -125,12 +125,14 @@ def run(
     device: Device = None,
     runs_dir: RunsDir = Path("runs"),
     checkpoints_dir: CkptDir = Path("checkpoints"),
+    jobs: Annotated[int, typer.Option("--jobs", "-j", min=1, help="Independent steps run side by side, each in its "
+                                      "own process with its share of the CPU cores")] = 1,
 ) -> None:
     """Run a pipeline's steps in order; complete steps are skipped, interrupted training resumes."""
     from spiral.pipeline import PipelineRunner
 
     runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device)
-    ran = runner.run(start=from_step, only=only, force=force)
+    ran = runner.run(start=from_step, only=only, force=force, jobs=jobs)
     typer.echo(f"pipeline '{runner.plan.spec.name}': {len(ran)} step(s) ran, {len(runner.steps) - len(ran)} skipped")
 
 

@@ -1,4 +1,5 @@
-"""Run a pipeline's steps in order, skipping complete ones, resuming interrupted training, one run at a time."""
+"""Run a pipeline's steps in order (or independent ones side by side), skipping complete ones, resuming interrupted
+training, one run at a time."""
 
 from __future__ import annotations
 
@@ -72,26 +73,40 @@ class PipelineRunner:
             out.append(StepStatus(step.name, state.status, state.reason, detail))
         return out
 
-    def run(self, *, start: str | None = None, only: str | None = None, force: list[str] | None = None) -> list[str]:
-        """Run the selected steps; return the names of the steps that ran."""
+    def run(self, *, start: str | None = None, only: str | None = None, force: list[str] | None = None,
+            jobs: int = 1) -> list[str]:
+        """Run the selected steps, up to ``jobs`` independent ones at a time; return the names of those that ran."""
+        if jobs < 1:
+            raise ValueError(f"jobs must be at least 1, got {jobs}")
         selected = {s.name for s in select_steps(self.steps, start=start, only=only)}
         forced = set(force or [])
         unknown = forced - {s.name for s in self.steps}
         if unknown:
             raise ValueError(f"unknown step(s) {', '.join(sorted(unknown))}")
-        fps, ran = self._fingerprints(), []
+        fps, todo = self._fingerprints(), []
         with PipelineLock(self.plan.run_root / ".lock", log=self.log):
             for step in self.steps:
                 if step.name not in selected:
                     continue
-                must = step.name in forced or any(i in ran for i in step.inputs)
+                must = step.name in forced or any(i in {t.name for t in todo} for i in step.inputs)
                 state = step_state(self._dir(step), fps[step.name])
                 if state.status == "complete" and not must and not (start and step.name == start):
                     self.log(f"step '{step.name}' unchanged, skipping")
                     continue
-                self._run_step(step, fps[step.name], state, fresh=step.name in forced)
-                ran.append(step.name)
-        return ran
+                todo.append(step)
+            if jobs > 1 and len(todo) > 1:
+                from spiral.pipeline.workers import run_parallel
+
+                return run_parallel(self, todo, forced, jobs)
+            for step in todo:
+                self._run_step(step, fps[step.name], step_state(self._dir(step), fps[step.name]),
+                               fresh=step.name in forced)
+        return [step.name for step in todo]
+
+    def run_step(self, name: str, *, fresh: bool = False) -> None:
+        """Run one step now, resuming it if it was interrupted (the caller holds the pipeline lock)."""
+        step, fp = self._step(name), self._fingerprints()[name]
+        self._run_step(step, fp, step_state(self._dir(step), fp), fresh=fresh)
 
     def _run_step(self, step: Step, fp: str, state: StepState, *, fresh: bool) -> None:
         step_dir = self._dir(step)

@@ -16,7 +16,7 @@ from spiral.sim.state import QuadParams, QuadState, RaceState, make_quad_params,
 
 __all__ = ["World"]
 
-wp.config.quiet = True
+wp.config.log_level = wp.LOG_WARNING  # no greeting or per-module load lines
 
 
 @wp.kernel

@@ -287,6 +287,8 @@ class StageTrainer:
                        **{f"loss/{k}": float(v) for k, v in losses.items()}, **self.env.pop_stats()}
                 if main and ((it + 1) % self.selection_interval == 0 or it == total - 1):
                     row.update(self.selector(self, it))
+                    if not self.show_progress:  # e.g. a pipeline worker: a line per evaluation instead of a bar
+                        self.log(f"{self.stage.name} {it + 1}/{total} ({row['wall_s']:.0f} s): {self._status(row)}")
                 if writer is not None:  # the row first: a resume drops rows past its checkpoint, never misses one
                     self._write_row(writer, row, it)
                 if main and ((it + 1) % self.stage.ppo.save_interval == 0 or it == total - 1):

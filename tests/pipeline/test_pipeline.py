@@ -112,3 +112,46 @@ def test_malformed_pipeline_fails_before_any_step_runs(tmp_path):
     with pytest.raises(SpecError, match=r"stages\.0\.worlds"):
         runner_for(path, tmp_path)
     assert not (tmp_path / "runs").exists()
+
+
+def write_branching_pipeline(tmp_path: Path, **nsp_overrides) -> Path:
+    """smoke.yaml's solo stage, then its 1v1 and 1v1-noselfplay stages: two branches from the solo best."""
+    path = write_pipeline(tmp_path, stages=5)
+    data = yaml.safe_load(path.read_text())
+    data["stages"] = [data["stages"][0], data["stages"][1], {**data["stages"][3], **nsp_overrides}]
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_parallel_run_trains_independent_branches_side_by_side_then_skips_them_like_a_sequential_run(tmp_path):
+    """With --jobs 2, train:1v1 and train:1v1-noselfplay start together once train:solo (alone, with every core)
+    is done; every step completes, and a sequential rerun finds nothing to do."""
+    path = write_branching_pipeline(tmp_path)
+    logs: list[str] = []
+    ran = runner_for(path, tmp_path, logs).run(jobs=2)
+    runner = runner_for(path, tmp_path)
+    assert sorted(ran) == sorted(s.name for s in runner.steps)
+    started = [line for line in logs if "started in a worker" in line]
+    cores = os.cpu_count() or 1
+    assert started[0].startswith(f"step 'train:solo' started in a worker ({cores} torch thread")
+    pair = {"step 'train:1v1' started", "step 'train:1v1-noselfplay' started"}
+    first_pair = [i for i, line in enumerate(started) if any(line.startswith(p) for p in pair)]
+    assert first_pair == [1, 2] and f"({max(1, cores // 2)} torch thread" in started[1]
+    assert any(line.startswith("[train:1v1-noselfplay] ") for line in logs)
+    assert (runner.plan.run_root / "logs" / "train-1v1.log").read_text()
+    assert runner.run() == []
+
+
+def test_failed_parallel_step_keeps_the_work_of_the_steps_running_beside_it(tmp_path):
+    """A branch that fails (its init policy's observation layout is not its own) names the step and its log;
+    the other branch's training finishes and stays complete, and nothing new starts after the failure."""
+    from spiral.pipeline import PipelineError
+
+    path = write_branching_pipeline(tmp_path, env={"obs": {"history_len": 2}})
+    runner = runner_for(path, tmp_path)
+    with pytest.raises(PipelineError, match=r"train:1v1-noselfplay' failed .*train-1v1-noselfplay\.log"):
+        runner.run(jobs=2)
+    status = {s.name: s.status for s in runner.status()}
+    assert status["train:1v1"] == "complete"
+    assert status["eval:1v1"] == "missing"
+    assert "observation layout" in (runner.plan.run_root / "logs" / "train-1v1-noselfplay.log").read_text()
