@@ -58,6 +58,11 @@ class SelfPlayCfg(StrictModel):
         "pool mode only); the rest are drawn from the pool",
     )
     p_latest: float = Field(default=0.5, ge=0, le=1, description="Probability of racing the latest best")
+    p_first: float = Field(
+        default=0.0, ge=0, le=1,
+        description="Probability of racing the pool's first member: the policy the first self-play stage started "
+        "from (in full.yaml the solo best, which ignores other drones)",
+    )
     sampling: Literal["uniform", "prioritized"] = Field(default="prioritized", description="Other draws")
     promotion: PromotionCfg = Field(default_factory=PromotionCfg)
 
@@ -65,6 +70,8 @@ class SelfPlayCfg(StrictModel):
     def _mirror_needs_pool(self) -> SelfPlayCfg:
         if self.mode == "frozen" and self.p_self > 0:
             raise ValueError("p_self: frozen opponents (PPO without self-play) cannot race the learner itself")
+        if self.p_latest + self.p_first > 1:
+            raise ValueError(f"p_first: p_latest + p_first = {self.p_latest + self.p_first} exceeds 1")
         return self
 
 

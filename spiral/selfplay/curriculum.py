@@ -71,7 +71,7 @@ def run_stage(
     if not policies:
         raise ValueError(f"stage {stage.name!r}: no usable policy in the pool {pool_dir}")
     matchmaker = Matchmaker(len(ids), latest=latest, p_latest=stage.selfplay.p_latest,
-                            mode=stage.selfplay.sampling, device=device)
+                            p_first=stage.selfplay.p_first, mode=stage.selfplay.sampling, device=device)
     opponents = PoolOpponents([policies[i] for i in ids], matchmaker, world_count=stage.worlds,
                               per_world=opp_per_world, generator=generator, p_self=stage.selfplay.p_self)
 

@@ -1,4 +1,5 @@
-"""Which pool member each training world races: the latest best with probability p, else sampled from the pool."""
+"""Which pool member each training world races: the latest best with probability p, the pool's first member with
+probability q, else sampled from the pool."""
 
 from __future__ import annotations
 
@@ -16,9 +17,11 @@ class Matchmaker:
     rate against it, so the pool's hardest members are met more often (prioritised fictitious self-play).
     """
 
-    def __init__(self, member_count: int, *, latest: int, p_latest: float,
+    def __init__(self, member_count: int, *, latest: int, p_latest: float, p_first: float = 0.0,
                  mode: Literal["uniform", "prioritized"] = "prioritized", device: torch.device | str = "cpu") -> None:
-        self.latest, self.p_latest, self.mode = latest, p_latest, mode
+        if p_latest + p_first > 1.0:
+            raise ValueError(f"p_latest + p_first = {p_latest + p_first} exceeds 1")
+        self.latest, self.p_latest, self.p_first, self.mode = latest, p_latest, p_first, mode
         self.races = torch.zeros(member_count, device=device)
         self.losses = torch.zeros(member_count, device=device)
 
@@ -30,9 +33,10 @@ class Matchmaker:
     def draw(self, count: int, generator: torch.Generator) -> torch.Tensor:
         """Member index for each of ``count`` worlds."""
         device = self.races.device
-        latest = torch.rand(count, generator=generator, device=device) < self.p_latest
+        u = torch.rand(count, generator=generator, device=device)
         sampled = torch.multinomial(self.weights(), count, replacement=True, generator=generator)
-        return torch.where(latest, torch.full_like(sampled, self.latest), sampled)
+        sampled = torch.where(u < self.p_latest + self.p_first, torch.zeros_like(sampled), sampled)
+        return torch.where(u < self.p_latest, torch.full_like(sampled, self.latest), sampled)
 
     def record(self, members: torch.Tensor, learner_won: torch.Tensor) -> None:
         """Count finished races against ``members``; a race the learner did not win counts as a loss."""
