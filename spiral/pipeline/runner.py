@@ -83,25 +83,24 @@ class PipelineRunner:
         unknown = forced - {s.name for s in self.steps}
         if unknown:
             raise ValueError(f"unknown step(s) {', '.join(sorted(unknown))}")
-        fps, todo = self._fingerprints(), []
+        fps, todo = self._fingerprints(), {}
         with PipelineLock(self.plan.run_root / ".lock", log=self.log):
             for step in self.steps:
                 if step.name not in selected:
                     continue
-                must = step.name in forced or any(i in {t.name for t in todo} for i in step.inputs)
+                must = step.name in forced or any(i in todo for i in step.inputs)
                 state = step_state(self._dir(step), fps[step.name])
                 if state.status == "complete" and not must and not (start and step.name == start):
                     self.log(f"step '{step.name}' unchanged, skipping")
                     continue
-                todo.append(step)
+                todo[step.name] = (step, state)  # running upstream steps leaves a step's own folder as it is
             if jobs > 1 and len(todo) > 1:
                 from spiral.pipeline.workers import run_parallel
 
-                return run_parallel(self, todo, forced, jobs)
-            for step in todo:
-                self._run_step(step, fps[step.name], step_state(self._dir(step), fps[step.name]),
-                               fresh=step.name in forced)
-        return [step.name for step in todo]
+                return run_parallel(self, [step for step, _ in todo.values()], forced, jobs)
+            for step, state in todo.values():
+                self._run_step(step, fps[step.name], state, fresh=step.name in forced)
+        return list(todo)
 
     def run_step(self, name: str, *, fresh: bool = False) -> None:
         """Run one step now, resuming it if it was interrupted (the caller holds the pipeline lock)."""

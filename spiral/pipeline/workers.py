@@ -43,7 +43,6 @@ class StepProcess:
     process: subprocess.Popen
     relay: threading.Thread
     log_path: Path
-    threads: int
 
 
 def _relay(stream: IO[str], log_file: Path, prefix: str, log) -> None:
@@ -93,8 +92,7 @@ def run_parallel(runner, todo: list[Step], fresh: set[str], jobs: int, *, cores:
             proc.process.terminate()
         for proc in running.values():
             proc.process.wait()
-        names_running = ", ".join(running)
-        raise PipelineError(f"interrupted while running {names_running}\n"
+        raise PipelineError(f"interrupted while running {', '.join(running)}\n"
                             f"resume with: spiral run {runner.path} --jobs {jobs}") from None
     if failed:
         step = failed[0]
@@ -118,7 +116,7 @@ def _spawn(runner, step: Step, fresh: bool, threads: int, log_dir: Path) -> Step
     relay.start()
     runner.log(f"step '{step.name}' started in a worker ({threads} torch thread{'s' if threads > 1 else ''}; "
                f"output also in {log_path})")
-    return StepProcess(step, process, relay, log_path, threads)
+    return StepProcess(step, process, relay, log_path)
 
 
 def main(argv: list[str] | None = None) -> int:

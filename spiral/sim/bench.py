@@ -223,8 +223,7 @@ def two_process_worker(world_count: int, drones: int, device: str, steps: int, s
     ``span start end`` (``time.perf_counter``, a system-wide monotonic clock on Linux). Other output (Warp's
     banner) may come in between and is skipped by the parent.
     """
-    wp.config.log_level = wp.LOG_WARNING
-    wp.init()
+    wp.init()  # quiet: spiral.sim.world sets Warp's log level on import
     world, targets_wp, *_ = _make_world(load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"], world_count, drones, device,
                                         seed)
     _time_warp(world, targets_wp, WARMUP_STEPS, 0)

@@ -177,13 +177,9 @@ class StageTrainer:
 
     def _clamp_noise(self) -> None:
         """Bring the action noise taken over from the init policy into this stage's range, where it trains."""
-        dist = self.runner.alg.actor.distribution
-        lo, hi = self.stage.ppo.min_noise_std, self.stage.ppo.max_noise_std
-        with torch.no_grad():
-            if hasattr(dist, "std_param"):
-                dist.std_param.clamp_(lo, hi)
-            elif hasattr(dist, "log_std_param"):
-                dist.log_std_param.clamp_(math.log(lo), math.log(hi))
+        with torch.no_grad():  # PPOCfg builds a Gaussian with a scalar std parameter
+            self.runner.alg.actor.distribution.std_param.clamp_(self.stage.ppo.min_noise_std,
+                                                                self.stage.ppo.max_noise_std)
 
     def _take_up_new_inputs(self) -> None:
         """Inputs the init policy never saw vary (e.g. the opponents of a solo policy) start with zero weights,
