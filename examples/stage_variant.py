@@ -36,7 +36,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("pipeline", type=Path)
     parser.add_argument("stage")
-    parser.add_argument("init", type=Path, help="checkpoint the stage starts from (its opponents' first best)")
+    parser.add_argument("init", help="checkpoint the stage starts from (its opponents' first best); 'none' for a "
+                        "solo stage from scratch")
     parser.add_argument("out", type=Path)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets")
     parser.add_argument("--device", default="cpu")
@@ -56,11 +57,12 @@ def main() -> None:
 
     args.out.mkdir(parents=True, exist_ok=True)
     pool = args.out / "pool"
-    if not pool.exists() and (args.init.parent / "pool").is_dir():
-        shutil.copytree(args.init.parent / "pool", pool)
+    init = None if args.init == "none" else Path(args.init)
+    if init is not None and not pool.exists() and (init.parent / "pool").is_dir():
+        shutil.copytree(init.parent / "pool", pool)
     start = time.perf_counter()
     result = run_stage(track, resolve_airframe(spec.airframe), spec.sim, stage, args.out, pool_dir=pool,
-                       init_checkpoint=args.init, device=args.device,
+                       init_checkpoint=init, device=args.device,
                        seed=stage.seed if stage.seed is not None else spec.seed, progress=False)
     wall = time.perf_counter() - start
     evaluation = evaluate_methods(track, {"variant": result.best_path}, scenario=stage.scenario, runs=50, seed=0,

@@ -9,6 +9,7 @@ import torch
 from tensordict import TensorDict
 
 from spiral.env.race_env import RaceEnv
+from spiral.sim import COLLISION_KINDS
 
 __all__ = ["RaceResults", "race_winners", "run_races"]
 
@@ -36,6 +37,12 @@ class RaceResults:
     """Slot took part in the race."""
     trajectory: torch.Tensor | None = None
     """Positions (T, W, D, 3) when recorded."""
+    crash_time: torch.Tensor | None = None
+    """Race time at the end of the control step of the crash, 0 when not crashed [s]."""
+    crash_partner: torch.Tensor | None = None
+    """Slot of the drone touched in a drone–drone contact (the nearest one still racing), else −1."""
+    team: torch.Tensor | None = None
+    """Team of each slot, shape (D,)."""
 
 
 def run_races(env: RaceEnv, policy: Policy, *, record: bool = False) -> RaceResults:
@@ -45,12 +52,20 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False) -> RaceResu
     obs = env.reset()
     w, d = env.world_count, env.drones_per_world
     distance = torch.zeros(env.drone_count, device=env.device)
+    crash_time = torch.zeros(env.drone_count, device=env.device)
+    partner = torch.full((env.drone_count,), -1, dtype=torch.long, device=env.device)
     frames = [env.pos.clone()] if record else []
     for _ in range(env.max_episode_length):
         before = env.pos.clone()
+        racing = ~(env.finished | env.crashed | env.absent)
         with torch.no_grad():
             obs, _, _, _ = env.step(policy(obs))
         distance += (env.pos - before).norm(dim=-1)
+        new = racing & env.crashed
+        if new.any():
+            crash_time = torch.where(new, env.world_time().repeat_interleave(d), crash_time)
+            partner = torch.where(new & ((env.crash_kind & COLLISION_KINDS["drone"]) != 0),
+                                  _nearest_slot(env.pos.view(w, d, 3), racing.view(w, d)), partner)
         if record:
             frames.append(env.pos.clone())
         if bool((env.finished | env.crashed | env.absent).all()):
@@ -68,7 +83,19 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False) -> RaceResu
         distance=grid(distance),
         present=grid(~env.absent),
         trajectory=torch.stack(frames).view(-1, w, d, 3).cpu() if record else None,
+        crash_time=grid(crash_time),
+        crash_partner=grid(partner),
+        team=env.slot_team.cpu(),
     )
+
+
+def _nearest_slot(pos: torch.Tensor, racing: torch.Tensor) -> torch.Tensor:
+    """Per drone (flattened), the slot of the nearest other drone of its world that was racing, −1 if none."""
+    dist = torch.cdist(pos, pos)
+    d = pos.shape[1]
+    dist = dist.masked_fill(torch.eye(d, dtype=torch.bool, device=pos.device)[None] | ~racing[:, None, :], torch.inf)
+    near = dist.argmin(dim=-1)
+    return torch.where(torch.isfinite(dist.amin(dim=-1)), near, -1).flatten()
 
 
 def race_winners(res: RaceResults, teams: list[list[int]]) -> torch.Tensor:

@@ -54,4 +54,27 @@ def summarize_races(res: RaceResults, slots: list[int] | None = None) -> dict[st
         "lap_time_std": std,
         "mean_speed": float(speed.mean()) if speed.numel() else None,
         "crashes": crashes,
+        **_crash_details(res, mask),
     }
+
+
+def _crash_details(res: RaceResults, mask: torch.Tensor) -> dict[str, Any]:
+    """Where and when the ``mask`` drones crashed, and whom they touched (when the results record it).
+
+    ``crash_gates`` counts crashes by the gate of the lap the drone was flying to (0 = the first gate after the
+    start, in passing order); ``drone_contacts`` splits drone–drone crashes by the other drone's team.
+    """
+    crashed = res.crashed & mask
+    gates = res.gates_passed[crashed].tolist()
+    out: dict[str, Any] = {"crash_gates": {str(g): gates.count(g) for g in sorted(set(gates))}}
+    if res.crash_time is not None:
+        times = res.crash_time[crashed]
+        out["crash_time_median"] = float(times.median()) if times.numel() else None
+    if res.crash_partner is not None and res.team is not None:
+        w, d = crashed.shape
+        partner = res.crash_partner[crashed]
+        own = res.team.expand(w, d)[crashed]
+        touched = partner >= 0
+        same = res.team[partner.clamp(min=0)] == own
+        out["drone_contacts"] = {"teammate": int((touched & same).sum()), "opponent": int((touched & ~same).sum())}
+    return out

@@ -10,6 +10,7 @@ import torch
 from spiral.config import AIRFRAMES, EnvCfg, ObsCfg, RewardCfg, SimCfg, TrackSpec
 from spiral.env import HISTORY_FEATURES, RaceEnv, compute_rewards, run_races
 from spiral.env.rewards import StepOutcome
+from spiral.eval.metrics import summarize_races
 
 CF2X = AIRFRAMES["cf2x"]
 
@@ -242,3 +243,28 @@ def test_same_seed_gives_the_same_start_placements(oval2):
     assert torch.equal(a.pos, b.pos)
     d = torch.cdist(a.pos.view(4, 4, 3), a.pos.view(4, 4, 3)) + torch.eye(4) * 10
     assert float(d.min()) >= 0.25
+
+
+@pytest.mark.parametrize("partner", [1, 2], ids=["teammate", "opponent"])
+def test_race_results_name_the_drone_each_crashed_drone_touched(oval2, partner):
+    """Fly drone 0 and one other drone into each other in a 2v2 race: each records the other as its crash partner
+    and the crash time; the two hovering drones record none, and the contacts count under the right team."""
+    env = make_env(oval2, worlds=1, drones=4, learners=(0, 1), auto_reset=False)
+    chase = {0: partner, partner: 0}
+
+    def act(idx: torch.Tensor) -> torch.Tensor:
+        rows = [(env.pos[chase[int(i)]] - env.pos[i]) / env.cfg.action.pos_scale if int(i) in chase
+                else torch.zeros(3) for i in idx]
+        return torch.cat([torch.stack(rows).clamp(-1, 1), torch.zeros(len(idx), 1)], dim=-1)
+
+    env.set_opponent_policy(lambda obs: act(env.opponent_idx))
+    res = run_races(env, lambda obs: act(env.learner_idx))
+    others = [s for s in range(4) if s not in chase]
+    assert res.crashed[0, [0, partner]].all() and not res.crashed[0, others].any()
+    assert res.crash_partner[0, 0] == partner and res.crash_partner[0, partner] == 0
+    assert (res.crash_partner[0, others] == -1).all()
+    assert (res.crash_time[0, [0, partner]] > 0).all() and (res.crash_time[0, others] == 0).all()
+    kind = "teammate" if partner == 1 else "opponent"
+    summary = summarize_races(res)
+    assert summary["drone_contacts"] == {"teammate": 0, "opponent": 0, kind: 2}
+    assert summary["crash_gates"] == {"0": 2}

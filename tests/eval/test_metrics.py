@@ -50,4 +50,6 @@ def test_race_summary_counts_successes_crashes_and_speed():
     assert s["lap_time_mean"] == pytest.approx(8.0)
     assert s["mean_speed"] == pytest.approx(2.5)
     assert s["crashes"] == {"ground": 0, "bounds": 0, "gate": 1, "drone": 0, "timeout": 1}
+    assert s["crash_gates"] == {"2": 1}
+    assert "drone_contacts" not in s  # results without crash partners (e.g. made by hand) leave it out
     assert summarize_races(res, [0])["success_ratio"] == pytest.approx(0.5)
