@@ -45,8 +45,13 @@ class RaceResults:
     """Team of each slot, shape (D,)."""
 
 
-def run_races(env: RaceEnv, policy: Policy, *, record: bool = False) -> RaceResults:
-    """Race every world of a non-resetting ``env`` once from a fresh reset, ``policy`` driving the learner slots."""
+def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
+              teams: list[list[int]] | None = None) -> RaceResults:
+    """Race every world of a non-resetting ``env`` once from a fresh reset, ``policy`` driving the learner slots.
+
+    ``teams`` lists the slots of each team (default: the learner slots against the opponent slots); a self-match,
+    where every slot is a learner, passes the scenario's teams.
+    """
     if env.auto_reset:
         raise ValueError("run_races needs a RaceEnv built with auto_reset=False")
     obs = env.reset()
@@ -85,8 +90,15 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False) -> RaceResu
         trajectory=torch.stack(frames).view(-1, w, d, 3).cpu() if record else None,
         crash_time=grid(crash_time),
         crash_partner=grid(partner),
-        team=env.slot_team.cpu(),
+        team=env.slot_team.cpu() if teams is None else _team_of_slots(teams, d),
     )
+
+
+def _team_of_slots(teams: list[list[int]], drones: int) -> torch.Tensor:
+    team = torch.zeros(drones, dtype=torch.long)
+    for i, slots in enumerate(teams):
+        team[slots] = i
+    return team
 
 
 def _nearest_slot(pos: torch.Tensor, racing: torch.Tensor) -> torch.Tensor:

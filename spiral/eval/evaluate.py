@@ -131,7 +131,7 @@ def race_agents(track: TrackSpec, scenario: str, runs: int, seed: int, agent: Ag
                 record: bool = False) -> tuple[RaceResults, torch.Tensor | None]:
     """Race ``agent`` (self-match) or team ``agent`` against team ``opponent``; winners only in cross-play."""
     env, policy = setup_race(track, scenario, runs, seed, agent, opponent, device=device, layout=layout)
-    res = run_races(env, policy, record=record)
+    res = run_races(env, policy, record=record, teams=TEAMS[scenario])
     return res, race_winners(res, TEAMS[scenario]) if opponent is not None else None
 
 

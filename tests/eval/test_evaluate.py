@@ -8,7 +8,7 @@ import torch
 from typer.testing import CliRunner
 
 from spiral.cli import app
-from spiral.eval.evaluate import SE_IBR, EvalLayout, evaluate_methods, load_agent, setup_race
+from spiral.eval.evaluate import SE_IBR, EvalLayout, evaluate_methods, evaluate_policy, load_agent, setup_race
 
 runner = CliRunner()
 
@@ -64,3 +64,9 @@ def test_planner_self_match_reports_its_layout(sprint):
     assert entry["checkpoint"] == "se-ibr" and entry["layout"] == "defaults"
     assert entry["drones"] == 1
     assert sum(entry["crashes"].values()) + round(entry["success_ratio"]) == 1
+
+
+def test_self_match_results_keep_the_scenarios_two_teams(sprint, tiny_checkpoint):
+    """Every drone of a 2v2 self-match runs the learner, yet its results split slots 0-1 from 2-3 (for contacts)."""
+    res = evaluate_policy(load_agent(tiny_checkpoint), sprint, "2v2", 2, 0)
+    assert res.team.tolist() == [0, 0, 1, 1]
