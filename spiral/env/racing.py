@@ -43,6 +43,8 @@ class RaceResults:
     """Slot of the drone touched in a drone–drone contact (the nearest one still racing), else −1."""
     team: torch.Tensor | None = None
     """Team of each slot, shape (D,)."""
+    split_time: torch.Tensor | None = None
+    """Race time of each gate passage of the lap, in passing order, shape (W, D, passes); 0 when not passed [s]."""
 
 
 def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
@@ -59,6 +61,8 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
     distance = torch.zeros(env.drone_count, device=env.device)
     crash_time = torch.zeros(env.drone_count, device=env.device)
     partner = torch.full((env.drone_count,), -1, dtype=torch.long, device=env.device)
+    splits = torch.zeros(env.drone_count, env.passes_needed, device=env.device)
+    passed = env.gates_passed.clone()
     frames = [env.pos.clone()] if record else []
     for _ in range(env.max_episode_length):
         before = env.pos.clone()
@@ -66,6 +70,11 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
         with torch.no_grad():
             obs, _, _, _ = env.step(policy(obs))
         distance += (env.pos - before).norm(dim=-1)
+        if bool((env.gates_passed != passed).any()):
+            k = torch.arange(env.passes_needed, device=env.device)
+            now = (passed[:, None] <= k) & (env.gates_passed[:, None] > k)
+            splits = torch.where(now, env.pass_time[:, None], splits)
+            passed = env.gates_passed.clone()
         new = racing & env.crashed
         if new.any():
             crash_time = torch.where(new, env.world_time().repeat_interleave(d), crash_time)
@@ -91,6 +100,7 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
         crash_time=grid(crash_time),
         crash_partner=grid(partner),
         team=env.slot_team.cpu() if teams is None else _team_of_slots(teams, d),
+        split_time=splits.view(w, d, -1).cpu(),
     )
 
 

@@ -55,7 +55,14 @@ def summarize_races(res: RaceResults, slots: list[int] | None = None) -> dict[st
         "mean_speed": float(speed.mean()) if speed.numel() else None,
         "crashes": crashes,
         **_crash_details(res, mask),
+        **({"split_times": _split_times(res, mask)} if res.split_time is not None else {}),
     }
+
+
+def _split_times(res: RaceResults, mask: torch.Tensor) -> list[float] | None:
+    """Mean race time at each gate passage of the lap over the ``mask`` drones that finished (None if none did)."""
+    done = res.finished & mask
+    return res.split_time[done].mean(dim=0).tolist() if done.any() else None
 
 
 def _crash_details(res: RaceResults, mask: torch.Tensor) -> dict[str, Any]:

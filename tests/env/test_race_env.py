@@ -145,6 +145,18 @@ def test_scripted_lap_pays_each_gate_once_and_the_lap_bonus_once(oval2):
     assert (steps - 1) * env.dt < lap <= steps * env.dt + 1e-6
 
 
+def test_race_results_time_every_gate_passage_and_end_with_the_lap_time(oval2):
+    """Split times of a scripted lap rise gate by gate, the last one is the lap time, and the summary averages them."""
+    env = make_env(oval2, worlds=2, auto_reset=False)
+    res = run_races(env, waypoint_policy(env))
+    assert res.finished.all()
+    splits = res.split_time[:, 0]
+    assert splits.shape == (2, env.passes_needed)
+    assert (splits[:, 0] > 0).all() and (splits.diff(dim=1) > 0).all()
+    assert torch.allclose(splits[:, -1], res.lap_time[:, 0])
+    assert summarize_races(res)["split_times"] == pytest.approx(splits.mean(dim=0).tolist())
+
+
 @pytest.mark.parametrize("winner", ["learner", "opponent"])
 def test_race_outcome_pays_the_first_finishers_team_and_charges_the_other_once(oval2, winner):
     """One drone flies the lap while the other holds its position far from the line: at the step the flyer
