@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDict
 
+from spiral.env.observations import nearest_others
 from spiral.env.race_env import RaceEnv
 from spiral.sim import COLLISION_KINDS
 
@@ -38,7 +39,7 @@ class RaceResults:
     trajectory: torch.Tensor | None = None
     """Positions (T, W, D, 3) when recorded."""
     crash_time: torch.Tensor | None = None
-    """Race time at the end of the control step of the crash, 0 when not crashed [s]."""
+    """Race time of the crash (the simulator's, to the physics substep), 0 when not crashed [s]."""
     crash_partner: torch.Tensor | None = None
     """Slot of the drone touched in a drone–drone contact (the nearest one still racing), else −1."""
     team: torch.Tensor | None = None
@@ -59,7 +60,6 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
     obs = env.reset()
     w, d = env.world_count, env.drones_per_world
     distance = torch.zeros(env.drone_count, device=env.device)
-    crash_time = torch.zeros(env.drone_count, device=env.device)
     partner = torch.full((env.drone_count,), -1, dtype=torch.long, device=env.device)
     splits = torch.zeros(env.drone_count, env.passes_needed, device=env.device)
     passed = env.gates_passed.clone()
@@ -75,11 +75,10 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
             now = (passed[:, None] <= k) & (env.gates_passed[:, None] > k)
             splits = torch.where(now, env.pass_time[:, None], splits)
             passed = env.gates_passed.clone()
-        new = racing & env.crashed
-        if new.any():
-            crash_time = torch.where(new, env.world_time().repeat_interleave(d), crash_time)
-            partner = torch.where(new & ((env.crash_kind & COLLISION_KINDS["drone"]) != 0),
-                                  _nearest_slot(env.pos.view(w, d, 3), racing.view(w, d)), partner)
+        contact = racing & env.crashed & ((env.crash_kind & COLLISION_KINDS["drone"]) != 0)
+        if contact.any():  # the other drone: the nearest one that was still racing
+            near, found = nearest_others(env.pos.view(w, d, 3), racing.view(w, d), count=1)
+            partner = torch.where(contact, torch.where(found, near, -1).flatten(), partner)
         if record:
             frames.append(env.pos.clone())
         if bool((env.finished | env.crashed | env.absent).all()):
@@ -97,7 +96,7 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
         distance=grid(distance),
         present=grid(~env.absent),
         trajectory=torch.stack(frames).view(-1, w, d, 3).cpu() if record else None,
-        crash_time=grid(crash_time),
+        crash_time=grid(torch.where(env.crashed, env.crash_time, 0.0)),
         crash_partner=grid(partner),
         team=env.slot_team.cpu() if teams is None else _team_of_slots(teams, d),
         split_time=splits.view(w, d, -1).cpu(),
@@ -109,15 +108,6 @@ def _team_of_slots(teams: list[list[int]], drones: int) -> torch.Tensor:
     for i, slots in enumerate(teams):
         team[slots] = i
     return team
-
-
-def _nearest_slot(pos: torch.Tensor, racing: torch.Tensor) -> torch.Tensor:
-    """Per drone (flattened), the slot of the nearest other drone of its world that was racing, −1 if none."""
-    dist = torch.cdist(pos, pos)
-    d = pos.shape[1]
-    dist = dist.masked_fill(torch.eye(d, dtype=torch.bool, device=pos.device)[None] | ~racing[:, None, :], torch.inf)
-    near = dist.argmin(dim=-1)
-    return torch.where(torch.isfinite(dist.amin(dim=-1)), near, -1).flatten()
 
 
 def race_winners(res: RaceResults, teams: list[list[int]]) -> torch.Tensor:
