@@ -57,6 +57,11 @@ class SelfPlayCfg(StrictModel):
         description="Probability that a world's opponents are the learner's current policy (mirror self-play, "
         "pool mode only); the rest are drawn from the pool",
     )
+    mirror_actions: Literal["mean", "sampled"] = Field(
+        default="mean",
+        description="What the learner's copies in mirror worlds fly: its mean action, or an action drawn from its "
+        "action distribution like the learner drones' own (opponents as noisy as the learner)",
+    )
     p_latest: float = Field(default=0.5, ge=0, le=1, description="Probability of racing the latest best")
     p_first: float = Field(
         default=0.0, ge=0, le=1,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import json
 import math
@@ -113,7 +114,9 @@ class StageTrainer:
         with contextlib.redirect_stdout(io.StringIO()):  # rsl-rl prints the model architecture
             self.runner = distributed.GroupRunner(self.vec_env, stage.ppo.to_rsl_rl(), log_dir=None, device=device)
         if hasattr(opponent, "live"):  # mirror self-play: opponents that race the learner's current policy
-            opponent.live = self.runner.alg.get_policy()  # deterministic output: the mean action
+            actor = self.runner.alg.get_policy()  # called plainly it returns the mean action
+            sampled = stage.selfplay.mirror_actions == "sampled"
+            opponent.live = functools.partial(actor, stochastic_output=True) if sampled else actor
         self.start_iteration = 0
         self.best = EvalScore(-1.0, -math.inf)
         self.selector = selector or StageTrainer.select_by_solo_eval

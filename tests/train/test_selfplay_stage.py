@@ -10,7 +10,7 @@ from tensordict import TensorDict
 
 from spiral.config import AIRFRAMES, SimCfg, StageSpec
 from spiral.selfplay import Matchmaker, Pool, PoolOpponents, run_stage
-from spiral.train import load_policy
+from spiral.train import StageTrainer, load_policy
 
 CF2X = AIRFRAMES["cf2x"]
 COMMON = {"worlds": 8, "env": {"obs": {"history_len": 1, "gate_normals": True, "pid_integral": True}},
@@ -83,3 +83,33 @@ def test_mirror_worlds_race_the_live_policy_and_stay_out_of_matchmaking(line2, t
     assert torch.allclose(actions[pooled], frozen(single), atol=1e-6)
     opponents.record(torch.arange(4000), torch.zeros(4000, dtype=torch.bool))
     assert mm.races.item() == int(pooled.sum()) and mm.losses.item() == int(pooled.sum())
+
+
+@pytest.mark.parametrize("mirror_actions", ["mean", "sampled"])
+def test_mirror_copies_fly_the_learners_mean_or_sampled_action(line2, tmp_path, mirror_actions):
+    """Mirror opponents run the live actor: its mean action, or a draw with the learner's own action noise."""
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
+    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "a", pool_dir=tmp_path / "p", init_checkpoint=None,
+              progress=False)
+    duel = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 1, **COMMON,
+                                     "selfplay": {"p_self": 1.0, "mirror_actions": mirror_actions}})
+    opponents = PoolOpponents([load_policy(tmp_path / "a" / "best.pt")], Matchmaker(1, latest=0, p_latest=0.5),
+                              world_count=duel.worlds, per_world=1, generator=torch.Generator().manual_seed(0),
+                              p_self=1.0)
+    trainer = StageTrainer(line2, CF2X, SimCfg(), duel, tmp_path / "duel", opponent=opponents,
+                           init_checkpoint=tmp_path / "a" / "best.pt", progress=False, log=lambda _: None)
+    actor = trainer.runner.alg.get_policy()
+    obs = trainer.vec_env.get_observations()
+    rows = obs["policy"].repeat(512, 1)
+    batch = TensorDict({key: obs[key].repeat(512, 1) for key in ("policy", "critic")}, batch_size=[rows.shape[0]])
+    opponents.assignment = torch.zeros(rows.shape[0], dtype=torch.long)
+    opponents.mirror = torch.ones(rows.shape[0], dtype=torch.bool)
+    with torch.no_grad():
+        mean = actor(batch)
+    deviation = opponents(batch) - mean
+    std = actor.distribution.std_param.detach()
+    if mirror_actions == "mean":
+        assert torch.equal(deviation, torch.zeros_like(deviation))
+    else:
+        assert torch.allclose(deviation.std(dim=0), std, rtol=0.15)
+        assert torch.allclose(deviation.mean(dim=0), torch.zeros_like(std), atol=4 * float(std.max()) / 512**0.5)
