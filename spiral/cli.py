@@ -264,6 +264,9 @@ def report(
     track: Annotated[Path | None, typer.Option("--track", help="Track YAML [default: the run's]")] = None,
     se_ibr: Annotated[bool, typer.Option("--se-ibr", help="Run SE-IBR where no evaluation exists (slow)")] = False,
     runs: Annotated[int | None, typer.Option("--runs", min=1, help="Races [default: the pipeline's]")] = None,
+    holdout_runs: Annotated[int, typer.Option(
+        "--holdout-runs", min=0, help="Race the learned policies again from this many other placements (0: no)")] = 0,
+    holdout_seed: Annotated[int, typer.Option("--holdout-seed", min=0, help="Seed of those placements")] = 1,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
 ) -> None:
     """Write results.md (the paper's tables, cross-play, lap-time reference), results.csv and figures."""
@@ -271,8 +274,10 @@ def report(
 
     spec = load_track(track) if track is not None else track_of_run(run_dir)
     command = f"spiral report {run_dir}" + (" --se-ibr" if se_ibr else "") + (f" --runs {runs}" if runs else "")
+    if holdout_runs:
+        command += f" --holdout-runs {holdout_runs} --holdout-seed {holdout_seed}"
     path = build_report(run_dir, spec, out or run_dir / "report", runs=runs, device=device, se_ibr=se_ibr,
-                        command=command)
+                        command=command, holdout=(holdout_runs, holdout_seed) if holdout_runs else None)
     typer.echo(f"wrote {path}")
 
 

@@ -23,6 +23,19 @@ class EvaluationCfg(StrictModel):
 
     runs: PosInt = Field(default=50, description="Races per scenario")
     seed: int = Field(default=0, ge=0, description="Seed of the start placements")
+    holdout_runs: int = Field(
+        default=0, ge=0,
+        description="Races of the report's held-out check: the learned methods' self-matches and head-to-head again "
+        "from placements no setting was chosen on (0: off)",
+    )
+    holdout_seed: int = Field(default=1, ge=0, description="Seed of the held-out start placements")
+
+    @model_validator(mode="after")
+    def _holdout_differs(self) -> EvaluationCfg:
+        if self.holdout_runs and self.holdout_seed == self.seed:
+            raise ValueError(f"holdout_seed: {self.holdout_seed} is the evaluation's own seed; held-out placements "
+                             "need another")
+        return self
 
 
 class ReportCfg(StrictModel):

@@ -115,8 +115,8 @@ class _Evaluations:
 
     def __init__(self, run_root: Path, track: TrackSpec, out_dir: Path, stages: list[StageRun], *, runs: int,
                  seed: int, device: str, se_ibr: bool, airframe: AirframeCfg, sim: SimCfg,
-                 log: Callable[[str], None]) -> None:
-        self.run_root, self.track, self.cache = run_root, track, out_dir / "evals"
+                 log: Callable[[str], None], prefix: str = "") -> None:
+        self.run_root, self.track, self.cache, self.prefix = run_root, track, out_dir / "evals", prefix
         self.stages, self.runs, self.seed, self.device = stages, runs, seed, device
         self.se_ibr, self.airframe, self.sim, self.log = se_ibr, airframe, sim, log
 
@@ -186,11 +186,11 @@ class _Evaluations:
         inputs = {"track": self.track.model_dump(mode="json"), "scenario": scenario, "runs": self.runs,
                   "seed": self.seed, "agents": [a if a == SE_IBR else _checksum(Path(a)) for a in agents]}
         inputs = json.loads(json.dumps(inputs))  # compare as read back: tuples become lists
-        path = self.cache / f"{tag}.json"
+        path = self.cache / f"{self.prefix}{tag}.json"
         cached = _load_json(path)
         if cached is not None and cached.get("inputs") == inputs:
             return cached, path
-        self.log(f"report: running {tag} ({self.runs} races, seed {self.seed})")
+        self.log(f"report: running {self.prefix}{tag} ({self.runs} races, seed {self.seed})")
         data = evaluate_methods(self.track, methods, scenario=scenario, runs=self.runs, seed=self.seed,
                                 device=self.device, against=against, airframe=self.airframe, sim=self.sim)
         data["inputs"] = inputs
@@ -230,7 +230,7 @@ def _setup(stages: list[StageRun]) -> tuple[AirframeCfg, SimCfg]:
 def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int | None = None,
                  seed: int | None = None, device: str = "cpu", se_ibr: bool = False, cross_play: bool = True,
                  airframe: AirframeCfg | None = None, bound_steps: int = 24, command: str | None = None,
-                 log: Callable[[str], None] = print) -> Path:
+                 holdout: tuple[int, int] | None = None, log: Callable[[str], None] = print) -> Path:
     """Write ``results.md``, ``results.csv``, ``bound.json`` and the figures for ``run_root`` into ``out_dir``.
 
     Args:
@@ -245,6 +245,8 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
         airframe: Airframe of the lap-time reference; the pipeline's when None.
         bound_steps: Mean time steps per segment of the lap-time reference.
         command: Command line quoted in results.md.
+        holdout: ``(runs, seed)`` of a held-out check: the learned approaches' self-matches and their head-to-head
+            raced again from other placements (cached under ``out_dir/evals/holdout-*``); None: no check.
         log: Progress messages.
 
     Returns:
@@ -254,19 +256,39 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
     out_dir.mkdir(parents=True, exist_ok=True)
     stages = find_stages(run_root)
     runs, seed = _protocol(stages, runs, seed)
+    if holdout is not None and holdout[1] == seed:
+        raise ValueError(f"holdout seed {seed} is the evaluation's own seed: held-out placements need another")
     stage_airframe, sim = _setup(stages)
     airframe = airframe or stage_airframe
     ev = _Evaluations(run_root, track, out_dir, stages, runs=runs, seed=seed, device=device, se_ibr=se_ibr,
                       airframe=airframe, sim=sim, log=log)
     table = {s: [ev.self_match(s, key) for key in APPROACHES] for s in SCENARIOS}
     matrices = {s: _cross_matrix(ev, s, table[s]) for s in SCENARIOS} if cross_play else {}
+    held = None
+    if holdout is not None:
+        held = _held_out(_Evaluations(run_root, track, out_dir, stages, runs=holdout[0], seed=holdout[1],
+                                      device=device, se_ibr=False, airframe=airframe, sim=sim, log=log,
+                                      prefix="holdout-"))
     bound = lap_time_bound(track, airframe, steps_per_segment=bound_steps)
     (out_dir / "bound.json").write_text(json.dumps(bound.to_json(trajectory=True), indent=2) + "\n")
     _write_figures(out_dir, track, stages, table, bound)
     _write_csv(out_dir / "results.csv", table, bound)
-    text = _markdown(run_root, track, stages, table, matrices, bound, runs=runs, seed=seed, command=command)
+    text = _markdown(run_root, track, stages, table, matrices, bound, runs=runs, seed=seed, command=command,
+                     held=held)
     (out_dir / "results.md").write_text(text)
     return out_dir / "results.md"
+
+
+def _held_out(ev: _Evaluations) -> dict[str, Any]:
+    """The learned approaches' self-matches in each scenario and SPIRAL's head-to-head against PPO without
+    self-play (SPIRAL on team A), raced with ``ev``'s races and seed."""
+    out: dict[str, Any] = {"runs": ev.runs, "seed": ev.seed}
+    for scenario in SCENARIOS:
+        rows = {key: ev.self_match(scenario, key) for key in _MODE_OF}
+        a, b = rows["spiral"].agent, rows["noselfplay"].agent
+        duel = ev.cross(scenario, ("spiral", a), ("noselfplay", b)) if a is not None and b is not None else None
+        out[scenario] = {"rows": rows, "duel": duel}
+    return out
 
 
 def _cross_matrix(ev: _Evaluations, scenario: str, rows: list[_Result]) -> dict[str, Any]:
@@ -340,7 +362,8 @@ def _git_commit() -> str:
 
 
 def _markdown(run_root: Path, track: TrackSpec, stages: list[StageRun], table: dict[str, list[_Result]],
-              matrices: dict[str, Any], bound: LapBound, *, runs: int, seed: int, command: str | None) -> str:
+              matrices: dict[str, Any], bound: LapBound, *, runs: int, seed: int, command: str | None,
+              held: dict[str, Any] | None = None) -> str:
     lines = [f"# Results: `{run_root.name}` on {track.name}", ""]
     lines += [f"Generated by `{command or f'spiral report {run_root}'}` at commit `{_git_commit()}` from "
               f"`{run_root}` (stages: {', '.join(s.name for s in stages) or 'none'}).",
@@ -363,6 +386,8 @@ def _markdown(run_root: Path, track: TrackSpec, stages: list[StageRun], table: d
         lines.append("")
     if matrices:
         lines += _cross_section(matrices)
+    if held is not None:
+        lines += _held_out_section(held, seed)
     lim = bound.limits
     lines += ["## Lap-time reference", "",
               f"Minimum-time lap of a point mass ({bound.airframe}: thrust ≤ {lim.thrust:.2f} m/s², tilt ≤ "
@@ -393,6 +418,30 @@ def _cells(r: _Result, bound: LapBound) -> tuple[str, str, str]:
         return "– (no finished lap)", success, "–"
     return (f"{m['lap_time_mean']:.2f} ± {m['lap_time_std']:.2f}", success,
             f"{m['lap_time_mean'] / bound.lap_time:.2f}")
+
+
+def _held_out_section(held: dict[str, Any], seed: int) -> list[str]:
+    lines = ["## Held-out placements", "",
+             f"The tables above race from the protocol's placements (seed {seed}); a setting chosen by comparing "
+             f"those figures is biased towards them. The same learned policies from {held['runs']} other placements "
+             f"(seed {held['seed']}): self-match success with its 95% interval and lap time, and SPIRAL (team A) "
+             "against PPO No Selfplay: win / loss / draw.", "",
+             "| Scenario | PPO Selfplay (SPIRAL) | PPO No Selfplay | SPIRAL vs No Selfplay |", "|---|---|---|---|"]
+    for scenario in SCENARIOS:
+        cells = []
+        for key in _MODE_OF:
+            r = held[scenario]["rows"][key]
+            if r.metrics is None:
+                cells.append("missing")
+                continue
+            lo, hi = r.metrics["success_ci95"]
+            lap = r.metrics["lap_time_mean"]
+            cells.append(f"{r.metrics['success_ratio']:.3f} [{lo:.2f}, {hi:.2f}], "
+                         + ("no finished lap" if lap is None else f"{lap:.2f} s"))
+        d = held[scenario]["duel"]
+        cells.append("–" if d is None else f"{d['win_rate']:.2f} / {d['loss_rate']:.2f} / {d['draws']:.2f}")
+        lines.append(f"| {scenario} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
 
 
 def _cross_section(matrices: dict[str, Any]) -> list[str]:

@@ -49,7 +49,7 @@ class PipelinePlan:
             train = Step(f"train:{stage.name}", self._train_fn(stage, previous), [previous] if previous else [],
                          self._train_section(stage), resumable=True)
             evaluate = Step(f"eval:{stage.name}", self._eval_fn(stage), [train.name],
-                            {"scenario": stage.scenario, **self.spec.evaluation.model_dump()})
+                            {"scenario": stage.scenario, **self.spec.evaluation.model_dump(include={"runs", "seed"})})
             promote = Step(f"promote:{stage.name}", self._promote_fn(stage), [train.name, evaluate.name],
                            {"stage": stage.name, "dest": str(self.publish_root / stage.name),
                             "publish_as": stage.publish_as})
@@ -108,6 +108,7 @@ class PipelinePlan:
             cfg, ev = self.spec.report, self.spec.evaluation
             results = build_report(self.run_root, self.track, ctx.step_dir, runs=ev.runs, seed=ev.seed,
                                    device=self.spec.device, se_ibr=cfg.se_ibr, cross_play=cfg.cross_play,
+                                   holdout=(ev.holdout_runs, ev.holdout_seed) if ev.holdout_runs else None,
                                    airframe=resolve_airframe(self.spec.airframe),
                                    command=f"spiral run {self.source}", log=ctx.log)
             ctx.log(f"report: {results}")

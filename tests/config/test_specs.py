@@ -115,3 +115,12 @@ def test_pipeline_refuses_unknown_init_stage(tmp_path):
                     "stages:\n  - {name: a, iterations: 1}\n  - {name: b, iterations: 1, init_from: zz}\n")
     with pytest.raises(SpecError, match=r"stages\.1\.init_from"):
         load_pipeline(path)
+
+
+def test_pipeline_refuses_held_out_placements_on_the_evaluation_seed(tmp_path):
+    """Name evaluation.holdout_seed when the held-out check would race the protocol's own placements."""
+    path = tmp_path / "p.yaml"
+    path.write_text(f"kind: pipeline\nname: p\ntrack: {ROOT / 'tracks' / 'oval4.yaml'}\n"
+                    "stages:\n  - {name: a, iterations: 1}\nevaluation: {seed: 3, holdout_runs: 64, holdout_seed: 3}\n")
+    with pytest.raises(SpecError, match=r"evaluation.*holdout_seed"):
+        load_pipeline(path)

@@ -7,6 +7,8 @@ import json
 import shutil
 from pathlib import Path
 
+import pytest
+
 from spiral.config import AIRFRAMES, SimCfg, TrackSpec
 from spiral.eval.report import build_report
 from tests.eval.conftest import tiny_stage
@@ -18,9 +20,12 @@ FAKE_EVAL = {"checkpoint": "best.pt", "drones": 4, "success_ratio": 0.75, "succe
              "crashes": {"ground": 0, "bounds": 0, "gate": 1, "drone": 0, "timeout": 0}}
 
 
-def fake_run(root: Path, track: TrackSpec, checkpoint: Path) -> None:
+STAGES = (("1v1", "1v1", "pool"), ("2v2-noselfplay", "2v2", "frozen"))
+
+
+def fake_run(root: Path, track: TrackSpec, checkpoint: Path, stages=STAGES) -> None:
     """A run folder with a self-play 1v1 stage (evaluated) and a frozen 2v2 stage (trained, not evaluated)."""
-    for name, scenario, mode in (("1v1", "1v1", "pool"), ("2v2-noselfplay", "2v2", "frozen")):
+    for name, scenario, mode in stages:
         train = root / f"train-{name}"
         train.mkdir(parents=True)
         spec = {"stage": tiny_stage(scenario, name=name, mode=mode).model_dump(), "track": track.model_dump(),
@@ -71,3 +76,27 @@ def test_report_builds_tables_figures_and_csv_from_a_tiny_run(sprint, tiny_check
     second = build_report(root, sprint, out, bound_steps=8, log=again.append).read_text()
     assert second.split("\n")[3:] == md.split("\n")[3:]  # line 3 names the git commit, which others may move
     assert again == []
+
+
+def test_report_races_the_learned_policies_again_from_held_out_placements(sprint, tiny_checkpoint, tmp_path):
+    """Race self-matches and SPIRAL against no-self-play from other placements, cached apart from the protocol's."""
+    root, out = tmp_path / "runs" / "tiny", tmp_path / "report"
+    fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("1v1-noselfplay", "1v1", "frozen")))
+    logs: list[str] = []
+    md = build_report(root, sprint, out, bound_steps=8, cross_play=False, holdout=(3, 7), log=logs.append).read_text()
+
+    assert "report: running holdout-self-1v1-spiral (3 races, seed 7)" in logs  # not the eval.json of seed 0
+    self_1v1 = json.loads((out / "evals" / "holdout-self-1v1-spiral.json").read_text())
+    assert (self_1v1["runs"], self_1v1["seed"]) == (3, 7)
+    spiral = self_1v1["methods"]["spiral"]
+    duel = json.loads((out / "evals" / "holdout-cross-1v1-spiral-vs-noselfplay.json").read_text())["methods"]["spiral"]
+    section = md[md.index("## Held-out placements"):]
+    row = next(line for line in section.splitlines() if line.startswith("| 1v1 |"))
+    lo, hi = spiral["success_ci95"]
+    assert row.split(" | ")[1].startswith(f"{spiral['success_ratio']:.3f} [{lo:.2f}, {hi:.2f}]")
+    assert row.endswith(f"| {duel['win_rate']:.2f} / {duel['loss_rate']:.2f} / {duel['draws']:.2f} |")
+    assert "| 2v2 | missing |" in section and section.split("| 2v2 |")[1].split("\n")[0].endswith("| – |")
+    assert "(seed 7)" in section and "protocol's placements (seed 0)" in section
+
+    with pytest.raises(ValueError, match="holdout seed 0"):
+        build_report(root, sprint, out, bound_steps=8, cross_play=False, holdout=(3, 0))

@@ -15,7 +15,7 @@ import yaml
 
 from spiral.config import SpecError
 from spiral.pipeline import PipelineLock, PipelineLockedError, PipelineRunner
-from spiral.train.checkpoint import list_checkpoints
+from spiral.train.checkpoint import list_checkpoints, newest_valid_checkpoint
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -76,7 +76,7 @@ def test_killed_training_step_resumes_and_ends_with_the_full_iteration_count(tmp
         time.sleep(0.05)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
-    killed_at = list_checkpoints(ckpt_dir)[0][0]
+    killed_at = int(newest_valid_checkpoint(ckpt_dir).stem.split("_")[1])  # the kill may cut the newest one short
     assert 0 < killed_at < 29
     logs: list[str] = []
     ran = runner_for(path, tmp_path, logs).run()
@@ -155,3 +155,17 @@ def test_failed_parallel_step_keeps_the_work_of_the_steps_running_beside_it(tmp_
     assert status["train:1v1"] == "complete"
     assert status["eval:1v1"] == "missing"
     assert "observation layout" in (runner.plan.run_root / "logs" / "train-1v1-noselfplay.log").read_text()
+
+
+def test_held_out_check_is_the_reports_alone(tmp_path):
+    """Adding a held-out check to the evaluation settings leaves trained and evaluated stages complete."""
+    path = write_pipeline(tmp_path)
+    data = yaml.safe_load(path.read_text())
+    data["report"] = {"enabled": True, "cross_play": False}
+    path.write_text(yaml.safe_dump(data))
+    runner = runner_for(path, tmp_path)
+    data["evaluation"] = {**data.get("evaluation", {}), "holdout_runs": 4, "holdout_seed": 9}
+    path.write_text(yaml.safe_dump(data))
+    before, after = runner._fingerprints(), runner_for(path, tmp_path)._fingerprints()
+    assert list(after) == ["train:solo", "eval:solo", "promote:solo", "report"]
+    assert [name for name in after if after[name] != before[name]] == ["report"]
