@@ -83,3 +83,9 @@ class EnvCfg(StrictModel):
     action: ActionCfg = Field(default_factory=ActionCfg)
     reward: RewardCfg = Field(default_factory=RewardCfg)
     episode: EpisodeCfg = Field(default_factory=EpisodeCfg)
+    critic: Literal["policy", "race"] = Field(
+        default="policy",
+        description="Inputs of the value function: the policy's observation, or also every other drone of the world "
+        "(`race`: a centralised critic; relative position and velocity, still racing, lead in gates passed; "
+        "opponents first, then teammates). Training only: policies never see these inputs",
+    )

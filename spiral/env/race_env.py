@@ -73,6 +73,11 @@ class RaceEnv:
         self.slot_team = torch.tensor([s in self.opponent_slots for s in range(drones_per_world)],
                                       dtype=torch.long, device=self.device)
         """Team of each slot: 0 learners, 1 opponents."""
+        team = self.slot_team.tolist()
+        self.other_slots = torch.tensor(
+            [sorted((j for j in range(drones_per_world) if j != s), key=lambda j: (team[j] == team[s], j))
+             for s in range(drones_per_world)], dtype=torch.long, device=self.device).view(drones_per_world, -1)
+        """(D, D - 1): the other slots of each slot's world as the race critic lists them, opponents first."""
         self.num_envs = self.learner_idx.numel()
         self.dt = self.world.time_step
         self.time_limit = cfg.episode.time_limit_s or track.time_limit_s
@@ -350,9 +355,12 @@ class RaceEnv:
     # Observations
 
     def get_observations(self) -> TensorDict:
-        """Observations of the learner drones: ``policy`` and ``critic`` groups (the same tensor)."""
+        """Observations of the learner drones: ``policy`` and ``critic`` groups (the same tensor unless the
+        environment's ``critic`` is ``race``)."""
         self._update_history()
         self._obs_all = self._build_observations()
+        if self.cfg.critic == "race":
+            self._critic_all = torch.cat([self._obs_all, self._race_state()], dim=-1)
         return self._observe(self.learner_idx)
 
     def _update_history(self) -> None:
@@ -371,7 +379,21 @@ class RaceEnv:
     def _observe(self, idx: torch.Tensor) -> TensorDict:
         """Observation rows of drones ``idx`` (from the last :meth:`get_observations`)."""
         obs = self._obs_all[idx]
-        return TensorDict({"policy": obs, "critic": obs}, batch_size=[idx.numel()])
+        critic = self._critic_all[idx] if self.cfg.critic == "race" else obs
+        return TensorDict({"policy": obs, "critic": critic}, batch_size=[idx.numel()])
+
+    def _race_state(self) -> torch.Tensor:
+        """Critic inputs of every drone about every other drone of its world (:attr:`other_slots` order), shape
+        (N, 8 (D - 1)): relative position and velocity (zero once the other left the race), whether it still races,
+        and how many more gates it has passed."""
+        w, d = self.world_count, self.drones_per_world
+        others = self.other_slots
+        pos, vel = self.pos.view(w, d, 3), self.vel.view(w, d, 3)
+        racing = (self.out == 0).view(w, d)[:, others].float()[..., None]
+        gates = self.gates_passed.view(w, d).float()
+        features = [(pos[:, others] - pos[:, :, None]) * racing, (vel[:, others] - vel[:, :, None]) * racing, racing,
+                    (gates[:, others] - gates[:, :, None])[..., None]]
+        return torch.cat(features, dim=-1).reshape(w * d, 8 * (d - 1))
 
     def _build_observations(self) -> torch.Tensor:
         """Observation of every drone, shape (N, obs_dim)."""

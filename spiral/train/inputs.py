@@ -22,7 +22,7 @@ from rsl_rl.models import MLPModel
 from rsl_rl.modules.normalization import EmpiricalNormalization
 from tensordict import TensorDict
 
-__all__ = ["UNUSED_STD", "calibrate_inputs", "model_inputs", "silence_inputs", "unused_inputs"]
+__all__ = ["UNUSED_STD", "calibrate_inputs", "model_inputs", "silence_inputs", "unused_inputs", "widen_inputs"]
 
 UNUSED_STD = 1e-4
 """A normalised input whose standard deviation is below this never varied in training."""
@@ -35,6 +35,24 @@ def _normalizer(model: MLPModel) -> EmpiricalNormalization | None:
 
 def _first_linear(model: MLPModel) -> torch.nn.Linear:
     return next(m for m in model.mlp.modules() if isinstance(m, torch.nn.Linear))
+
+
+def widen_inputs(state: dict[str, torch.Tensor], model: MLPModel) -> dict[str, torch.Tensor]:
+    """``state`` (a state dict of a model like ``model`` with fewer inputs) with inputs appended up to ``model``'s.
+
+    The new inputs get zero first-layer weights and zero statistics: the model computes what it computed before,
+    and :func:`unused_inputs` reports them, so a stage calibrates them like any input its init policy never saw
+    vary (e.g. a centralised critic's inputs about the other drones, from a stage without them).
+    """
+    name = "mlp." + next(n for n, m in model.mlp.named_modules() if isinstance(m, torch.nn.Linear))
+    had, width = state[f"{name}.weight"].shape[1], _first_linear(model).in_features
+    if had > width:
+        raise ValueError(f"the stored model has {had} inputs, this one {width}: inputs can be added, not removed")
+    out = dict(state)
+    for key in (f"{name}.weight", "obs_normalizer._mean", "obs_normalizer._var", "obs_normalizer._std"):
+        if key in state:
+            out[key] = torch.nn.functional.pad(state[key], (0, width - had))
+    return out
 
 
 def unused_inputs(model: MLPModel) -> torch.Tensor:

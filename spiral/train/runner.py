@@ -28,7 +28,7 @@ from spiral.env.racing import Policy, run_races
 from spiral.env.vec_env import RaceVecEnv
 from spiral.train import distributed
 from spiral.train.checkpoint import CheckpointError, load_checkpoint, newest_valid_checkpoint, save_checkpoint
-from spiral.train.inputs import calibrate_inputs, model_inputs, silence_inputs, unused_inputs
+from spiral.train.inputs import calibrate_inputs, model_inputs, silence_inputs, unused_inputs, widen_inputs
 
 __all__ = ["EvalScore", "StageTrainer", "TrainResult", "seed_everything"]
 
@@ -173,6 +173,10 @@ class StageTrainer:
         elif init_checkpoint is not None:
             data = load_checkpoint(init_checkpoint, map_location=self.device)
             self._check_layout(data, init_checkpoint)
+            try:  # a centralised critic sees more than the init stage's critic did
+                data["critic_state_dict"] = widen_inputs(data["critic_state_dict"], self.runner.alg.critic)
+            except ValueError as exc:
+                raise CheckpointError(f"{init_checkpoint}: critic: {exc}") from exc
             self.runner.alg.load(data, {"actor": True, "critic": True}, strict=True)
             self.log(f"stage '{self.stage.name}' starts from {init_checkpoint}")
             self._clamp_noise()
@@ -208,7 +212,8 @@ class StageTrainer:
         self.env.pop_stats()
         self.log(f"stage '{self.stage.name}': {int(unused['actor'].sum())} policy inputs were constant in the init "
                  f"policy's stage; {int(calibrated['actor'].sum())} vary here and start with zero weights and "
-                 f"statistics from a {WARMUP_S:.0f} s warm-up")
+                 f"statistics from a {WARMUP_S:.0f} s warm-up (critic: {int(calibrated['critic'].sum())} of "
+                 f"{int(unused['critic'].sum())})")
 
     def _truncate_log(self, start: int) -> None:
         """Drop log rows of iterations that will be trained again after a resume."""

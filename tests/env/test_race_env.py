@@ -280,3 +280,25 @@ def test_race_results_name_the_drone_each_crashed_drone_touched(oval2, partner):
     summary = summarize_races(res)
     assert summary["drone_contacts"] == {"teammate": 0, "opponent": 0, kind: 2}
     assert summary["crash_gates"] == {"0": 2}
+
+
+def test_race_critic_sees_every_other_drone_opponents_first(oval2):
+    """Give the critic, after the policy's inputs, each other drone of the world: relative position and velocity,
+    still racing, lead in gates passed; opponents before the teammate, nothing but the lead once a drone left."""
+    env = make_env(oval2, worlds=1, drones=4, learners=(0, 1), obs=ObsCfg(history_len=1), critic="race")
+    env.set_opponent_policy(lambda obs: torch.zeros(obs.batch_size[0], 4))  # hovering opponents in slots 2 and 3
+    env.reset()
+    place(env, [[-1.0, -1.0, 1.0], [-1.0, -0.5, 1.0], [-1.0, -1.0, 1.8], [-1.0, -2.5, 1.0]])
+    env.vel[2] = torch.tensor([1.0, 0.0, 0.0])
+    env.gates_passed[3] = 2
+    obs = env.get_observations()
+    assert obs["critic"].shape == (2, env.obs_dim + 3 * 8)
+    assert torch.equal(obs["critic"][:, : env.obs_dim], obs["policy"])
+    rows = obs["critic"][0, env.obs_dim :].view(3, 8)  # drone 0: opponents 2 and 3, then teammate 1
+    assert torch.allclose(rows[:, :3], torch.tensor([[0.0, 0.0, 0.8], [0.0, -1.5, 0.0], [0.0, 0.5, 0.0]]), atol=1e-6)
+    assert torch.equal(rows[:, 3:6], torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]))
+    assert rows[:, 6].tolist() == [1.0, 1.0, 1.0] and rows[:, 7].tolist() == [0.0, 2.0, 0.0]
+    env.out[3] = 1  # drone 3 leaves the race
+    rows = env.get_observations()["critic"][1, env.obs_dim :].view(3, 8)  # drone 1: opponents 2 and 3, teammate 0
+    assert rows[1].tolist() == [0.0] * 6 + [0.0, 2.0]
+    assert torch.allclose(rows[2, :3], torch.tensor([0.0, -0.5, 0.0]), atol=1e-6) and rows[2, 6] == 1.0

@@ -9,6 +9,7 @@ from tensordict import TensorDict
 from spiral.config import AIRFRAMES, SimCfg, StageSpec
 from spiral.selfplay import run_stage
 from spiral.train import StageTrainer, load_policy
+from spiral.train.checkpoint import CheckpointError, load_checkpoint
 from spiral.train.inputs import UNUSED_STD, calibrate_inputs, silence_inputs, unused_inputs
 
 CF2X = AIRFRAMES["cf2x"]
@@ -86,3 +87,28 @@ def test_1v1_stage_starts_as_the_solo_policy_with_calibrated_opponent_inputs(lin
         assert torch.allclose(actor(obs), solo(obs), atol=1e-6)
     for model in (actor, trainer.runner.alg.critic):  # both saw the same observations in solo
         assert (model.mlp[0].weight[:, unused] == 0).all()
+
+
+def test_race_critic_starts_from_the_init_critic_and_calibrates_its_new_inputs(line2, solo_best, tmp_path):
+    """A 1v1 stage with a centralised critic from a solo checkpoint values states as the solo critic did whatever the
+    new inputs hold, with statistics for them measured in the warm-up; the reverse direction is refused."""
+    solo = load_checkpoint(solo_best)["critic_state_dict"]
+    spec = {**COMMON, "env": {**COMMON["env"], "critic": "race"}}
+    stage = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 1, **spec})
+    trainer = StageTrainer(line2, CF2X, SimCfg(), stage, tmp_path / "race", init_checkpoint=solo_best,
+                           opponent=load_policy(solo_best), progress=False)
+    critic = trainer.runner.alg.critic
+    width = solo["mlp.0.weight"].shape[1]
+    assert critic.mlp[0].weight.shape[1] == width + 8
+    assert (critic.mlp[0].weight[:, width:] == 0).all()
+    assert (critic.obs_normalizer.std[width:] >= UNUSED_STD).any()  # e.g. the opponent's relative position
+    obs = trainer.vec_env.get_observations()
+    shuffled = obs.clone()
+    shuffled["critic"][:, width:] = 50.0 * torch.randn(obs.batch_size[0], 8)
+    with torch.no_grad():
+        assert torch.equal(critic(obs), critic(shuffled))
+    trainer._save(tmp_path / "race.pt", 0)
+    plain = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 1, **COMMON})
+    with pytest.raises(CheckpointError, match="critic"):
+        StageTrainer(line2, CF2X, SimCfg(), plain, tmp_path / "plain", init_checkpoint=tmp_path / "race.pt",
+                     opponent=load_policy(solo_best), progress=False)
