@@ -33,8 +33,12 @@ def _normalizer(model: MLPModel) -> EmpiricalNormalization | None:
     return norm if isinstance(norm, EmpiricalNormalization) else None
 
 
+def _first_linear_name(model: MLPModel) -> str:
+    return "mlp." + next(n for n, m in model.mlp.named_modules() if isinstance(m, torch.nn.Linear))
+
+
 def _first_linear(model: MLPModel) -> torch.nn.Linear:
-    return next(m for m in model.mlp.modules() if isinstance(m, torch.nn.Linear))
+    return model.get_submodule(_first_linear_name(model))
 
 
 def widen_inputs(state: dict[str, torch.Tensor], model: MLPModel) -> dict[str, torch.Tensor]:
@@ -44,7 +48,7 @@ def widen_inputs(state: dict[str, torch.Tensor], model: MLPModel) -> dict[str, t
     and :func:`unused_inputs` reports them, so a stage calibrates them like any input its init policy never saw
     vary (e.g. a centralised critic's inputs about the other drones, from a stage without them).
     """
-    name = "mlp." + next(n for n, m in model.mlp.named_modules() if isinstance(m, torch.nn.Linear))
+    name = _first_linear_name(model)
     had, width = state[f"{name}.weight"].shape[1], _first_linear(model).in_features
     if had > width:
         raise ValueError(f"the stored model has {had} inputs, this one {width}: inputs can be added, not removed")

@@ -108,19 +108,24 @@ def test_stage_budget_comes_from_iterations_or_env_steps():
         StageSpec(name="s", iterations=3, env_steps=10)
 
 
+def oval_pipeline(tmp_path, body: str):
+    """A pipeline file on oval4 whose stages and settings are ``body`` (YAML)."""
+    path = tmp_path / "p.yaml"
+    path.write_text(f"kind: pipeline\nname: p\ntrack: {ROOT / 'tracks' / 'oval4.yaml'}\n{body}")
+    return path
+
+
 def test_pipeline_refuses_unknown_init_stage(tmp_path):
     """Name the stage field when init_from points at no earlier stage."""
-    path = tmp_path / "p.yaml"
-    path.write_text(f"kind: pipeline\nname: p\ntrack: {ROOT / 'tracks' / 'oval4.yaml'}\n"
-                    "stages:\n  - {name: a, iterations: 1}\n  - {name: b, iterations: 1, init_from: zz}\n")
+    path = oval_pipeline(tmp_path, "stages:\n  - {name: a, iterations: 1}\n"
+                                   "  - {name: b, iterations: 1, init_from: zz}\n")
     with pytest.raises(SpecError, match=r"stages\.1\.init_from"):
         load_pipeline(path)
 
 
 def test_pipeline_refuses_held_out_placements_on_the_evaluation_seed(tmp_path):
     """Name evaluation.holdout_seed when the held-out check would race the protocol's own placements."""
-    path = tmp_path / "p.yaml"
-    path.write_text(f"kind: pipeline\nname: p\ntrack: {ROOT / 'tracks' / 'oval4.yaml'}\n"
-                    "stages:\n  - {name: a, iterations: 1}\nevaluation: {seed: 3, holdout_runs: 64, holdout_seed: 3}\n")
+    path = oval_pipeline(tmp_path, "stages:\n  - {name: a, iterations: 1}\n"
+                                   "evaluation: {seed: 3, holdout_runs: 64, holdout_seed: 3}\n")
     with pytest.raises(SpecError, match=r"evaluation.*holdout_seed"):
         load_pipeline(path)
