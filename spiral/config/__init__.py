@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from spiral.config.airframe import AIRFRAMES, AirframeCfg, AirframeSel, PIDCfg, resolve_airframe
 from spiral.config.base import StrictModel
-from spiral.config.env import ActionCfg, EnvCfg, EpisodeCfg, ObsCfg, RewardCfg
+from spiral.config.env import ActionCfg, EnvCfg, EpisodeCfg, ObsCfg, RewardCfg, SeparationCfg
 from spiral.config.errors import SpecError
 from spiral.config.load import KINDS, load_pipeline, load_spec, load_track
 from spiral.config.pipeline import EvaluationCfg, PipelineSpec, ReportCfg
@@ -32,6 +32,7 @@ __all__ = [
     "PromotionCfg",
     "ReportCfg",
     "RewardCfg",
+    "SeparationCfg",
     "SelectionCfg",
     "SelfPlayCfg",
     "SimCfg",

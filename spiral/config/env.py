@@ -8,7 +8,7 @@ from pydantic import Field
 
 from spiral.config.base import NonNegFloat, PosFloat, PosInt, StrictModel
 
-__all__ = ["ActionCfg", "EnvCfg", "EpisodeCfg", "ObsCfg", "RewardCfg"]
+__all__ = ["ActionCfg", "EnvCfg", "EpisodeCfg", "ObsCfg", "RewardCfg", "SeparationCfg"]
 
 
 class ObsCfg(StrictModel):
@@ -25,6 +25,20 @@ class ObsCfg(StrictModel):
     opponent_velocity: bool = Field(default=False, description="Add the relative velocity of the 2 nearest drones")
 
 
+class SeparationCfg(StrictModel):
+    """Separation filter between the policy and the position controller (not in the paper).
+
+    Every control step each racing drone's position target is shifted away from every other racing drone of its
+    world whose closest approach within ``horizon_s`` (both keeping their velocities) comes nearer than
+    ``distance``: by ``gain`` · (1 − d/distance) along the predicted separation, d the predicted distance. Like
+    the PID it belongs to the flight stack, so every drone flies with it, whichever policy or planner commands it.
+    """
+
+    distance: PosFloat = Field(default=0.25, description="Predicted distance below which a target is shifted [m]")
+    horizon_s: NonNegFloat = Field(default=0.2, description="Look-ahead for the closest approach [s]")
+    gain: PosFloat = Field(default=1.5, description="Target shift at zero predicted distance [m]")
+
+
 class ActionCfg(StrictModel):
     """How a 4-D action in [−1, 1] becomes a PID target (position and yaw)."""
 
@@ -33,6 +47,9 @@ class ActionCfg(StrictModel):
     )
     pos_scale: PosFloat = Field(default=2.0, description="Target offset at action 1 in relative mode [m]")
     yaw_scale_deg: PosFloat = Field(default=45.0, description="Yaw offset at action 1 in relative mode [deg]")
+    separation: SeparationCfg | None = Field(
+        default=None, description="Separation filter on the position targets (none in the paper's stack)"
+    )
 
 
 class RewardCfg(StrictModel):

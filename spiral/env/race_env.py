@@ -15,6 +15,7 @@ from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
 from spiral.env.observations import ObservationBuilder, nearest_others
 from spiral.env.rewards import REWARD_TERMS, StepOutcome, compute_rewards
+from spiral.env.separation import separation_offsets
 from spiral.env.starts import sample_box_starts, sample_track_starts
 from spiral.sim import COLLISION_KINDS, World
 
@@ -242,6 +243,10 @@ class RaceEnv:
             target = lo + (actions[:, :3] + 1.0) * 0.5 * (hi - lo)
             yaw = math.pi * actions[:, 3]
         racing = ~(self.out.bool())
+        if a.separation is not None:
+            w, d = self.world_count, self.drones_per_world
+            shift = separation_offsets(self.pos.view(w, d, 3), self.vel.view(w, d, 3), racing.view(w, d), a.separation)
+            target = target + shift.view(-1, 3)
         self.cmd[racing] = torch.cat([target, yaw[:, None]], dim=-1)[racing]
         self.last_action = actions
 
