@@ -35,7 +35,7 @@ class SeparationCfg(StrictModel):
     """
 
     distance: PosFloat = Field(default=0.25, description="Predicted distance below which a target is shifted [m]")
-    horizon_s: NonNegFloat = Field(default=0.2, description="Look-ahead for the closest approach [s]")
+    horizon_s: NonNegFloat = Field(default=0.4, description="Look-ahead for the closest approach [s]")
     gain: PosFloat = Field(default=1.5, description="Target shift at zero predicted distance [m]")
 
 

@@ -14,7 +14,8 @@ def separation_offsets(pos: torch.Tensor, vel: torch.Tensor, racing: torch.Tenso
 
     For drones i and j, with r = p_i − p_j and v = v_i − v_j, the closest approach within the horizon is at
     t* = clamp(−r·v / |v|², 0, horizon); there the separation is s = r + v·t*, of length d. Drone i is shifted by
-    ``gain`` · max(0, 1 − d/``distance``) · s/d, summed over j; j gets the opposite shift from the same pair.
+    ``gain`` · max(0, 1 − d/``distance``) · s/d, summed over j; j gets the opposite shift from the same pair. A head-on
+    approach predicted to meet exactly (d ≈ 0) pushes along r instead.
 
     Args:
         pos: Positions, shape (W, D, 3).
@@ -30,4 +31,6 @@ def separation_offsets(pos: torch.Tensor, vel: torch.Tensor, racing: torch.Tenso
     d_count = pos.shape[1]
     pair = racing[:, :, None] & racing[:, None, :] & ~torch.eye(d_count, dtype=torch.bool, device=pos.device)[None]
     weight = cfg.gain * (1.0 - d / cfg.distance).clamp_min(0.0) * pair
-    return (weight[..., None] * s / d.clamp_min(1e-6)[..., None]).sum(dim=2)
+    direction = torch.where((d > 1e-4)[..., None], s, r)
+    direction = direction / direction.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    return (weight[..., None] * direction).sum(dim=2)
