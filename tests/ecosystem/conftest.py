@@ -9,7 +9,7 @@ import torch
 from rsl_rl.models import MLPModel
 from tensordict import TensorDict
 
-from spiral.config import EnvCfg, PPOCfg
+from spiral.config import AIRFRAMES, EnvCfg, PPOCfg, SimCfg
 from spiral.env import ObservationBuilder
 from spiral.train import save_checkpoint
 
@@ -30,7 +30,7 @@ def write_policy_checkpoint(path: Path, env_cfg: EnvCfg = SMALL_ENV, *, seed: in
     actor.train()
     actor.obs_normalizer.update(3.0 * torch.randn(256, dim) + 1.0)
     meta = {"stage": "test", "iteration": 0, "track": "oval4", "obs_layout": layout, "ppo": ppo.model_dump(),
-            "env": env_cfg.model_dump()}
+            "env": env_cfg.model_dump(), "airframe": AIRFRAMES["cf2x"].model_dump(), "sim": SimCfg().model_dump()}
     save_checkpoint(path, {"actor_state_dict": actor.state_dict()}, meta)
     return path
 

@@ -63,3 +63,19 @@ def test_stage_variant_trains_an_overridden_stage_and_evaluates_it(script_env, m
     assert set(summary["crashes"]) == {"ground", "bounds", "gate", "drone", "timeout"} and (out / "best.pt").exists()
     assert len((out / "train_log.jsonl").read_text().splitlines()) == 1  # the iterations override took effect
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == summary
+
+
+def test_separation_probe_races_a_policy_with_each_filter_setting(script_env, policy_checkpoint, monkeypatch, capsys):
+    """Self-match with no filter and with one, then cross-play against itself: one line per setting."""
+    track = str(EXAMPLES.parent / "tracks" / "circuit6.yaml")
+    base = ["separation_probe.py", str(policy_checkpoint), "2v2", "--track", track, "--runs", "4", "--seed", "3"]
+    monkeypatch.setattr(sys, "argv", [*base, "--filter", "none", "--filter", "0.25,0.4,1.5"])
+    runpy.run_path(str(EXAMPLES / "separation_probe.py"), run_name="__main__")
+    lines = capsys.readouterr().out.strip().splitlines()[-2:]
+    assert [line.split(":")[0].strip() for line in lines] == ["none", "0.25,0.4,1.5"]
+    assert all(0.0 <= float(re.search(r"success (\d\.\d+)", line).group(1)) <= 1.0 for line in lines)
+    monkeypatch.setattr(sys, "argv", [*base, "--against", str(policy_checkpoint), "--filter", "0.3,0.2,1.0"])
+    runpy.run_path(str(EXAMPLES / "separation_probe.py"), run_name="__main__")
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    shares = [float(x) for x in re.search(r"win (\S+) loss (\S+) draw (\S+)", line).groups()]
+    assert line.startswith("0.3,0.2,1.0") and abs(sum(shares) - 1.0) < 2e-3
