@@ -369,7 +369,8 @@ def _markdown(run_root: Path, track: TrackSpec, stages: list[StageRun], table: d
               f"`{run_root}` (stages: {', '.join(s.name for s in stages) or 'none'}).",
               f"Every method raced {runs} times per scenario from seeded random start placements (seed {seed}), "
               "identical for every method. Lap time: mean ± std over drones that finished without a collision; "
-              "success ratio with its 95% Wilson interval; lap / bound: lap time over the point-mass reference.", ""]
+              "success ratio with its 95% Wilson interval; lap / bound: lap time over the point-mass reference.",
+              _flight_stack(stages), ""]
     titles = {"1v1": "Two-drone (1v1) race", "2v2": "Four-drone (2v2) team race"}
     notes: list[str] = []
     for scenario in SCENARIOS:
@@ -406,6 +407,22 @@ def _markdown(run_root: Path, track: TrackSpec, stages: list[StageRun], table: d
     if sources:
         lines += ["## Sources", "", *[f"- `{s}`" for s in sources], ""]
     return "\n".join(lines)
+
+
+def _flight_stack(stages: list[StageRun]) -> str:
+    """How the run's drones flew: with its stages' separation filter, or the paper's stack."""
+    settings = {s.name: s.spec["stage"]["env"]["action"].get("separation") for s in stages}
+
+    def describe(sep: dict[str, Any] | None) -> str:
+        if sep is None:
+            return "the paper's flight stack (no separation filter)"
+        return (f"a separation filter (position targets shifted away from drones predicted within {sep['distance']} m "
+                f"in the next {sep['horizon_s']} s, by up to {sep['gain']} m; docs/training.md)")
+
+    distinct = {json.dumps(v, sort_keys=True) for v in settings.values()}
+    if len(distinct) <= 1:
+        return f"Every drone flew with {describe(next(iter(settings.values()), None))}."
+    return "Drones flew, by stage: " + "; ".join(f"{name}: {describe(v)}" for name, v in settings.items()) + "."
 
 
 def _cells(r: _Result, bound: LapBound) -> tuple[str, str, str]:

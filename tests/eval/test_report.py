@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from spiral.config import AIRFRAMES, SimCfg, TrackSpec
-from spiral.eval.report import build_report
+from spiral.eval.report import _flight_stack, build_report, find_stages
 from tests.eval.conftest import tiny_stage
 
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -54,6 +54,7 @@ def test_report_builds_tables_figures_and_csv_from_a_tiny_run(sprint, tiny_check
     assert "| PPO No Selfplay | missing | missing | – | 16.3134 ± 0.0727 | 0.8000 ± 0.0200 |" in md
     assert "| PPO No Selfplay | – (no finished lap) | 0.00 [0.00, 0.32] | – | 17.82 ± 0.27 | 0.31 ± 0.12 |" in md
     assert "no pool-mode 2v2 stage" in md and "pass --se-ibr" in md
+    assert "Every drone flew with the paper's flight stack (no separation filter)." in md
     assert md.count("(draws ") == 2  # one pairing per scenario: each scenario has one learned approach
     assert sorted(logs) == ["report: running cross-1v1-spiral-vs-spiral (2 races, seed 0)",
                             "report: running cross-2v2-noselfplay-vs-noselfplay (2 races, seed 0)",
@@ -76,6 +77,21 @@ def test_report_builds_tables_figures_and_csv_from_a_tiny_run(sprint, tiny_check
     second = build_report(root, sprint, out, bound_steps=8, log=again.append).read_text()
     assert second.split("\n")[3:] == md.split("\n")[3:]  # line 3 names the git commit, which others may move
     assert again == []
+
+
+def test_report_states_the_separation_filter_the_stages_flew_with(sprint, tiny_checkpoint, tmp_path):
+    root = tmp_path / "runs" / "tiny"
+    fake_run(root, sprint, tiny_checkpoint)
+    spec_path = root / "train-1v1" / "spec.json"
+    spec = json.loads(spec_path.read_text())
+    spec["stage"]["env"]["action"]["separation"] = {"distance": 0.25, "horizon_s": 0.4, "gain": 1.5}
+    spec_path.write_text(json.dumps(spec))
+    stages = find_stages(root)
+    assert _flight_stack(stages) == (
+        "Drones flew, by stage: 1v1: a separation filter (position targets shifted away from drones predicted within "
+        "0.25 m in the next 0.4 s, by up to 1.5 m; docs/training.md); 2v2-noselfplay: the paper's flight stack (no "
+        "separation filter).")
+    assert _flight_stack(stages[:1]).startswith("Every drone flew with a separation filter (")
 
 
 def test_report_races_the_learned_policies_again_from_held_out_placements(sprint, tiny_checkpoint, tmp_path):
