@@ -35,6 +35,7 @@ MALFORMED = {
     "yaml_syntax.yaml": "line 5",
     "pipeline_bad_field.yaml": "stages.0.ppo.learning_rate",
     "pipeline_bad_override.yaml": "airframe.overrides.mas",
+    "pipeline_bad_separation.yaml": "stages.0.env.action.separation.horizon_s",
 }
 
 
