@@ -28,9 +28,7 @@ def separation_offsets(pos: torch.Tensor, vel: torch.Tensor, racing: torch.Tenso
     t = (-(r * v).sum(-1) / v.square().sum(-1).clamp_min(1e-9)).clamp(0.0, cfg.horizon_s)
     s = r + v * t[..., None]
     d = s.norm(dim=-1)
-    d_count = pos.shape[1]
-    pair = racing[:, :, None] & racing[:, None, :] & ~torch.eye(d_count, dtype=torch.bool, device=pos.device)[None]
-    weight = cfg.gain * (1.0 - d / cfg.distance).clamp_min(0.0) * pair
-    direction = torch.where((d > 1e-4)[..., None], s, r)
+    weight = cfg.gain * (1.0 - d / cfg.distance).clamp_min(0.0) * (racing[:, :, None] & racing[:, None, :])
+    direction = torch.where((d > 1e-4)[..., None], s, r)  # a drone's pair with itself has r = 0: no shift
     direction = direction / direction.norm(dim=-1, keepdim=True).clamp_min(1e-9)
     return (weight[..., None] * direction).sum(dim=2)
