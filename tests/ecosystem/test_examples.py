@@ -79,3 +79,18 @@ def test_separation_probe_races_a_policy_with_each_filter_setting(script_env, po
     line = capsys.readouterr().out.strip().splitlines()[-1]
     shares = [float(x) for x in re.search(r"win (\S+) loss (\S+) draw (\S+)", line).groups()]
     assert line.startswith("0.3,0.2,1.0") and abs(sum(shares) - 1.0) < 2e-3
+
+
+def test_crossplay_leads_accounts_for_every_lost_lead(script_env, policy_checkpoint, monkeypatch, capsys):
+    """A policy raced against itself: rates sum to one, and each team's lost leads are at most its leads."""
+    track = str(EXAMPLES.parent / "tracks" / "circuit6.yaml")
+    monkeypatch.setattr(sys, "argv", ["crossplay_leads.py", str(policy_checkpoint), str(policy_checkpoint), "1v1",
+                                      "--track", track, "--runs", "4", "--seed", "3", "--passage", "0"])
+    runpy.run_path(str(EXAMPLES / "crossplay_leads.py"), run_name="__main__")
+    lines = capsys.readouterr().out.strip().splitlines()[-5:]
+    shares = [float(x) for x in re.search(r"win (\S+) loss (\S+) draw (\S+)", lines[0]).groups()]
+    assert abs(sum(shares) - 1.0) < 2e-3
+    for line in (lines[1], lines[3]):
+        leads, lost, by_crash = (int(x) for x in re.search(r"in (\d+), loses (\d+) of them, (\d+) with", line).groups())
+        assert 0 <= by_crash <= lost <= leads <= 4
+    assert all(re.search(r"crashes of 4 drones", line) for line in (lines[2], lines[4]))
