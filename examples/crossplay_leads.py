@@ -37,7 +37,7 @@ def crash_counts(res: RaceResults, slots: list[int], worlds: torch.Tensor) -> Co
     crashed = res.crashed[:, slots] & worlds[:, None]
     kinds = res.crash_kind[:, slots][crashed].tolist()
     gates = res.gates_passed[:, slots][crashed].tolist()
-    return Counter((KIND_NAMES.get(int(k), str(k)), int(g)) for k, g in zip(kinds, gates))
+    return Counter((KIND_NAMES.get(int(k), str(k)), int(g)) for k, g in zip(kinds, gates, strict=True))
 
 
 def main() -> None:
@@ -56,7 +56,7 @@ def main() -> None:
     if not 0 <= args.passage < res.split_time.shape[-1]:
         parser.error(f"--passage: the lap has gate passages 0..{res.split_time.shape[-1] - 1}")
     print("A: win {:.3f} loss {:.3f} draw {:.3f}".format(*((winner == k).float().mean().item() for k in (0, 1, -1))))
-    teams = dict(zip("AB", TEAMS[args.scenario]))
+    teams = dict(zip("AB", TEAMS[args.scenario], strict=True))
     times = {name: first_through(res, slots, args.passage) for name, slots in teams.items()}
     for index, (name, slots) in enumerate(teams.items()):
         other = times["B" if name == "A" else "A"]
