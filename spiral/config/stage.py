@@ -62,6 +62,12 @@ class SelfPlayCfg(StrictModel):
         description="What the learner's copies in mirror worlds fly: its mean action, or an action drawn from its "
         "action distribution like the learner drones' own (opponents as noisy as the learner)",
     )
+    opponent_offset: float = Field(
+        default=0.0, ge=0, le=1,
+        description="Largest constant offset added to an opponent's actions for a whole episode, drawn per world "
+        "uniformly in [-x, x] per axis of the position target (action units): opponents fly other lines than "
+        "their policy's own (robustness to strangers); 0: off",
+    )
     p_latest: float = Field(default=0.5, ge=0, le=1, description="Probability of racing the latest best")
     p_first: float = Field(
         default=0.0, ge=0, le=1,

@@ -73,7 +73,8 @@ def run_stage(
     matchmaker = Matchmaker(len(ids), latest=latest, p_latest=stage.selfplay.p_latest,
                             p_first=stage.selfplay.p_first, mode=stage.selfplay.sampling, device=device)
     opponents = PoolOpponents([policies[i] for i in ids], matchmaker, world_count=stage.worlds,
-                              per_world=opp_per_world, generator=generator, p_self=stage.selfplay.p_self)
+                              per_world=opp_per_world, generator=generator, p_self=stage.selfplay.p_self,
+                              offset=stage.selfplay.opponent_offset)
 
     def add_opponent(path: Path) -> None:
         opponents.policies.append(load_policy(path, device=device))

@@ -20,19 +20,22 @@ class PoolOpponents:
     that member's network in one forward pass, without gradients. With ``p_self > 0`` a world races copies of the
     learner's current policy instead (mirror self-play) with that probability; ``live`` must then be set to the
     learner's deterministic policy before the first step (:class:`~spiral.train.StageTrainer` does). Mirror races
-    are not counted by the matchmaker.
+    are not counted by the matchmaker. With ``offset > 0`` every opponent adds a constant offset, drawn per world
+    at its reset uniformly in [-offset, offset] per axis, to its position-target actions: it flies another line.
     """
 
     def __init__(self, policies: list[FrozenPolicy], matchmaker: Matchmaker, *, world_count: int, per_world: int,
-                 generator: torch.Generator, p_self: float = 0.0) -> None:
+                 generator: torch.Generator, p_self: float = 0.0, offset: float = 0.0) -> None:
         self.policies, self.matchmaker = policies, matchmaker
-        self.per_world, self.generator, self.p_self = per_world, generator, p_self
+        self.per_world, self.generator, self.p_self, self.offset = per_world, generator, p_self, offset
         self.live: Callable[[TensorDict], torch.Tensor] | None = None
         """The learner's current policy, for mirror worlds."""
         self.assignment = torch.zeros(world_count, dtype=torch.long, device=matchmaker.races.device)
         """Member index of each world."""
         self.mirror = torch.zeros(world_count, dtype=torch.bool, device=matchmaker.races.device)
         """Worlds whose opponents are the learner's current policy."""
+        self.action_offset = torch.zeros(world_count, per_world, 4, device=matchmaker.races.device)
+        """Constant offset of each opponent's position-target actions for the episode (yaw untouched)."""
         self.reset(torch.ones(world_count, dtype=torch.bool, device=matchmaker.races.device))
 
     @torch.no_grad()
@@ -48,6 +51,8 @@ class PoolOpponents:
         for m in torch.unique(member_of_row[~mirror_row]).tolist():
             rows = (member_of_row == m) & ~mirror_row
             actions[rows] = self.policies[m](obs[rows])
+        if self.offset > 0:
+            actions = actions + self.action_offset.view(-1, 4)
         return actions
 
     def reset(self, worlds: torch.Tensor) -> None:
@@ -57,6 +62,9 @@ class PoolOpponents:
             self.assignment[worlds] = self.matchmaker.draw(count, self.generator)
             u = torch.rand(count, generator=self.generator, device=self.mirror.device)
             self.mirror[worlds] = u < self.p_self
+            if self.offset > 0:
+                shift = torch.rand(count, self.per_world, 3, generator=self.generator, device=self.mirror.device)
+                self.action_offset[worlds, :, :3] = (2.0 * shift - 1.0) * self.offset
 
     def record(self, worlds: torch.Tensor, learner_won: torch.Tensor) -> None:
         """Feed race outcomes of ended pool worlds (indices) to the matchmaker."""

@@ -113,3 +113,24 @@ def test_mirror_copies_fly_the_learners_mean_or_sampled_action(line2, tmp_path, 
     else:
         assert torch.allclose(deviation.std(dim=0), std, rtol=0.15)
         assert torch.allclose(deviation.mean(dim=0), torch.zeros_like(std), atol=4 * float(std.max()) / 512**0.5)
+
+
+def test_opponent_offsets_hold_for_an_episode_and_are_redrawn_at_reset(line2, tmp_path):
+    """Each opponent's position-target actions move by one offset per episode, within bounds; yaw is untouched."""
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
+    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "a", pool_dir=tmp_path / "p", init_checkpoint=None,
+              progress=False)
+    frozen = load_policy(tmp_path / "a" / "best.pt")
+    dim = frozen.obs_layout["obs_dim"]
+    obs = TensorDict({"policy": torch.randn(40, dim), "critic": torch.randn(40, dim)}, batch_size=[40])
+    plain = PoolOpponents([frozen], Matchmaker(1, latest=0, p_latest=0.5), world_count=20, per_world=2,
+                          generator=torch.Generator().manual_seed(0))
+    shifted = PoolOpponents([frozen], Matchmaker(1, latest=0, p_latest=0.5), world_count=20, per_world=2,
+                            generator=torch.Generator().manual_seed(0), offset=0.2)
+    delta = shifted(obs) - plain(obs)
+    assert torch.allclose(shifted(obs) - plain(obs), delta)  # the same offset at every step
+    assert delta[:, :3].abs().max() <= 0.2 + 1e-6 and delta[:, :3].abs().max() > 0.1 and (delta[:, 3] == 0).all()
+    assert len({tuple(row) for row in delta[:, :3].tolist()}) == 40  # every opponent has its own
+    shifted.reset(torch.arange(20) < 10)
+    moved = (shifted(obs) - plain(obs) - delta)[:, :3].abs().sum(-1) > 0
+    assert moved[:20].all() and not moved[20:].any()  # only the reset worlds (rows 0-19) draw new offsets
