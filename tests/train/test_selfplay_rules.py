@@ -86,6 +86,15 @@ def test_frozen_opponents_refuse_mirror_self_play():
     assert SelfPlayCfg(mode="pool", p_self=0.5).p_self == 0.5
 
 
+def test_opponent_offsets_apply_to_both_branches_and_must_lie_in_the_action_range():
+    """Offsets apply to pool and frozen opponents alike; a negative or beyond-action offset names the field."""
+    assert SelfPlayCfg(mode="frozen", opponent_offset=0.1).opponent_offset == 0.1
+    assert SelfPlayCfg().opponent_offset == 0.0
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValidationError, match="opponent_offset"):
+            SelfPlayCfg(opponent_offset=bad)
+
+
 def test_elo_update_is_zero_sum_and_follows_the_expected_score():
     """Move equal ratings by K·(S − ½) and keep the sum."""
     a, b = elo_update(1000.0, 1000.0, 1.0, 16.0)
