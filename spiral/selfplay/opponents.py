@@ -34,8 +34,8 @@ class PoolOpponents:
         """Member index of each world."""
         self.mirror = torch.zeros(world_count, dtype=torch.bool, device=matchmaker.races.device)
         """Worlds whose opponents are the learner's current policy."""
-        self.action_offset = torch.zeros(world_count, per_world, 4, device=matchmaker.races.device)
-        """Constant offset of each opponent's position-target actions for the episode (yaw untouched)."""
+        self.action_offset = torch.zeros(world_count, per_world, 3, device=matchmaker.races.device)
+        """Constant offset of each opponent's position-target actions for the episode (its yaw is untouched)."""
         self.reset(torch.ones(world_count, dtype=torch.bool, device=matchmaker.races.device))
 
     @torch.no_grad()
@@ -52,7 +52,7 @@ class PoolOpponents:
             rows = (member_of_row == m) & ~mirror_row
             actions[rows] = self.policies[m](obs[rows])
         if self.offset > 0:
-            actions = actions + self.action_offset.view(-1, 4)
+            actions[:, :3] += self.action_offset.view(-1, 3)
         return actions
 
     def reset(self, worlds: torch.Tensor) -> None:
@@ -64,7 +64,7 @@ class PoolOpponents:
             self.mirror[worlds] = u < self.p_self
             if self.offset > 0:
                 shift = torch.rand(count, self.per_world, 3, generator=self.generator, device=self.mirror.device)
-                self.action_offset[worlds, :, :3] = (2.0 * shift - 1.0) * self.offset
+                self.action_offset[worlds] = (2.0 * shift - 1.0) * self.offset
 
     def record(self, worlds: torch.Tensor, learner_won: torch.Tensor) -> None:
         """Feed race outcomes of ended pool worlds (indices) to the matchmaker."""
