@@ -39,6 +39,8 @@ def main() -> None:
     parser.add_argument("init", help="checkpoint the stage starts from (its opponents' first best); 'none' for a "
                         "solo stage from scratch")
     parser.add_argument("out", type=Path)
+    parser.add_argument("--opponent", type=Path, help="frozen stages: the checkpoint every opponent runs (the "
+                        "pipeline's selfplay.opponent_from stage's best); the init checkpoint when absent")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
@@ -62,7 +64,7 @@ def main() -> None:
         shutil.copytree(init.parent / "pool", pool)
     start = time.perf_counter()
     result = run_stage(track, resolve_airframe(spec.airframe), spec.sim, stage, args.out, pool_dir=pool,
-                       init_checkpoint=init, device=args.device,
+                       init_checkpoint=init, opponent_checkpoint=args.opponent, device=args.device,
                        seed=stage.seed if stage.seed is not None else spec.seed, progress=False)
     wall = time.perf_counter() - start
     evaluation = evaluate_methods(track, {"variant": result.best_path}, scenario=stage.scenario, runs=50, seed=0,

@@ -69,6 +69,9 @@ class PipelineSpec(StrictModel):
                 raise ValueError(f"stages.{i}.name: duplicate stage name {stage.name!r}")
             if stage.init_from is not None and stage.init_from not in names[:i]:
                 raise ValueError(f"stages.{i}.init_from: {stage.init_from!r} is not an earlier stage")
+            source = stage.selfplay.opponent_from
+            if source is not None and source not in names[:i]:
+                raise ValueError(f"stages.{i}.selfplay.opponent_from: {source!r} is not an earlier stage")
         return self
 
     def init_stage(self, index: int) -> str | None:

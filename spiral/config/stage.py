@@ -48,10 +48,16 @@ class SelfPlayCfg(StrictModel):
     """Where opponents come from in multi-drone stages.
 
     ``pool``: SPIRAL — the pool of past bests, promoted policies join it. ``frozen``: PPO without self-play —
-    the stage's initial policy, never updated, nothing added to the pool.
+    one fixed policy (``opponent_from``'s best, else the stage's initial policy), never updated, nothing added
+    to the pool.
     """
 
     mode: Literal["pool", "frozen"] = Field(default="pool")
+    opponent_from: str | None = Field(
+        default=None, pattern=r"^[A-Za-z0-9_.-]+$",
+        description="Frozen mode: the earlier stage whose best policy every opponent runs (in full.yaml the solo "
+        "stage); the stage's initial policy when absent",
+    )
     p_self: float = Field(
         default=0.0, ge=0, le=1,
         description="Probability that a world's opponents are the learner's current policy (mirror self-play, "
@@ -81,6 +87,8 @@ class SelfPlayCfg(StrictModel):
     def _mirror_needs_pool(self) -> SelfPlayCfg:
         if self.mode == "frozen" and self.p_self > 0:
             raise ValueError("p_self: frozen opponents (PPO without self-play) cannot race the learner itself")
+        if self.mode == "pool" and self.opponent_from is not None:
+            raise ValueError("opponent_from: only frozen opponents come from one stage; pool opponents are the pool")
         if self.p_latest + self.p_first > 1:
             raise ValueError(f"p_first: p_latest + p_first = {self.p_latest + self.p_first} exceeds 1")
         return self

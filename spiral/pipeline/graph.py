@@ -46,7 +46,10 @@ class PipelinePlan:
         for index, stage in enumerate(self.spec.stages):
             init = self.spec.init_stage(index)
             previous = f"train:{init}" if init else None
-            train = Step(f"train:{stage.name}", self._train_fn(stage, previous), [previous] if previous else [],
+            source = stage.selfplay.opponent_from if stage.scenario != "solo" else None
+            opponent = f"train:{source}" if source else None
+            inputs = list(dict.fromkeys(name for name in (previous, opponent) if name))
+            train = Step(f"train:{stage.name}", self._train_fn(stage, previous, opponent), inputs,
                          self._train_section(stage), resumable=True)
             evaluate = Step(f"eval:{stage.name}", self._eval_fn(stage), [train.name],
                             {"scenario": stage.scenario, **self.spec.evaluation.model_dump(include={"runs", "seed"})})
@@ -71,17 +74,17 @@ class PipelinePlan:
                 "sim": self.spec.sim.model_dump(), "device": self.spec.device,
                 "seed": stage.seed if stage.seed is not None else self.spec.seed}
 
-    def _train_fn(self, stage: StageSpec, previous: str | None):
+    def _train_fn(self, stage: StageSpec, previous: str | None, opponent: str | None):
         def run(ctx: StepContext) -> tuple[dict[str, Path], dict[str, Any]]:
             section = self._train_section(stage)
             atomic_write_bytes(ctx.step_dir / "spec.json", json.dumps(section, indent=2).encode())
-            init = Path(ctx.inputs[previous]["outputs"]["best"]["path"]) if previous else None
+            init, frozen = (Path(ctx.inputs[s]["outputs"]["best"]["path"]) if s else None for s in (previous, opponent))
             pool_dir = ctx.step_dir / "pool"
             if init is not None and not pool_dir.exists() and (init.parent / "pool").is_dir():
                 shutil.copytree(init.parent / "pool", pool_dir)  # the pool carries over from stage to stage
             result = run_stage(self.track, resolve_airframe(self.spec.airframe), self.spec.sim, stage, ctx.step_dir,
-                               pool_dir=pool_dir, init_checkpoint=init, device=self.spec.device,
-                               seed=section["seed"], log=ctx.log, progress=ctx.progress)
+                               pool_dir=pool_dir, init_checkpoint=init, opponent_checkpoint=frozen,
+                               device=self.spec.device, seed=section["seed"], log=ctx.log, progress=ctx.progress)
             info = {"iterations": result.iterations, "wall_time_s": result.wall_time_s, "env_steps": result.env_steps,
                     "best": {"success": result.best.success, "lap_time": result.best.lap_time,
                              "iteration": result.best.iteration}}

@@ -16,7 +16,7 @@ from spiral.selfplay.matchmaking import Matchmaker
 from spiral.selfplay.opponents import PoolOpponents
 from spiral.selfplay.pool import INITIAL_RATING, Pool
 from spiral.selfplay.promotion import PromotionSelector
-from spiral.train.checkpoint import load_checkpoint, load_policy
+from spiral.train.checkpoint import CheckpointError, load_checkpoint, load_policy
 from spiral.train.runner import StageTrainer, TrainResult
 
 __all__ = ["run_stage"]
@@ -31,6 +31,7 @@ def run_stage(
     *,
     pool_dir: Path,
     init_checkpoint: Path | None,
+    opponent_checkpoint: Path | None = None,
     device: str = "cpu",
     seed: int = 0,
     log: Callable[[str], None] = print,
@@ -38,9 +39,9 @@ def run_stage(
 ) -> TrainResult:
     """Train ``stage`` and return its result; ``run_dir/best.pt`` is its best policy.
 
-    Multi-drone stages need ``init_checkpoint`` (the policy they start from, which is also the first opponent
-    and the first best). In ``pool`` mode the pool in ``pool_dir`` supplies the opponents and receives every
-    promoted policy; in ``frozen`` mode the initial policy is the only opponent and the pool is left alone.
+    Multi-drone stages need ``init_checkpoint`` (the policy they start from and their first best). In ``pool`` mode the pool in ``pool_dir`` supplies the opponents and receives every
+    promoted policy; in ``frozen`` mode one policy, ``opponent_checkpoint`` (the initial policy when None), is
+    the only opponent and the pool is left alone.
     """
     run_dir = Path(run_dir)
     if stage.scenario == "solo":
@@ -49,6 +50,9 @@ def run_stage(
         return trainer.train()
     if init_checkpoint is None:
         raise ValueError(f"stage {stage.name!r}: a {stage.scenario} stage needs an earlier stage to start from")
+    if opponent_checkpoint is not None and stage.selfplay.mode != "frozen":
+        raise ValueError(f"stage {stage.name!r}: an opponent checkpoint is for frozen opponents; pool mode races "
+                         "the pool")
     best_path = run_dir / "best.pt"
     if not best_path.exists():
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -66,8 +70,11 @@ def run_stage(
         latest = ids.index(pool.latest_best) if pool.latest_best in policies else len(ids) - 1
         best_rating = pool.member(ids[latest]).rating
     else:
-        policies, ids, latest, best_rating = {"frozen": load_policy(init_checkpoint, device=device)}, ["frozen"], 0, \
-            INITIAL_RATING
+        frozen = load_policy(opponent_checkpoint or init_checkpoint, device=device)
+        if frozen.obs_layout != layout:
+            raise CheckpointError(f"{opponent_checkpoint}: observation layout {frozen.obs_layout} differs from this "
+                                  "stage's")
+        policies, ids, latest, best_rating = {"frozen": frozen}, ["frozen"], 0, INITIAL_RATING
     if not policies:
         raise ValueError(f"stage {stage.name!r}: no usable policy in the pool {pool_dir}")
     matchmaker = Matchmaker(len(ids), latest=latest, p_latest=stage.selfplay.p_latest,

@@ -124,6 +124,16 @@ def test_pipeline_refuses_unknown_init_stage(tmp_path):
         load_pipeline(path)
 
 
+def test_pipeline_refuses_a_frozen_opponent_from_no_earlier_stage(tmp_path):
+    """Name selfplay.opponent_from when it points at a later stage or none."""
+    for source in ("c", "zz"):
+        path = oval_pipeline(tmp_path, "stages:\n  - {name: a, iterations: 1}\n"
+                                       "  - {name: b, scenario: 1v1, iterations: 1, selfplay: {mode: frozen, "
+                                       f"opponent_from: {source}}}}}\n  - {{name: c, iterations: 1}}\n")
+        with pytest.raises(SpecError, match=r"stages\.1\.selfplay\.opponent_from"):
+            load_pipeline(path)
+
+
 def test_pipeline_refuses_held_out_placements_on_the_evaluation_seed(tmp_path):
     """Name evaluation.holdout_seed when the held-out check would race the protocol's own placements."""
     path = oval_pipeline(tmp_path, "stages:\n  - {name: a, iterations: 1}\n"

@@ -52,6 +52,14 @@ def test_smoke_pipeline_twice_skips_every_step_the_second_time(tmp_path):
     assert json.loads((published / "solo" / "eval.json").read_text())["runs"] == 2
 
 
+def test_no_self_play_2v2_stage_waits_for_the_stage_its_frozen_opponent_comes_from(tmp_path):
+    """smoke.yaml's 2v2-noselfplay starts from 1v1-noselfplay and races the solo best: it needs both."""
+    steps = {s.name: s for s in runner_for(ROOT / "pipelines" / "smoke.yaml", tmp_path).steps}
+    assert steps["train:2v2-noselfplay"].inputs == ["train:1v1-noselfplay", "train:solo"]
+    assert steps["train:1v1-noselfplay"].inputs == ["train:solo"]
+    assert steps["train:2v2"].inputs == ["train:1v1"]
+
+
 def test_changing_a_stage_parameter_reruns_that_step_and_downstream_only(tmp_path):
     """Rerun train, eval and promote of a changed stage and nothing upstream of it."""
     path = write_pipeline(tmp_path, stages=2)

@@ -86,6 +86,14 @@ def test_frozen_opponents_refuse_mirror_self_play():
     assert SelfPlayCfg(mode="pool", p_self=0.5).p_self == 0.5
 
 
+def test_only_frozen_opponents_name_the_stage_they_come_from():
+    """opponent_from picks the frozen opponent; in pool mode (opponents are the pool) it is an error."""
+    assert SelfPlayCfg(mode="frozen", opponent_from="solo").opponent_from == "solo"
+    assert SelfPlayCfg(mode="frozen").opponent_from is None
+    with pytest.raises(ValidationError, match="opponent_from"):
+        SelfPlayCfg(mode="pool", opponent_from="solo")
+
+
 def test_opponent_offsets_apply_to_both_branches_and_must_lie_in_the_action_range():
     """Offsets apply to pool and frozen opponents alike; a negative or beyond-action offset names the field."""
     assert SelfPlayCfg(mode="frozen", opponent_offset=0.1).opponent_offset == 0.1

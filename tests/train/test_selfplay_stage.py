@@ -11,6 +11,7 @@ from tensordict import TensorDict
 from spiral.config import AIRFRAMES, SimCfg, StageSpec
 from spiral.selfplay import Matchmaker, Pool, PoolOpponents, run_stage
 from spiral.train import StageTrainer, load_policy
+from spiral.train.checkpoint import CheckpointError
 
 CF2X = AIRFRAMES["cf2x"]
 COMMON = {"worlds": 8, "env": {"obs": {"history_len": 1, "gate_normals": True, "pid_integral": True}},
@@ -41,6 +42,48 @@ def test_short_1v1_stage_promotes_into_the_pool_and_resumes(line2, tmp_path):
     rows = [json.loads(x) for x in (tmp_path / "duel" / "train_log.jsonl").read_text().splitlines()]
     assert [r["iteration"] for r in rows] == [0, 1, 2]
     assert len(Pool(tmp_path / "pool").members) == 4
+
+
+def test_frozen_opponents_run_the_opponent_checkpoint_not_the_initial_policy(line2, tmp_path, monkeypatch):
+    """PPO without self-play races the stage it names (the solo best), not the policy the stage starts from."""
+    from spiral.selfplay import curriculum
+
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
+    for name, seed in (("a", 1), ("b", 2)):
+        run_stage(line2, CF2X, SimCfg(), solo, tmp_path / name, pool_dir=tmp_path / "p", init_checkpoint=None,
+                  progress=False, seed=seed)
+    seen: list[list] = []
+
+    def recording(policies, *args, **kwargs):
+        seen.append(policies)
+        return PoolOpponents(policies, *args, **kwargs)
+
+    monkeypatch.setattr(curriculum, "PoolOpponents", recording)
+    frozen = StageSpec.model_validate({"name": "nsp", "scenario": "1v1", "iterations": 1, **COMMON,
+                                       "selfplay": {**PERMISSIVE, "mode": "frozen", "opponent_from": "b"}})
+    run_stage(line2, CF2X, SimCfg(), frozen, tmp_path / "nsp", pool_dir=tmp_path / "nsp-pool",
+              init_checkpoint=tmp_path / "a" / "best.pt", opponent_checkpoint=tmp_path / "b" / "best.pt",
+              progress=False)
+    (opponent,) = seen[0]
+    a, b = (load_policy(tmp_path / name / "best.pt") for name in ("a", "b"))
+    x = torch.randn(16, b.obs_layout["obs_dim"])
+    obs = TensorDict({"policy": x, "critic": x}, batch_size=[16])
+    assert torch.equal(opponent(obs), b(obs)) and not torch.allclose(opponent(obs), a(obs))
+    assert not (tmp_path / "nsp-pool").exists()
+    other = StageSpec.model_validate({**COMMON, "name": "solo", "iterations": 1,
+                                      "env": {"obs": {**COMMON["env"]["obs"], "history_len": 2}}})
+    run_stage(line2, CF2X, SimCfg(), other, tmp_path / "c", pool_dir=tmp_path / "p", init_checkpoint=None,
+              progress=False)
+    with pytest.raises(CheckpointError, match=r"c/best\.pt: observation layout"):
+        run_stage(line2, CF2X, SimCfg(), frozen, tmp_path / "nsp2", pool_dir=tmp_path / "nsp-pool",
+                  init_checkpoint=tmp_path / "a" / "best.pt", opponent_checkpoint=tmp_path / "c" / "best.pt",
+                  progress=False)
+    pooled = frozen.model_copy(update={"selfplay": frozen.selfplay.model_copy(update={"mode": "pool",
+                                                                                      "opponent_from": None})})
+    with pytest.raises(ValueError, match="opponent checkpoint"):
+        run_stage(line2, CF2X, SimCfg(), pooled, tmp_path / "pooled", pool_dir=tmp_path / "p",
+                  init_checkpoint=tmp_path / "a" / "best.pt", opponent_checkpoint=tmp_path / "b" / "best.pt",
+                  progress=False)
 
 
 def test_batched_opponents_match_one_by_one_inference(line2, tmp_path):
