@@ -39,9 +39,10 @@ def run_stage(
 ) -> TrainResult:
     """Train ``stage`` and return its result; ``run_dir/best.pt`` is its best policy.
 
-    Multi-drone stages need ``init_checkpoint`` (the policy they start from and their first best). In ``pool`` mode the pool in ``pool_dir`` supplies the opponents and receives every
-    promoted policy; in ``frozen`` mode one policy, ``opponent_checkpoint`` (the initial policy when None), is
-    the only opponent and the pool is left alone.
+    Multi-drone stages need ``init_checkpoint`` (the policy they start from and their first best). In ``pool``
+    mode the pool in ``pool_dir`` supplies the opponents and receives every promoted policy; in ``frozen`` mode
+    one policy, ``opponent_checkpoint`` (the initial policy when None), is the only opponent and the pool is left
+    alone.
     """
     run_dir = Path(run_dir)
     if stage.scenario == "solo":
