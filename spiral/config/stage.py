@@ -41,6 +41,11 @@ class PromotionCfg(StrictModel):
         description="Promote as well a learner whose self-match success beats the best's by at least this much "
         "while its head-to-head success is not below the best's by more than max_success_drop; null: never",
     )
+    safer_min_win_rate: float = Field(
+        default=0.0, ge=0, le=1,
+        description="Least win rate over the best for a promotion as safer (a safer policy may not be clearly "
+        "slower); 0: any",
+    )
     elo_k: float = Field(default=16.0, gt=0, description="Elo K-factor applied per evaluation (match score)")
 
 

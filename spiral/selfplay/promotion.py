@@ -61,7 +61,7 @@ def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[floa
     ``cfg.self_match``, self-match success not below the best's by more than that either). Safer (with
     ``cfg.self_match`` and ``cfg.self_match_gain``): self-match success at least ``self_match_gain`` above the
     best's over at least ``min_races`` races, head-to-head success not below the best's by more than
-    ``max_success_drop``.
+    ``max_success_drop`` and win rate at least ``safer_min_win_rate``.
     """
     enough = result.races >= cfg.min_races
     as_safe = result.a_success >= result.b_success - cfg.max_success_drop
@@ -69,7 +69,8 @@ def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[floa
     if not cfg.self_match or self_match is None:
         return faster
     own, best = self_match
-    safer = cfg.self_match_gain is not None and enough and as_safe and own >= best + cfg.self_match_gain
+    safer = (cfg.self_match_gain is not None and enough and as_safe and own >= best + cfg.self_match_gain
+             and result.win_rate >= cfg.safer_min_win_rate)
     return (faster and own >= best - cfg.max_success_drop) or safer
 
 
