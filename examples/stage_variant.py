@@ -5,7 +5,8 @@ docs/training.md.
         --set selfplay.p_self=0.8 --set env.reward.proximity=0.1 --set iterations=600
 
 Each ``--set dotted.key=value`` (value parsed as YAML) overrides the stage's spec, which is validated again. A
-multi-drone stage copies the pool next to the init checkpoint (if any) into ``OUT/pool``. The 50-race
+multi-drone stage copies the pool next to the init checkpoint (if any) into ``OUT/pool``; a frozen (no-self-play)
+stage races ``--opponent CKPT`` (the best of its ``selfplay.opponent_from`` stage in the pipeline), else its init. The 50-race
 self-match evaluation (seed 0, as in the pipeline's eval step) is printed and written to ``OUT/summary.json``.
 """
 
