@@ -6,8 +6,9 @@ docs/training.md.
 
 Each ``--set dotted.key=value`` (value parsed as YAML) overrides the stage's spec, which is validated again. A
 multi-drone stage copies the pool next to the init checkpoint (if any) into ``OUT/pool``; a frozen (no-self-play)
-stage races ``--opponent CKPT`` (the best of its ``selfplay.opponent_from`` stage in the pipeline), else its init. The 50-race
-self-match evaluation (seed 0, as in the pipeline's eval step) is printed and written to ``OUT/summary.json``.
+stage races ``--opponent CKPT`` (in the pipeline the best of its ``selfplay.opponent_from`` stage), else its init.
+The 50-race self-match evaluation (seed 0, as in the pipeline's eval step) is printed and written to
+``OUT/summary.json``.
 """
 
 from __future__ import annotations
