@@ -23,6 +23,11 @@ class ObsCfg(StrictModel):
     gate_normals: bool = Field(default=False, description="Add the passing direction of the next 2 gates")
     pid_integral: bool = Field(default=False, description="Add the position controller's integral state")
     opponent_velocity: bool = Field(default=False, description="Add the relative velocity of the 2 nearest drones")
+    teammates: bool = Field(
+        default=False,
+        description="Add whether each of the 2 nearest drones is a team mate (2v2: slots 0, 1 against 2, 3), so a "
+        "policy shared by a team can treat its team mate otherwise than an opponent (not in the paper)",
+    )
 
 
 class SeparationCfg(StrictModel):

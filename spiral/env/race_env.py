@@ -74,6 +74,9 @@ class RaceEnv:
         self.slot_team = torch.tensor([s in self.opponent_slots for s in range(drones_per_world)],
                                       dtype=torch.long, device=self.device)
         """Team of each slot: 0 learners, 1 opponents."""
+        self.race_team = torch.arange(drones_per_world, device=self.device) // max(1, drones_per_world // 2)
+        """Team of each slot in the race format, whoever drives it: the first half of the slots against the second
+        (1v1: 0 against 1; 2v2: 0, 1 against 2, 3). Observed with ``obs.teammates``."""
         team = self.slot_team.tolist()
         self.other_slots = torch.tensor(
             [sorted((j for j in range(drones_per_world) if j != s), key=lambda j: (team[j] == team[s], j))
@@ -416,6 +419,9 @@ class RaceEnv:
             vel_w = self.vel.view(w, d, 3)
             near_vel = torch.gather(vel_w, 1, near_idx.view(w, -1, 1).expand(-1, -1, 3)).view(w, d, 2, 3)
             extras.append(((near_vel - vel_w[:, :, None]) * near_mask[..., None]).view(-1, 6))
+        if c.teammates:
+            mate = self.race_team[near_idx] == self.race_team[None, :, None]
+            extras.append((mate & near_mask).view(-1, 2).float())
         return self.obs_builder.build(ego, presence, extras)
 
     @property

@@ -75,6 +75,35 @@ def test_observation_lists_nearest_present_drones_first(oval2):
     assert obs[0, 12:14].tolist() == [1.0, 1.0]
 
 
+def test_teammate_flags_mark_the_nearest_drones_of_the_own_race_team(oval2):
+    """Flag a nearest drone of the own 2v2 team (slots 0, 1 against 2, 3), whoever drives the slots (training or a
+    self-match), and never a drone that left the race; the flags come after the other extras."""
+    obs_cfg = ObsCfg(history_len=1, opponent_velocity=True, teammates=True)
+    for learners in [(0, 1), (0, 2)]:
+        teams = make_env(oval2, worlds=1, drones=4, learners=learners, obs=obs_cfg).race_team
+        assert teams.tolist() == [0, 0, 1, 1]
+    env = make_env(oval2, worlds=1, drones=4, learners=(0, 1, 2, 3), obs=obs_cfg)
+    assert env.obs_dim == 12 + 2 + 6 + 2 + HISTORY_FEATURES
+    # Drone 0's nearest are 2 (opponent), then 1 (team mate); drone 3's are 2 (team mate), then 0 (opponent).
+    place(env, [[-1.0, -1.0, 1.0], [-1.0, -0.2, 1.0], [-1.0, -1.3, 1.0], [-1.0, -1.9, 1.0]])
+    flags = env._build_observations()[:, 20:22]
+    assert flags.tolist() == [[0.0, 1.0], [1.0, 0.0], [0.0, 1.0], [1.0, 0.0]]
+    env.out[1] = 1  # drone 1 leaves the race: drone 0 sees two opponents, drone 1 sees nothing flagged
+    env.get_observations()
+    flags = env._build_observations()[:, 20:22]
+    assert flags[0].tolist() == [0.0, 0.0]
+    assert flags[2].tolist() == [0.0, 1.0]
+
+
+def test_teammate_flags_leave_layouts_without_them_unchanged(oval2):
+    """A layout without the option is the one stored before it existed; 1v1 has no team mate to flag."""
+    env = make_env(oval2, worlds=1, drones=2, learners=(0,), obs=ObsCfg(history_len=1))
+    assert "teammates" not in env.obs_builder.layout()
+    env = make_env(oval2, worlds=1, drones=2, learners=(0,), obs=ObsCfg(history_len=1, teammates=True))
+    assert env.obs_builder.layout()["teammates"] is True
+    assert torch.all(env.get_observations()["policy"][:, 14:16] == 0)
+
+
 def test_observation_gives_next_two_gates_relative_to_the_drone(oval2):
     """Report gate 0 then gate 1 relative to the drone's position."""
     env = make_env(oval2, worlds=1, obs=ObsCfg(history_len=1))
