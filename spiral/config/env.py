@@ -14,8 +14,9 @@ __all__ = ["ActionCfg", "EnvCfg", "EpisodeCfg", "ObsCfg", "RewardCfg", "Separati
 class ObsCfg(StrictModel):
     """Observation layout: 12-D ego state plus a history of [2 nearest drones, next 2 gates, own action].
 
-    The paper's layout is ``history_len: 50`` (12 + 50·16 = 812 inputs). A short history with gate normals and
-    the controller's integral state is far cheaper for PPO on a CPU and learns faster; both are reported.
+    The paper's layout is ``history_len: 50`` (12 + 2 presence flags + 50·16 = 814 inputs). A short history with
+    gate normals and the controller's integral state is far cheaper for PPO on a CPU and learns faster; both are
+    reported.
     """
 
     history_len: PosInt = Field(default=50, description="Control steps K kept in the history buffer")
