@@ -187,8 +187,11 @@ def evaluate(
     method: Annotated[list[str], typer.Option("--method", help="NAME=CHECKPOINT or se-ibr (repeatable)")],
     scenario: Annotated[str, typer.Option("--scenario", help="solo, 1v1 or 2v2")] = "solo",
     against: Annotated[str | None, typer.Option("--against", help="NAME=CHECKPOINT or se-ibr: opponent team")] = None,
-    runs: Annotated[int, typer.Option("--runs", min=1, help="Races")] = 50,
+    runs: Annotated[int, typer.Option("--runs", min=1, help="Races (start placements with --against)")] = 50,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the start placements")] = 0,
+    sides: Annotated[str, typer.Option(
+        "--sides", help="With --against: 'both' races every placement twice, sides swapped; 'a': method on team A "
+        "only")] = "both",
     device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
     json_out: JsonOut = None,
 ) -> None:
@@ -200,7 +203,7 @@ def evaluate(
     methods = dict(_parse_method(m) for m in method)
     opponent = _parse_method(against) if against else None
     result = evaluate_methods(load_track(track), methods, scenario=scenario, runs=runs, seed=seed, device=device,
-                              against=opponent)
+                              against=opponent, sides=sides)
     typer.echo(format_eval(result))
     _write_json(json_out, result)
 
@@ -267,6 +270,9 @@ def report(
     holdout_runs: Annotated[int, typer.Option(
         "--holdout-runs", min=0, help="Race the learned policies again from this many other placements (0: no)")] = 0,
     holdout_seed: Annotated[int, typer.Option("--holdout-seed", min=0, help="Seed of those placements")] = 1,
+    sides: Annotated[str, typer.Option(
+        "--sides", help="Head to head: 'both' races every placement twice, sides swapped; 'a': row method on team A "
+        "only")] = "both",
     device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
 ) -> None:
     """Write results.md (the paper's tables, cross-play, lap-time reference), results.csv and figures."""
@@ -276,8 +282,10 @@ def report(
     command = f"spiral report {run_dir}" + (" --se-ibr" if se_ibr else "") + (f" --runs {runs}" if runs else "")
     if holdout_runs:
         command += f" --holdout-runs {holdout_runs} --holdout-seed {holdout_seed}"
+    if sides != "both":
+        command += f" --sides {sides}"
     path = build_report(run_dir, spec, out or run_dir / "report", runs=runs, device=device, se_ibr=se_ibr,
-                        command=command, holdout=(holdout_runs, holdout_seed) if holdout_runs else None)
+                        command=command, holdout=(holdout_runs, holdout_seed) if holdout_runs else None, sides=sides)
     typer.echo(f"wrote {path}")
 
 

@@ -29,6 +29,11 @@ class EvaluationCfg(StrictModel):
         "from placements no setting was chosen on (0: off)",
     )
     holdout_seed: int = Field(default=1, ge=0, description="Seed of the held-out start placements")
+    sides: Literal["a", "both"] = Field(
+        default="both",
+        description="Head-to-head races of the report: 'both' races every placement twice with the teams' start "
+        "slots swapped, 'a' with the row method on team A's slots only",
+    )
 
     @model_validator(mode="after")
     def _holdout_differs(self) -> EvaluationCfg:

@@ -8,7 +8,7 @@ from __future__ import annotations
 from spiral.env.gym_env import ENV_ID, RaceSingleEnv, RaceVectorEnv, make_race_env, register_envs
 from spiral.env.observations import HISTORY_FEATURES, ObservationBuilder
 from spiral.env.race_env import OpponentPolicy, RaceEnv
-from spiral.env.racing import RaceResults, race_winners, run_races
+from spiral.env.racing import RaceResults, concat_results, race_winners, run_races
 from spiral.env.rewards import REWARD_TERMS, StepOutcome, compute_rewards
 
 __all__ = [
@@ -23,6 +23,7 @@ __all__ = [
     "RaceVectorEnv",
     "StepOutcome",
     "compute_rewards",
+    "concat_results",
     "make_race_env",
     "race_winners",
     "register_envs",

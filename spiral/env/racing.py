@@ -12,7 +12,7 @@ from spiral.env.observations import nearest_others
 from spiral.env.race_env import RaceEnv
 from spiral.sim import COLLISION_KINDS
 
-__all__ = ["RaceResults", "race_winners", "run_races"]
+__all__ = ["RaceResults", "concat_results", "race_winners", "run_races"]
 
 Policy = Callable[[TensorDict], torch.Tensor]
 """Deterministic policy: observations of the learner drones -> actions."""
@@ -46,6 +46,32 @@ class RaceResults:
     """Team of each slot, shape (D,)."""
     split_time: torch.Tensor | None = None
     """Race time of each gate passage of the lap, in passing order, shape (W, D, passes); 0 when not passed [s]."""
+
+    def permuted(self, order: list[int]) -> RaceResults:
+        """The same races with the drones reordered: slot ``j`` of the result is slot ``order[j]`` of these.
+
+        Contact partners are renamed to the new slots; ``team`` stays with the slot position (slot ``j`` keeps the
+        team it had), so swapping two equal teams' slots swaps which drones fly for which team.
+        """
+        d = self.finished.shape[1]
+        if sorted(order) != list(range(d)):
+            raise ValueError(f"order: expected a permutation of 0..{d - 1}, got {order}")
+        idx = torch.tensor(order)
+        new_slot = torch.empty_like(idx)
+        new_slot[idx] = torch.arange(d)
+        partner = None
+        if self.crash_partner is not None:
+            p = self.crash_partner[:, idx]
+            partner = torch.where(p >= 0, new_slot[p.clamp(min=0)], p)
+        return RaceResults(
+            finished=self.finished[:, idx], crashed=self.crashed[:, idx], crash_kind=self.crash_kind[:, idx],
+            lap_time=self.lap_time[:, idx], gates_passed=self.gates_passed[:, idx], distance=self.distance[:, idx],
+            present=self.present[:, idx],
+            trajectory=None if self.trajectory is None else self.trajectory[:, :, idx],
+            crash_time=None if self.crash_time is None else self.crash_time[:, idx],
+            crash_partner=partner, team=self.team,
+            split_time=None if self.split_time is None else self.split_time[:, idx],
+        )
 
 
 def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
@@ -100,6 +126,33 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
         crash_partner=grid(partner),
         team=env.slot_team.cpu() if teams is None else _team_of_slots(teams, d),
         split_time=splits.view(w, d, -1).cpu(),
+    )
+
+
+def concat_results(parts: list[RaceResults]) -> RaceResults:
+    """The races of ``parts`` one after another (same drones per race and teams; trajectories are not joined)."""
+    if not parts:
+        raise ValueError("concat_results needs at least one RaceResults")
+    first = parts[0]
+    if any(p.trajectory is not None for p in parts):
+        raise ValueError("concat_results: recorded trajectories differ in length and are not joined")
+    if any(p.finished.shape[1] != first.finished.shape[1] for p in parts):
+        raise ValueError("concat_results: the parts race different numbers of drones")
+    if any((p.team is None) != (first.team is None) or (p.team is not None and not torch.equal(p.team, first.team))
+           for p in parts):
+        raise ValueError("concat_results: the parts have different teams")
+
+    def cat(name: str) -> torch.Tensor:
+        return torch.cat([getattr(p, name) for p in parts])
+
+    def cat_optional(name: str) -> torch.Tensor | None:
+        return None if any(getattr(p, name) is None for p in parts) else cat(name)
+
+    return RaceResults(
+        finished=cat("finished"), crashed=cat("crashed"), crash_kind=cat("crash_kind"), lap_time=cat("lap_time"),
+        gates_passed=cat("gates_passed"), distance=cat("distance"), present=cat("present"),
+        crash_time=cat_optional("crash_time"), crash_partner=cat_optional("crash_partner"), team=first.team,
+        split_time=cat_optional("split_time"),
     )
 
 

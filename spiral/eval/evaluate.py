@@ -21,12 +21,22 @@ from spiral.config.sim import SimCfg
 from spiral.config.stage import SCENARIO_DRONES
 from spiral.config.track import TrackSpec
 from spiral.env.race_env import OpponentPolicy, RaceEnv
-from spiral.env.racing import Policy, RaceResults, race_winners, run_races
+from spiral.env.racing import Policy, RaceResults, concat_results, race_winners, run_races
 from spiral.eval.metrics import summarize_races
 from spiral.train.checkpoint import FrozenPolicy, load_policy
 
 TEAMS: dict[str, list[list[int]]] = {"solo": [[0]], "1v1": [[0], [1]], "2v2": [[0, 1], [2, 3]]}
 """Drone slots of each team in each scenario."""
+
+SIDES = ("a", "both")
+"""Head-to-head protocols: method on team A's slots only, or every placement raced from both sides."""
+
+
+def check_sides(sides: str) -> None:
+    """Raise ``ValueError`` unless ``sides`` is one of :data:`SIDES`."""
+    if sides not in SIDES:
+        raise ValueError(f"sides: expected {' or '.join(SIDES)}, got {sides!r}")
+
 
 SE_IBR = "se-ibr"
 """Method value that selects the SE-IBR planner instead of a checkpoint."""
@@ -36,9 +46,11 @@ Agent = FrozenPolicy | str
 
 __all__ = [
     "SE_IBR",
+    "SIDES",
     "TEAMS",
     "Agent",
     "EvalLayout",
+    "check_sides",
     "cross_play",
     "eval_env_for",
     "evaluate_methods",
@@ -142,27 +154,46 @@ def evaluate_policy(policy: FrozenPolicy, track: TrackSpec, scenario: str, runs:
 
 
 def cross_play(a: Agent, b: Agent, track: TrackSpec, scenario: str, runs: int, seed: int, *,
-               device: str = "cpu", layout: EvalLayout | None = None) -> tuple[RaceResults, torch.Tensor]:
-    """Team A (``a``) against team B (``b``): per-drone results and each race's winner (0 = A, 1 = B, −1 = none)."""
+               device: str = "cpu", layout: EvalLayout | None = None,
+               sides: str = "both") -> tuple[RaceResults, torch.Tensor]:
+    """Team ``a`` against team ``b``: per-drone results and each race's winner (0 = ``a``, 1 = ``b``, −1 = none).
+
+    ``sides="a"``: ``runs`` races with ``a`` on team A's slots (the first ones). ``sides="both"``: every placement is
+    raced a second time with the slots swapped (``b`` starts where ``a`` started), so neither method keeps the
+    luckier half of the start box; the swapped races follow the first ``runs``, their drones reordered so that
+    ``a``'s are in team A's slots of the results as well.
+    """
+    check_sides(sides)
     res, winners = race_agents(track, scenario, runs, seed, a, b, device=device, layout=layout)
     assert winners is not None
-    return res, winners
+    if sides == "a":
+        return res, winners
+    swapped, won = race_agents(track, scenario, runs, seed, b, a, device=device, layout=layout)
+    assert won is not None
+    team_a, team_b = TEAMS[scenario][0], TEAMS[scenario][-1]
+    back = swapped.permuted([*team_b, *team_a])
+    return concat_results([res, back]), torch.cat([winners, torch.where(won >= 0, 1 - won, won)])
 
 
 def evaluate_methods(track: TrackSpec, methods: dict[str, str | Path], *, scenario: str, runs: int, seed: int,
                      device: str = "cpu", against: tuple[str, str | Path] | None = None,
-                     airframe: AirframeCfg | None = None, sim: SimCfg | None = None) -> dict[str, Any]:
+                     airframe: AirframeCfg | None = None, sim: SimCfg | None = None,
+                     sides: str = "both") -> dict[str, Any]:
     """The evaluation JSON of ``spiral eval``: metrics of each named method in ``scenario``.
 
     A method is a checkpoint path or ``se-ibr``. Without ``against`` every drone of a race runs the method
     (self-match, as in the paper's tables). With ``against = (name, checkpoint or se-ibr)`` the method is team A
-    and ``name`` team B; ``win_rate``, ``loss_rate`` and ``draws`` are added. Planner-only races use the layout
+    and ``name`` team B; ``win_rate``, ``loss_rate`` and ``draws`` are added, over ``runs`` races per side (``sides``,
+    see :func:`cross_play`; ``win_rate_by_side`` splits the win rate by where the method started). Planner-only
+    races use the layout
     of the first learned method (or ``airframe``/``sim`` and default env settings when there is none); the
     entry's ``layout`` says which.
     """
     out: dict[str, Any] = {"track": track.name, "scenario": scenario, "runs": runs, "seed": seed, "methods": {}}
+    check_sides(sides)
     if against is not None:
         out["against"] = {"name": against[0], "checkpoint": str(against[1])}
+        out["sides"], out["races"] = sides, runs * (2 if sides == "both" else 1)
     agents = {name: load_agent(path, device=device) for name, path in methods.items()}
     opponent = load_agent(against[1], device=device) if against is not None else None
     pairs = [*agents.items(), *([(against[0], opponent)] if against is not None else [])]
@@ -171,14 +202,19 @@ def evaluate_methods(track: TrackSpec, methods: dict[str, str | Path], *, scenar
                 else EvalLayout.default(airframe=airframe, sim=sim))
     team_a, team_b = TEAMS[scenario][0], TEAMS[scenario][-1]
     for name, agent in agents.items():
-        res, winners = race_agents(track, scenario, runs, seed, agent, opponent, device=device, layout=fallback)
         entry: dict[str, Any] = {"checkpoint": str(methods[name])}
-        if winners is None:
+        if opponent is None:
+            res, _ = race_agents(track, scenario, runs, seed, agent, device=device, layout=fallback)
             entry.update(summarize_races(res))
         else:
-            entry.update({**summarize_races(res, team_a), "win_rate": float((winners == 0).float().mean()),
+            res, winners = cross_play(agent, opponent, track, scenario, runs, seed, device=device, layout=fallback,
+                                      sides=sides)
+            won = (winners == 0).float()
+            entry.update({**summarize_races(res, team_a), "win_rate": float(won.mean()),
                           "loss_rate": float((winners == 1).float().mean()),
-                          "draws": float((winners == -1).float().mean()), "opponent": summarize_races(res, team_b)})
+                          "draws": float((winners == -1).float().mean()), "opponent": summarize_races(res, team_b),
+                          "win_rate_by_side": {side: float(part.mean()) for side, part in
+                                               zip(("a", "b"), won.split(runs), strict=False)}})
         if isinstance(agent, str) and (opponent is None or isinstance(opponent, str)):
             entry["layout"] = fallback.source
         out["methods"][name] = entry
@@ -190,6 +226,8 @@ def format_eval(result: dict[str, Any]) -> str:
     head = f"{result['track']} {result['scenario']}, {result['runs']} races, seed {result['seed']}"
     if "against" in result:
         head += f", against {result['against']['name']}"
+        if result.get("sides") == "both":
+            head += " (each placement raced from both sides)"
     lines = [head, f"{'method':<20} {'success':>8} {'95% CI':>15} {'lap [s]':>14} {'win':>6}  crashes"]
     for name, m in result["methods"].items():
         lap = f"{m['lap_time_mean']:.2f} ± {m['lap_time_std']:.2f}" if m["lap_time_mean"] is not None else "-"

@@ -22,7 +22,7 @@ from spiral.config.airframe import AIRFRAMES, AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
 from spiral.eval.bound import LapBound, lap_time_bound
-from spiral.eval.evaluate import SE_IBR, evaluate_methods
+from spiral.eval.evaluate import SE_IBR, check_sides, evaluate_methods
 from spiral.eval.plots import TradeoffPoint, plot_learning_curves, plot_speed_vs_reliability, plot_track
 from spiral.train.checkpoint import file_sha256
 
@@ -115,8 +115,9 @@ class _Evaluations:
 
     def __init__(self, run_root: Path, track: TrackSpec, out_dir: Path, stages: list[StageRun], *, runs: int,
                  seed: int, device: str, se_ibr: bool, airframe: AirframeCfg, sim: SimCfg,
-                 log: Callable[[str], None], prefix: str = "") -> None:
+                 log: Callable[[str], None], prefix: str = "", sides: str = "both") -> None:
         self.run_root, self.track, self.cache, self.prefix = run_root, track, out_dir / "evals", prefix
+        self.sides = sides
         self.stages, self.runs, self.seed, self.device = stages, runs, seed, device
         self.se_ibr, self.airframe, self.sim, self.log = se_ibr, airframe, sim, log
 
@@ -184,7 +185,8 @@ class _Evaluations:
         """Run ``spiral eval`` for ``methods`` (optionally against a team) unless a matching cache exists."""
         agents = [*methods.values(), *([against[1]] if against else [])]
         inputs = {"track": self.track.model_dump(mode="json"), "scenario": scenario, "runs": self.runs,
-                  "seed": self.seed, "agents": [a if a == SE_IBR else _checksum(Path(a)) for a in agents]}
+                  "seed": self.seed, "agents": [a if a == SE_IBR else _checksum(Path(a)) for a in agents],
+                  **({"sides": self.sides} if against else {})}
         inputs = json.loads(json.dumps(inputs))  # compare as read back: tuples become lists
         path = self.cache / f"{self.prefix}{tag}.json"
         cached = _load_json(path)
@@ -192,7 +194,8 @@ class _Evaluations:
             return cached, path
         self.log(f"report: running {self.prefix}{tag} ({self.runs} races, seed {self.seed})")
         data = evaluate_methods(self.track, methods, scenario=scenario, runs=self.runs, seed=self.seed,
-                                device=self.device, against=against, airframe=self.airframe, sim=self.sim)
+                                device=self.device, against=against, airframe=self.airframe, sim=self.sim,
+                                sides=self.sides)
         data["inputs"] = inputs
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(data, indent=2) + "\n")
@@ -230,7 +233,8 @@ def _setup(stages: list[StageRun]) -> tuple[AirframeCfg, SimCfg]:
 def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int | None = None,
                  seed: int | None = None, device: str = "cpu", se_ibr: bool = False, cross_play: bool = True,
                  airframe: AirframeCfg | None = None, bound_steps: int = 24, command: str | None = None,
-                 holdout: tuple[int, int] | None = None, log: Callable[[str], None] = print) -> Path:
+                 holdout: tuple[int, int] | None = None, sides: str = "both",
+                 log: Callable[[str], None] = print) -> Path:
     """Write ``results.md``, ``results.csv``, ``bound.json`` and the figures for ``run_root`` into ``out_dir``.
 
     Args:
@@ -247,11 +251,14 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
         command: Command line quoted in results.md.
         holdout: ``(runs, seed)`` of a held-out check: the learned approaches' self-matches and their head-to-head
             raced again from other placements (cached under ``out_dir/evals/holdout-*``); None: no check.
+        sides: Head-to-head races: ``both`` races every placement from both sides, ``a`` with the row method on team
+            A only (see :func:`spiral.eval.evaluate.cross_play`).
         log: Progress messages.
 
     Returns:
         The path of ``results.md``.
     """
+    check_sides(sides)
     run_root, out_dir = Path(run_root), Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     stages = find_stages(run_root)
@@ -261,27 +268,27 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
     stage_airframe, sim = _setup(stages)
     airframe = airframe or stage_airframe
     ev = _Evaluations(run_root, track, out_dir, stages, runs=runs, seed=seed, device=device, se_ibr=se_ibr,
-                      airframe=airframe, sim=sim, log=log)
+                      airframe=airframe, sim=sim, log=log, sides=sides)
     table = {s: [ev.self_match(s, key) for key in APPROACHES] for s in SCENARIOS}
     matrices = {s: _cross_matrix(ev, s, table[s]) for s in SCENARIOS} if cross_play else {}
     held = None
     if holdout is not None:
         held = _held_out(_Evaluations(run_root, track, out_dir, stages, runs=holdout[0], seed=holdout[1],
                                       device=device, se_ibr=False, airframe=airframe, sim=sim, log=log,
-                                      prefix="holdout-"))
+                                      prefix="holdout-", sides=sides))
     bound = lap_time_bound(track, airframe, steps_per_segment=bound_steps)
     (out_dir / "bound.json").write_text(json.dumps(bound.to_json(trajectory=True), indent=2) + "\n")
     _write_figures(out_dir, track, stages, table, bound)
     _write_csv(out_dir / "results.csv", table, bound)
     text = _markdown(run_root, track, stages, table, matrices, bound, runs=runs, seed=seed, command=command,
-                     held=held)
+                     held=held, sides=sides)
     (out_dir / "results.md").write_text(text)
     return out_dir / "results.md"
 
 
 def _held_out(ev: _Evaluations) -> dict[str, Any]:
     """The learned approaches' self-matches in each scenario and SPIRAL's head-to-head against PPO without
-    self-play (SPIRAL on team A), raced with ``ev``'s races and seed."""
+    self-play, raced with ``ev``'s races, seed and sides."""
     out: dict[str, Any] = {"runs": ev.runs, "seed": ev.seed}
     for scenario in SCENARIOS:
         rows = {key: ev.self_match(scenario, key) for key in _MODE_OF}
@@ -300,6 +307,11 @@ def _cross_matrix(ev: _Evaluations, scenario: str, rows: list[_Result]) -> dict[
         for kb, b in agents:
             if a == SE_IBR and b == SE_IBR:
                 cells[ka][kb] = None  # two planners: minutes of solving for a number nobody asked for
+                continue
+            mirror = cells.get(kb, {}).get(ka)
+            if ev.sides == "both" and mirror is not None:  # the same races, seen from the other team
+                cells[ka][kb] = mirror if "error" in mirror else {
+                    "win_rate": mirror["loss_rate"], "draws": mirror["draws"], "loss_rate": mirror["win_rate"]}
                 continue
             try:
                 entry = ev.cross(scenario, (ka, a), (kb, b))
@@ -363,14 +375,14 @@ def _git_commit() -> str:
 
 def _markdown(run_root: Path, track: TrackSpec, stages: list[StageRun], table: dict[str, list[_Result]],
               matrices: dict[str, Any], bound: LapBound, *, runs: int, seed: int, command: str | None,
-              held: dict[str, Any] | None = None) -> str:
+              held: dict[str, Any] | None = None, sides: str = "both") -> str:
     lines = [f"# Results: `{run_root.name}` on {track.name}", ""]
     lines += [f"Generated by `{command or f'spiral report {run_root}'}` at commit `{_git_commit()}` from "
               f"`{run_root}` (stages: {', '.join(s.name for s in stages) or 'none'}).",
               f"Every method raced {runs} times per scenario from seeded random start placements (seed {seed}), "
               "identical for every method. Lap time: mean ± std over drones that finished without a collision; "
               "success ratio with its 95% Wilson interval; lap / bound: lap time over the point-mass reference.",
-              _flight_stack(stages), ""]
+              _flight_stack(stages), _sides_text(sides, runs), ""]
     titles = {"1v1": "Two-drone (1v1) race", "2v2": "Four-drone (2v2) team race"}
     notes: list[str] = []
     for scenario in SCENARIOS:
@@ -388,7 +400,7 @@ def _markdown(run_root: Path, track: TrackSpec, stages: list[StageRun], table: d
     if matrices:
         lines += _cross_section(matrices)
     if held is not None:
-        lines += _held_out_section(held, seed)
+        lines += _held_out_section(held, seed, sides)
     lim = bound.limits
     lines += ["## Lap-time reference", "",
               f"Minimum-time lap of a point mass ({bound.airframe}: thrust ≤ {lim.thrust:.2f} m/s², tilt ≤ "
@@ -437,11 +449,21 @@ def _cells(r: _Result, bound: LapBound) -> tuple[str, str, str]:
             f"{m['lap_time_mean'] / bound.lap_time:.2f}")
 
 
-def _held_out_section(held: dict[str, Any], seed: int) -> list[str]:
+def _sides_text(sides: str, runs: int) -> str:
+    """How the head-to-head races were run."""
+    if sides == "both":
+        return (f"Head to head (two methods, one team each), every placement is raced twice with the teams' start "
+                f"slots swapped: {2 * runs} races per pairing, so neither method keeps the luckier side of the start "
+                "box.")
+    return f"Head to head, the row method flies team A's start slots in all {runs} races."
+
+
+def _held_out_section(held: dict[str, Any], seed: int, sides: str) -> list[str]:
+    side = "from both sides" if sides == "both" else "on team A"
     lines = ["## Held-out placements", "",
              f"The tables above race from the protocol's placements (seed {seed}); a setting chosen by comparing "
              f"those figures is biased towards them. The same learned policies from {held['runs']} other placements "
-             f"(seed {held['seed']}): self-match success with its 95% interval and lap time, and SPIRAL (team A) "
+             f"(seed {held['seed']}): self-match success with its 95% interval and lap time, and SPIRAL ({side}) "
              "against PPO No Selfplay: win / loss / draw.", "",
              "| Scenario | PPO Selfplay (SPIRAL) | PPO No Selfplay | SPIRAL vs No Selfplay |", "|---|---|---|---|"]
     for scenario in SCENARIOS:

@@ -140,3 +140,12 @@ def test_pipeline_refuses_held_out_placements_on_the_evaluation_seed(tmp_path):
                                    "evaluation: {seed: 3, holdout_runs: 64, holdout_seed: 3}\n")
     with pytest.raises(SpecError, match=r"evaluation.*holdout_seed"):
         load_pipeline(path)
+
+
+def test_pipeline_names_evaluation_sides_when_it_is_not_a_head_to_head_protocol(tmp_path):
+    """Accept 'a' and 'both' (the default) for evaluation.sides; name the field for anything else."""
+    stages = "stages:\n  - {name: a, iterations: 1}\n"
+    assert load_pipeline(oval_pipeline(tmp_path, stages))[0].evaluation.sides == "both"
+    assert load_pipeline(oval_pipeline(tmp_path, stages + "evaluation: {sides: a}\n"))[0].evaluation.sides == "a"
+    with pytest.raises(SpecError, match=r"evaluation\.sides"):
+        load_pipeline(oval_pipeline(tmp_path, stages + "evaluation: {sides: swapped}\n"))

@@ -52,8 +52,9 @@ def test_same_eval_command_twice_writes_identical_json(sprint_yaml, tiny_checkpo
     assert outputs[0] == outputs[1]
     data = json.loads(outputs[0])
     assert data["against"] == {"name": "se-ibr", "checkpoint": "se-ibr"}
+    assert (data["sides"], data["races"]) == ("both", 4)  # 2 placements, each raced from both sides
     entry = data["methods"]["tiny"]
-    assert entry["drones"] == 2 and entry["opponent"]["drones"] == 2
+    assert entry["drones"] == 4 and entry["opponent"]["drones"] == 4
     assert entry["win_rate"] + entry["loss_rate"] + entry["draws"] == 1.0
 
 

@@ -116,3 +116,33 @@ def test_report_races_the_learned_policies_again_from_held_out_placements(sprint
 
     with pytest.raises(ValueError, match="holdout seed 0"):
         build_report(root, sprint, out, bound_steps=8, cross_play=False, holdout=(3, 0))
+
+
+def test_report_races_each_pairing_once_when_both_sides_are_raced(sprint, tiny_checkpoint, tmp_path):
+    """From both sides, B's row against A is A's row against B read from the other team; team-A-only races both."""
+    root = tmp_path / "runs" / "tiny"
+    fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("1v1-noselfplay", "1v1", "frozen")))
+    logs: list[str] = []
+    md = build_report(root, sprint, tmp_path / "both", bound_steps=8, log=logs.append).read_text()
+    crosses = sorted(line.split("running ")[1].split(" (")[0] for line in logs if "cross-1v1" in line)
+    assert crosses == ["cross-1v1-noselfplay-vs-noselfplay", "cross-1v1-spiral-vs-noselfplay",
+                       "cross-1v1-spiral-vs-spiral"]
+    assert "every placement is raced twice with the teams' start slots swapped: 4 races per pairing" in md
+    cached = tmp_path / "both" / "evals" / "cross-1v1-spiral-vs-noselfplay.json"
+    duel = json.loads(cached.read_text())
+    assert duel["sides"] == "both" and duel["races"] == 4
+    duel["methods"]["spiral"].update(win_rate=0.75, loss_rate=0.25, draws=0.0)  # the hovering policies never finish
+    cached.write_text(json.dumps(duel))
+    md = build_report(root, sprint, tmp_path / "both", bound_steps=8, log=logs.append).read_text()
+    rows = md[md.index("### 1v1"):].splitlines()
+    spiral_row = next(r for r in rows if r.startswith("| PPO Selfplay (SPIRAL) |"))
+    other_row = next(r for r in rows if r.startswith("| PPO No Selfplay |"))
+    assert spiral_row.split(" | ")[2] == "0.75 (draws 0.00) |"
+    assert other_row.split(" | ")[1] == "0.25 (draws 0.00)"
+
+    logs.clear()
+    md = build_report(root, sprint, tmp_path / "a", bound_steps=8, sides="a", log=logs.append).read_text()
+    assert sum("cross-1v1" in line for line in logs) == 4
+    assert "the row method flies team A's start slots in all 2 races" in md
+    with pytest.raises(ValueError, match="sides"):
+        build_report(root, sprint, tmp_path / "a", bound_steps=8, sides="swap")

@@ -165,15 +165,17 @@ def test_failed_parallel_step_keeps_the_work_of_the_steps_running_beside_it(tmp_
     assert "observation layout" in (runner.plan.run_root / "logs" / "train-1v1-noselfplay.log").read_text()
 
 
-def test_held_out_check_is_the_reports_alone(tmp_path):
-    """Adding a held-out check to the evaluation settings leaves trained and evaluated stages complete."""
+def test_held_out_check_and_head_to_head_sides_are_the_reports_alone(tmp_path):
+    """Adding a held-out check or changing the head-to-head sides leaves trained and evaluated stages complete."""
     path = write_pipeline(tmp_path)
     data = yaml.safe_load(path.read_text())
     data["report"] = {"enabled": True, "cross_play": False}
     path.write_text(yaml.safe_dump(data))
     runner = runner_for(path, tmp_path)
-    data["evaluation"] = {**data.get("evaluation", {}), "holdout_runs": 4, "holdout_seed": 9}
-    path.write_text(yaml.safe_dump(data))
-    before, after = runner._fingerprints(), runner_for(path, tmp_path)._fingerprints()
-    assert list(after) == ["train:solo", "eval:solo", "promote:solo", "report"]
-    assert [name for name in after if after[name] != before[name]] == ["report"]
+    for change in ({"holdout_runs": 4, "holdout_seed": 9}, {"sides": "a"}):
+        data["evaluation"] = {**data.get("evaluation", {}), **change}
+        path.write_text(yaml.safe_dump(data))
+        before, after = runner._fingerprints(), runner_for(path, tmp_path)._fingerprints()
+        assert list(after) == ["train:solo", "eval:solo", "promote:solo", "report"]
+        assert [name for name in after if after[name] != before[name]] == ["report"]
+        runner = runner_for(path, tmp_path)

@@ -1,0 +1,88 @@
+"""Head to head from both sides: swapped start slots, results reordered by method, winners by method."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from spiral.env.racing import RaceResults, concat_results, race_winners
+from spiral.eval.evaluate import TEAMS, cross_play, evaluate_methods, load_agent, race_agents
+
+SHIPPED = Path(__file__).resolve().parents[2] / "checkpoints" / "full"
+SPIRAL_1V1, NOSELFPLAY_1V1 = SHIPPED / "1v1" / "best.pt", SHIPPED / "1v1-noselfplay" / "best.pt"
+"""The shipped 1v1 policies: drones that finish laps, so races have winners."""
+
+
+def two_v_two() -> RaceResults:
+    """One 2v2 race by hand: slot 2 finishes first, slot 1 crashes into slot 3, slot 0 times out."""
+    return RaceResults(
+        finished=torch.tensor([[False, False, True, True]]),
+        crashed=torch.tensor([[False, True, False, False]]),
+        crash_kind=torch.tensor([[0, 8, 0, 0]], dtype=torch.int32),
+        lap_time=torch.tensor([[0.0, 0.0, 4.0, 4.5]]),
+        gates_passed=torch.tensor([[3, 2, 7, 7]]),
+        distance=torch.tensor([[9.0, 5.0, 20.0, 21.0]]),
+        present=torch.ones(1, 4, dtype=torch.bool),
+        crash_time=torch.tensor([[0.0, 1.5, 0.0, 0.0]]),
+        crash_partner=torch.tensor([[-1, 3, -1, -1]]),
+        team=torch.tensor([0, 0, 1, 1]),
+        split_time=torch.arange(8.0).view(1, 4, 2),
+    )
+
+
+def test_swapping_the_teams_slots_moves_each_drone_and_renames_its_contact_partner():
+    """Slots 2, 3 become 0, 1: the winner is now on team 0 and slot 1's contact with slot 3 reads slot 3 -> 1."""
+    res = two_v_two()
+    swapped = res.permuted([2, 3, 0, 1])
+    assert swapped.lap_time.tolist() == [[4.0, 4.5, 0.0, 0.0]]
+    assert swapped.crash_partner.tolist() == [[-1, -1, -1, 1]]
+    assert swapped.team.tolist() == [0, 0, 1, 1]
+    assert torch.equal(swapped.split_time[0, 0], res.split_time[0, 2])
+    assert race_winners(res, TEAMS["2v2"]).tolist() == [1]
+    assert race_winners(swapped, TEAMS["2v2"]).tolist() == [0]
+    back = swapped.permuted([2, 3, 0, 1])
+    for name in ("finished", "crashed", "crash_kind", "lap_time", "crash_partner", "split_time"):
+        assert torch.equal(getattr(back, name), getattr(res, name))
+    with pytest.raises(ValueError, match="permutation"):
+        res.permuted([0, 0, 1, 2])
+
+
+def test_concatenated_results_list_the_races_one_after_another():
+    """Join two result sets race by race; mismatched teams are refused."""
+    res = two_v_two()
+    joined = concat_results([res, res.permuted([2, 3, 0, 1])])
+    assert joined.finished.shape == (2, 4) and joined.split_time.shape == (2, 4, 2)
+    assert race_winners(joined, TEAMS["2v2"]).tolist() == [1, 0]
+    other = two_v_two()
+    other.team = torch.tensor([0, 1, 0, 1])
+    with pytest.raises(ValueError, match="different teams"):
+        concat_results([res, other])
+
+
+def test_both_sides_race_each_placement_again_with_the_methods_swapped(circuit6):
+    """The first half is the team-A protocol; the second half is the swapped race with the method back on team A."""
+    spiral, baseline = load_agent(SPIRAL_1V1), load_agent(NOSELFPLAY_1V1)
+    one_side, first = cross_play(spiral, baseline, circuit6, "1v1", 4, 5, sides="a")
+    both, winners = cross_play(spiral, baseline, circuit6, "1v1", 4, 5, sides="both")
+    swapped, won = race_agents(circuit6, "1v1", 4, 5, baseline, spiral)
+    assert bool(both.finished.any())  # real laps: the comparisons below are not of zeros
+    assert torch.equal(both.lap_time[:4], one_side.lap_time) and torch.equal(winners[:4], first)
+    assert torch.equal(both.lap_time[4:], swapped.lap_time.flip(1))
+    assert torch.equal(both.gates_passed[4:], swapped.gates_passed.flip(1))
+    assert torch.equal(winners[4:], torch.where(won >= 0, 1 - won, won))
+    with pytest.raises(ValueError, match="sides"):
+        cross_play(spiral, baseline, circuit6, "1v1", 1, 0, sides="b")
+
+
+def test_a_policy_against_itself_from_both_sides_wins_exactly_as_often_as_it_loses(circuit6):
+    """Each placement raced twice by the same two drones, swapped: every win of one side is a loss of the other."""
+    data = evaluate_methods(circuit6, {"me": SPIRAL_1V1}, scenario="1v1", runs=4, seed=2,
+                            against=("me", SPIRAL_1V1))
+    entry = data["methods"]["me"]
+    assert (data["sides"], data["races"], entry["drones"]) == ("both", 8, 8)
+    assert entry["win_rate"] > 0 and entry["win_rate"] == entry["loss_rate"]
+    by_side = entry["win_rate_by_side"]
+    assert (by_side["a"] + by_side["b"]) / 2 == pytest.approx(entry["win_rate"])
+    assert entry["success_ratio"] == entry["opponent"]["success_ratio"]
