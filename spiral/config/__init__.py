@@ -4,13 +4,21 @@ from __future__ import annotations
 
 from spiral.config.airframe import AIRFRAMES, AirframeCfg, AirframeSel, PIDCfg, resolve_airframe
 from spiral.config.base import StrictModel
-from spiral.config.env import ActionCfg, EnvCfg, EpisodeCfg, ObsCfg, RewardCfg, SeparationCfg
+from spiral.config.env import ActionCfg, EnvCfg, EpisodeCfg, ObsCfg, RewardCfg, SeparationCfg, ShieldCfg
 from spiral.config.errors import SpecError
 from spiral.config.load import KINDS, load_pipeline, load_spec, load_track
 from spiral.config.pipeline import EvaluationCfg, PipelineSpec, ReportCfg
 from spiral.config.ppo import PPOCfg
 from spiral.config.sim import SimCfg
-from spiral.config.stage import SCENARIO_DRONES, PromotionCfg, SelectionCfg, SelfPlayCfg, StageSpec
+from spiral.config.stage import (
+    SCENARIO_DRONES,
+    PromotionCfg,
+    Scenario,
+    SelectionCfg,
+    SelfPlayCfg,
+    StageSpec,
+    learner_slots,
+)
 from spiral.config.track import BoundsCfg, GateSpec, StartCfg, TrackSpec, gate_rotation
 
 __all__ = [
@@ -32,9 +40,11 @@ __all__ = [
     "PromotionCfg",
     "ReportCfg",
     "RewardCfg",
+    "Scenario",
     "SelectionCfg",
     "SelfPlayCfg",
     "SeparationCfg",
+    "ShieldCfg",
     "SimCfg",
     "SpecError",
     "StageSpec",
@@ -42,6 +52,7 @@ __all__ = [
     "StrictModel",
     "TrackSpec",
     "gate_rotation",
+    "learner_slots",
     "load_pipeline",
     "load_spec",
     "load_track",

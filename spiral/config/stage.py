@@ -10,10 +10,18 @@ from spiral.config.base import PosInt, StrictModel
 from spiral.config.env import EnvCfg
 from spiral.config.ppo import PPOCfg
 
-__all__ = ["SCENARIO_DRONES", "PromotionCfg", "SelectionCfg", "SelfPlayCfg", "StageSpec"]
+__all__ = ["SCENARIO_DRONES", "PromotionCfg", "Scenario", "SelectionCfg", "SelfPlayCfg", "StageSpec", "learner_slots"]
+
+Scenario = Literal["solo", "1v1", "2v2"]
+"""A race format."""
 
 SCENARIO_DRONES: dict[str, int] = {"solo": 1, "1v1": 2, "2v2": 4}
 """Drones per world of each race format."""
+
+
+def learner_slots(scenario: str) -> list[int]:
+    """Drone slots of team A in ``scenario``: the ones a training stage's learner drives (the rest are opponents)."""
+    return [0, 1] if scenario == "2v2" else [0]
 
 
 class SelectionCfg(StrictModel):
@@ -103,8 +111,14 @@ class StageSpec(StrictModel):
     """One training stage."""
 
     name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$", description="Stage name")
-    scenario: Literal["solo", "1v1", "2v2"] = Field(default="solo", description="Race format")
+    scenario: Scenario = Field(default="solo", description="Race format")
     worlds: PosInt = Field(default=1024, description="Parallel worlds (races) in training")
+    mix: dict[Scenario, float] = Field(
+        default_factory=dict,
+        description="Shares of the worlds raced in other formats than `scenario`, e.g. {solo: 0.1, 1v1: 0.2}, so that "
+        "one policy keeps racing every format; opponents as in the stage's own worlds; evaluation, selection and "
+        "promotion race `scenario` only",
+    )
     iterations: PosInt | None = Field(default=None, description="Budget in PPO iterations")
     env_steps: PosInt | None = Field(default=None, description="Budget in learner env steps (sets iterations)")
     seed: int | None = Field(default=None, ge=0, description="Seed of this stage; the pipeline's when absent")
@@ -125,18 +139,39 @@ class StageSpec(StrictModel):
             raise ValueError("iterations: give exactly one of iterations and env_steps")
         return self
 
+    @model_validator(mode="after")
+    def _mix_of_other_formats(self) -> StageSpec:
+        if not self.mix:
+            return self
+        if self.scenario == "solo":
+            raise ValueError("mix: a solo stage has no opponents to race other formats with")
+        if self.scenario in self.mix:
+            raise ValueError(f"mix.{self.scenario}: the stage's own format takes the worlds the others leave")
+        bad = [k for k, share in self.mix.items() if not 0 < share < 1]
+        if bad:
+            raise ValueError(f"mix.{bad[0]}: a share must lie strictly between 0 and 1")
+        if self.world_split()[self.scenario] < 1:
+            raise ValueError(f"mix: the shares leave no world for the stage's own format ({self.scenario})")
+        return self
+
+    def world_split(self) -> dict[str, int]:
+        """Training worlds of each race format, the stage's own first; each mixed-in format gets at least one."""
+        other = {fmt: max(1, round(share * self.worlds)) for fmt, share in self.mix.items()}
+        return {self.scenario: self.worlds - sum(other.values()), **other}
+
     @property
     def drones_per_world(self) -> int:
         """Drones in each world of this stage's race format."""
         return SCENARIO_DRONES[self.scenario]
 
     def learner_slots(self) -> list[int]:
-        """Drone slots driven by the learner (team A); the other slots are opponents."""
-        return [0, 1] if self.scenario == "2v2" else [0]
+        """Drone slots driven by the learner (team A) in the stage's own format; the other slots are opponents."""
+        return learner_slots(self.scenario)
 
     def iteration_budget(self) -> int:
         """PPO iterations of this stage, from ``iterations`` or ``env_steps``."""
         if self.iterations is not None:
             return self.iterations
-        per_iteration = self.worlds * len(self.learner_slots()) * self.ppo.num_steps_per_env
+        learners = sum(n * len(learner_slots(fmt)) for fmt, n in self.world_split().items())
+        per_iteration = learners * self.ppo.num_steps_per_env
         return max(1, -(-(self.env_steps or 0) // per_iteration))

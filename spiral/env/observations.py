@@ -51,7 +51,7 @@ class ObservationBuilder:
     def extra_dim(self) -> int:
         """Inputs outside the ego state, presence flags and history."""
         c = self.cfg
-        return 6 * c.gate_normals + 3 * c.pid_integral + 6 * c.opponent_velocity + 2 * c.teammates
+        return 6 * c.gate_normals + 3 * c.pid_integral + 6 * c.opponent_velocity + 2 * c.teammates + 3 * c.priority
 
     @property
     def obs_dim(self) -> int:
@@ -61,8 +61,9 @@ class ObservationBuilder:
     def layout(self) -> dict:
         """Description of the observation vector, stored in checkpoints to refuse mismatched policies."""
         layout = {"obs_dim": self.obs_dim, **self.cfg.model_dump()}
-        if not self.cfg.teammates:
-            del layout["teammates"]  # layouts stored before the option existed stay equal
+        for option in ("teammates", "priority"):  # layouts stored before an option existed stay equal
+            if not layout[option]:
+                del layout[option]
         return layout
 
     def push(self, features: torch.Tensor, fresh: torch.Tensor) -> None:

@@ -10,7 +10,7 @@ import warp as wp
 from tensordict import TensorDict
 
 from spiral.config.airframe import AirframeCfg
-from spiral.config.env import EnvCfg
+from spiral.config.env import EnvCfg, SeparationCfg
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
 from spiral.env.observations import ObservationBuilder, nearest_others
@@ -19,7 +19,7 @@ from spiral.env.separation import separation_offsets
 from spiral.env.starts import sample_box_starts, sample_track_starts
 from spiral.sim import COLLISION_KINDS, World
 
-__all__ = ["OpponentPolicy", "RaceEnv"]
+__all__ = ["OpponentPolicy", "RaceEnv", "summarize_stats"]
 
 OpponentPolicy = Callable[[TensorDict], torch.Tensor]
 """Maps the observations of the opponent drones (TensorDict with ``policy``, world-major rows) to actions in
@@ -32,6 +32,17 @@ def _heading(quat: torch.Tensor) -> torch.Tensor:
     """Body x axis in the world frame from (x, y, z, w) quaternions."""
     x, y, z, w = quat.unbind(-1)
     return torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)], dim=-1)
+
+
+def summarize_stats(s: dict[str, float]) -> dict[str, float]:
+    """Means per ended learner episode from the sums of :meth:`RaceEnv.take_stats` (sums of several envs add)."""
+    n = max(s["episodes"], 1.0)
+    out = {"episodes": s["episodes"], "success": s["successes"] / n,
+           "lap_time": s["lap_time_sum"] / s["laps"] if s["laps"] else float("nan"),
+           "health/nonfinite_resets": s["nonfinite_resets"]}
+    out.update({f"crash/{k}": s[f"crash_{k}"] / n for k in COLLISION_KINDS})
+    out.update({f"Episode_Reward/{k}": s[f"term_{k}"] / n for k in REWARD_TERMS})
+    return out
 
 
 class RaceEnv:
@@ -89,6 +100,8 @@ class RaceEnv:
         self.passes_needed = len(track.gates) * track.laps + 1
         self.generator = torch.Generator(device=self.device).manual_seed(seed)
         self.opponent_policy: OpponentPolicy | None = None
+        self.shield_scale = 1.0 if cfg.shield is not None and auto_reset else 0.0
+        """Gain factor of the training shield (``cfg.shield``; never in a non-resetting, evaluation env)."""
         self.obs_builder = ObservationBuilder(cfg.obs, self.drone_count, device=self.device)
         self._bind_views()
         self._alloc_buffers()
@@ -118,6 +131,10 @@ class RaceEnv:
         self.absent = torch.zeros(n, dtype=torch.bool, device=dev)
         """Slot not in the race (an opponent slot with no opponent policy)."""
         self.lap_time = torch.zeros(n, device=dev)
+        self.priority = torch.zeros(n, device=dev)
+        """Random priority of each drone for the race, drawn at its start (observed with ``obs.priority``)."""
+        self.intervention = torch.zeros(n, device=dev)
+        """Length of the training shield's target shift at full gain in the last step [m]."""
         self.crash_kind = torch.zeros(n, dtype=torch.int32, device=dev)
         self.episode_length_buf = torch.zeros(self.num_envs, dtype=torch.long, device=dev)
         self.term_sums = {name: torch.zeros(n, device=dev) for name in REWARD_TERMS}
@@ -135,6 +152,11 @@ class RaceEnv:
         stats.update({f"crash_{kind}": 0.0 for kind in COLLISION_KINDS})
         stats.update({f"term_{name}": 0.0 for name in REWARD_TERMS})
         return stats
+
+    def set_training_progress(self, fraction: float) -> None:
+        """Tell the env how far its training stage is (fraction of its iterations): schedules follow it."""
+        if self.cfg.shield is not None and self.auto_reset:
+            self.shield_scale = self.cfg.shield.scale(fraction)
 
     def set_opponent_policy(self, policy: OpponentPolicy | None) -> None:
         """Drive the opponent slots with ``policy`` from the next reset on (``None``: the slots are absent)."""
@@ -172,6 +194,9 @@ class RaceEnv:
                          init_next_gate=self._wp_gate)
         drones = worlds.repeat_interleave(d)
         self._reset_drone_buffers(drones)
+        if self.cfg.obs.priority:
+            self.priority = torch.where(drones, torch.rand(w * d, generator=self.generator, device=self.device),
+                                        self.priority)
         racing_teams = self.opponent_policy is not None and bool(self.opponent_slots)
         self.contested = torch.where(worlds, box & racing_teams, self.contested)
         if hasattr(self.opponent_policy, "reset"):
@@ -247,11 +272,20 @@ class RaceEnv:
             yaw = math.pi * actions[:, 3]
         racing = ~(self.out.bool())
         if a.separation is not None:
-            w, d = self.world_count, self.drones_per_world
-            shift = separation_offsets(self.pos.view(w, d, 3), self.vel.view(w, d, 3), racing.view(w, d), a.separation)
-            target = target + shift.view(-1, 3)
+            target = target + self._separation_shift(racing, a.separation)
+        shield = self.cfg.shield
+        if shield is not None and self.auto_reset:
+            shift = self._separation_shift(racing, shield.filter)
+            self.intervention = shift.norm(dim=-1)
+            target = target + self.shield_scale * shift
         self.cmd[racing] = torch.cat([target, yaw[:, None]], dim=-1)[racing]
         self.last_action = actions
+
+    def _separation_shift(self, racing: torch.Tensor, cfg: SeparationCfg) -> torch.Tensor:
+        """Target shift (N, 3) of every drone away from the others by the separation rule ``cfg``."""
+        w, d = self.world_count, self.drones_per_world
+        shift = separation_offsets(self.pos.view(w, d, 3), self.vel.view(w, d, 3), racing.view(w, d), cfg)
+        return shift.view(-1, 3)
 
     def _race_events(self, prev_gate: torch.Tensor, dist_before: torch.Tensor):
         """Collisions, gate passes and finished laps of the step, as a reward outcome."""
@@ -274,6 +308,7 @@ class RaceEnv:
             lap_time=torch.where(finished_now, self.lap_time, torch.zeros_like(self.lap_time)),
             nearest=self._nearest_distance() if self.cfg.reward.proximity > 0 else None,
             race_result=self._race_result(racing & ~crashed_now, finished_now) if self.cfg.reward.win > 0 else None,
+            intervention=torch.where(racing, self.intervention, 0.0) if self.cfg.shield is not None else None,
         )
         for name in ("dist_before", "dist_after"):  # no reward for frozen drones
             setattr(outcome, name, torch.where(racing, getattr(outcome, name), torch.zeros_like(dist_before)))
@@ -351,16 +386,20 @@ class RaceEnv:
 
     def pop_stats(self) -> dict[str, float]:
         """Means over the learner episodes ended since the last call, then start counting afresh."""
+        return summarize_stats(self.take_stats())
+
+    def take_stats(self) -> dict[str, float]:
+        """Sums over the learner episodes ended since the last call (see :func:`summarize_stats`); counting
+        starts afresh."""
         s, self.stats = self.stats, self._empty_stats()
-        n = max(s["episodes"], 1.0)
-        out = {"episodes": s["episodes"], "success": s["successes"] / n,
-               "lap_time": s["lap_time_sum"] / s["laps"] if s["laps"] else float("nan"),
-               "health/nonfinite_resets": s["nonfinite_resets"]}
-        out.update({f"crash/{k}": s[f"crash_{k}"] / n for k in COLLISION_KINDS})
-        out.update({f"Episode_Reward/{k}": s[f"term_{k}"] / n for k in REWARD_TERMS})
-        return out
+        return s
+
+    def current_observations(self) -> TensorDict:
+        """The learner observations of the last step or reset (no new history entry)."""
+        return self._observe(self.learner_idx)
 
     # Observations
+
 
     def get_observations(self) -> TensorDict:
         """Observations of the learner drones: ``policy`` and ``critic`` groups (the same tensor unless the
@@ -422,6 +461,11 @@ class RaceEnv:
         if c.teammates:
             mate = self.race_team[near_idx] == self.race_team[None, :, None]
             extras.append((mate & near_mask).view(-1, 2).float())
+        if c.priority:
+            prio = self.priority.view(self.world_count, self.drones_per_world)
+            higher = (torch.gather(prio, 1, near_idx.view(self.world_count, -1)).view(near_idx.shape)
+                      - prio[:, :, None]) * near_mask
+            extras.append(torch.cat([self.priority[:, None], higher.view(-1, 2)], dim=-1))
         return self.obs_builder.build(ego, presence, extras)
 
     @property

@@ -34,6 +34,8 @@ class StepOutcome:
     """Distance to the nearest other drone still racing after the step, inf when there is none [m]."""
     race_result: torch.Tensor | None = None
     """+1 / −1 for the winning / losing team's drones at the step their race is decided, else 0."""
+    intervention: torch.Tensor | None = None
+    """Length of the target shift the training shield at full gain asked for this step [m]."""
 
 
 def _reward_progress(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
@@ -64,6 +66,13 @@ def _reward_proximity(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
     return -(1.0 - o.nearest / cfg.proximity_distance).clamp(min=0.0)
 
 
+def _reward_intervention(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
+    """−|shift| per step: the training shield's target shift at full gain, whether or not it still acts."""
+    if o.intervention is None:
+        return torch.zeros_like(o.dist_before)
+    return -o.intervention
+
+
 def _reward_lap(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
     """100 / T_lap at the step a lap is completed."""
     done = o.lap_time > 0
@@ -83,6 +92,7 @@ REWARD_TERMS = {
     "collision": _reward_collision,
     "alignment": _reward_alignment,
     "proximity": _reward_proximity,
+    "intervention": _reward_intervention,
     "lap": _reward_lap,
     "win": _reward_win,
 }

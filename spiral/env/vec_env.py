@@ -6,15 +6,17 @@ import torch
 from rsl_rl.env import VecEnv
 from tensordict import TensorDict
 
+from spiral.env.mixed import MixedRaceEnv
 from spiral.env.race_env import RaceEnv
 
 __all__ = ["RaceVecEnv"]
 
 
 class RaceVecEnv(VecEnv):
-    """Exposes a :class:`RaceEnv` to rsl-rl: one environment per learner drone, 4 actions."""
+    """Exposes a :class:`RaceEnv` (or a :class:`MixedRaceEnv`) to rsl-rl: one environment per learner drone,
+    4 actions."""
 
-    def __init__(self, env: RaceEnv) -> None:
+    def __init__(self, env: RaceEnv | MixedRaceEnv) -> None:
         self.env = env
         self.num_envs = env.num_envs
         self.num_actions = 4
@@ -33,7 +35,7 @@ class RaceVecEnv(VecEnv):
 
     def get_observations(self) -> TensorDict:
         """Current learner observations."""
-        return self.env._observe(self.env.learner_idx)
+        return self.env.current_observations()
 
     def step(self, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
         """One control step of every world."""

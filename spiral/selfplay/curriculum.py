@@ -10,7 +10,7 @@ import torch
 
 from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
-from spiral.config.stage import StageSpec
+from spiral.config.stage import SCENARIO_DRONES, StageSpec, learner_slots
 from spiral.config.track import TrackSpec
 from spiral.selfplay.matchmaking import Matchmaker
 from spiral.selfplay.opponents import PoolOpponents
@@ -61,7 +61,6 @@ def run_stage(
         shutil.copyfile(init_checkpoint.with_suffix(".json"), best_path.with_suffix(".json"))
     layout = load_checkpoint(init_checkpoint)["spiral"]["obs_layout"]
     generator = torch.Generator(device=device).manual_seed(seed + 30_000)
-    opp_per_world = stage.drones_per_world - len(stage.learner_slots())
     pool = Pool(pool_dir, log=log) if stage.selfplay.mode == "pool" else None
     if pool is not None and not pool.members:
         pool.add(init_checkpoint, stage=stage.init_from or "init", iteration=0, evaluation={})
@@ -80,15 +79,19 @@ def run_stage(
         raise ValueError(f"stage {stage.name!r}: no usable policy in the pool {pool_dir}")
     matchmaker = Matchmaker(len(ids), latest=latest, p_latest=stage.selfplay.p_latest,
                             p_first=stage.selfplay.p_first, mode=stage.selfplay.sampling, device=device)
-    opponents = PoolOpponents([policies[i] for i in ids], matchmaker, world_count=stage.worlds,
-                              per_world=opp_per_world, generator=generator, p_self=stage.selfplay.p_self,
-                              offset=stage.selfplay.opponent_offset)
+    members = [policies[i] for i in ids]  # one list, shared by every format's opponents
+    opponents = {
+        fmt: PoolOpponents(members, matchmaker, world_count=worlds,
+                           per_world=SCENARIO_DRONES[fmt] - len(learner_slots(fmt)), generator=generator,
+                           p_self=stage.selfplay.p_self, offset=stage.selfplay.opponent_offset)
+        for fmt, worlds in stage.world_split().items() if fmt != "solo"
+    }
 
     def add_opponent(path: Path) -> None:
-        opponents.policies.append(load_policy(path, device=device))
+        members.append(load_policy(path, device=device))
         matchmaker.races = torch.cat([matchmaker.races, matchmaker.races.new_zeros(1)])
         matchmaker.losses = torch.cat([matchmaker.losses, matchmaker.losses.new_zeros(1)])
-        matchmaker.latest = len(opponents.policies) - 1
+        matchmaker.latest = len(members) - 1
 
     selector = PromotionSelector(stage, track, airframe, sim, best_path=best_path, pool=pool, best_rating=best_rating,
                                  device=device, seed=seed, on_promote=add_opponent if pool is not None else None,

@@ -23,6 +23,7 @@ from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
+from spiral.env.mixed import MixedRaceEnv, training_env
 from spiral.env.race_env import OpponentPolicy, RaceEnv
 from spiral.env.racing import Policy, run_races
 from spiral.env.vec_env import RaceVecEnv
@@ -89,7 +90,7 @@ class StageTrainer:
         device: str = "cpu",
         seed: int = 0,
         init_checkpoint: Path | None = None,
-        opponent: OpponentPolicy | None = None,
+        opponent: OpponentPolicy | dict[str, OpponentPolicy] | None = None,
         selector: Callable[[StageTrainer, int], dict[str, float]] | None = None,
         selection_interval: int | None = None,
         log: Callable[[str], None] = print,
@@ -102,10 +103,14 @@ class StageTrainer:
         self.show_progress = progress and self.dist.is_main
         seed_everything(self.dist.seed(seed))
         d = stage.drones_per_world
-        self.env = RaceEnv(track, airframe, sim, stage.env, world_count=stage.worlds, drones_per_world=d,
-                           learner_slots=stage.learner_slots(), device=device, seed=self.dist.seed(seed))
-        if opponent is not None:
-            self.env.set_opponent_policy(opponent)
+        self.env: RaceEnv | MixedRaceEnv = training_env(track, airframe, sim, stage, device=device,
+                                                        seed=self.dist.seed(seed))
+        opponents = opponent if isinstance(opponent, dict) else {stage.scenario: opponent} if opponent else {}
+        if opponents:
+            if isinstance(self.env, MixedRaceEnv):
+                self.env.set_opponent_policies(opponents)
+            else:
+                self.env.set_opponent_policy(opponents[stage.scenario])
             self.env.reset()  # the first episodes were drawn without opponents
         self.eval_env = RaceEnv(track, airframe, sim, stage.env, world_count=stage.selection.races,
                                 drones_per_world=d, learner_slots=list(range(d)), device=device,
@@ -113,10 +118,11 @@ class StageTrainer:
         self.vec_env = RaceVecEnv(self.env)
         with contextlib.redirect_stdout(io.StringIO()):  # rsl-rl prints the model architecture
             self.runner = distributed.GroupRunner(self.vec_env, stage.ppo.to_rsl_rl(), log_dir=None, device=device)
-        if hasattr(opponent, "live"):  # mirror self-play: opponents that race the learner's current policy
-            actor = self.runner.alg.get_policy()  # called plainly it returns the mean action
-            sampled = stage.selfplay.mirror_actions == "sampled"
-            opponent.live = functools.partial(actor, stochastic_output=True) if sampled else actor
+        actor = self.runner.alg.get_policy()  # called plainly it returns the mean action
+        sampled = stage.selfplay.mirror_actions == "sampled"
+        for policy in opponents.values():
+            if hasattr(policy, "live"):  # mirror self-play: opponents that race the learner's current policy
+                policy.live = functools.partial(actor, stochastic_output=True) if sampled else actor
         self.start_iteration = 0
         self.best = EvalScore(-1.0, -math.inf)
         self.selector = selector or StageTrainer.select_by_solo_eval
@@ -271,6 +277,7 @@ class StageTrainer:
         with self._progress(total) as (progress, task):
             for it in range(self.start_iteration, total):
                 t0 = time.perf_counter()
+                self.env.set_training_progress(it / total)
                 reward_sum = torch.zeros((), device=env.device)
                 with torch.inference_mode():
                     for _ in range(cfg["num_steps_per_env"]):

@@ -104,6 +104,27 @@ def test_teammate_flags_leave_layouts_without_them_unchanged(oval2):
     assert torch.all(env.get_observations()["policy"][:, 14:16] == 0)
 
 
+def test_priority_inputs_give_the_own_priority_and_how_much_higher_the_nearest_drones_are(oval2):
+    """Priorities are drawn in [0, 1) per drone at every race start; a drone observes its own, then the nearest
+    and the second nearest drone's minus its own (0 for a drone that left the race), after the other extras."""
+    obs_cfg = ObsCfg(history_len=1, teammates=True, priority=True)
+    env = make_env(oval2, worlds=1, drones=4, learners=(0, 1, 2, 3), obs=obs_cfg)
+    assert env.obs_dim == 12 + 2 + 2 + 3 + HISTORY_FEATURES
+    drawn = env.priority.clone()
+    assert ((drawn >= 0) & (drawn < 1)).all() and len(set(drawn.tolist())) == 4
+    env.priority[:] = torch.tensor([0.5, 0.9, 0.2, 0.6])
+    # Drone 0's nearest are 2, then 1; drone 3's are 2, then 0.
+    place(env, [[-1.0, -1.0, 1.0], [-1.0, -0.2, 1.0], [-1.0, -1.3, 1.0], [-1.0, -1.9, 1.0]])
+    prio = env._build_observations()[:, 16:19]
+    torch.testing.assert_close(prio[0], torch.tensor([0.5, -0.3, 0.4]))
+    torch.testing.assert_close(prio[3], torch.tensor([0.6, -0.4, -0.1]))
+    env.out[2] = 1  # drone 2 leaves the race: drone 0's nearest are 1, then 3
+    env.get_observations()
+    torch.testing.assert_close(env._build_observations()[0, 16:19], torch.tensor([0.5, 0.4, 0.1]))
+    env.reset()
+    assert not torch.equal(env.priority, torch.tensor([0.5, 0.9, 0.2, 0.6]))
+
+
 def test_observation_gives_next_two_gates_relative_to_the_drone(oval2):
     """Report gate 0 then gate 1 relative to the drone's position."""
     env = make_env(oval2, worlds=1, obs=ObsCfg(history_len=1))

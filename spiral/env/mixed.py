@@ -1,0 +1,124 @@
+"""Training worlds of several race formats stepped as one environment (``StageSpec.mix``)."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+
+from spiral.config.airframe import AirframeCfg
+from spiral.config.sim import SimCfg
+from spiral.config.stage import SCENARIO_DRONES, StageSpec, learner_slots
+from spiral.config.track import TrackSpec
+from spiral.env.race_env import OpponentPolicy, RaceEnv, summarize_stats
+
+__all__ = ["MixedRaceEnv", "training_env"]
+
+PART_SEED_STRIDE = 1_000
+"""Seed offset between the formats of a mixed stage (the stage's own format keeps the stage's seed)."""
+
+
+class MixedRaceEnv:
+    """One :class:`RaceEnv` per race format, stepped together; their learner rows are concatenated in part order.
+
+    To PPO it is one env of ``num_envs = Σ part.num_envs`` learner drones. Each part keeps its own worlds, resets,
+    opponents and statistics; :meth:`pop_stats` adds the parts' sums and also reports each format's success ratio.
+    """
+
+    def __init__(self, parts: dict[str, RaceEnv]) -> None:
+        if not parts:
+            raise ValueError("MixedRaceEnv needs at least one part")
+        layouts = {fmt: env.obs_builder.layout() for fmt, env in parts.items()}
+        if len({str(v) for v in layouts.values()}) > 1:
+            raise ValueError(f"MixedRaceEnv: the parts' observation layouts differ: {layouts}")
+        self.parts = parts
+        first = next(iter(parts.values()))
+        self.cfg, self.device, self.dt, self.obs_builder = first.cfg, first.device, first.dt, first.obs_builder
+        self.max_episode_length = max(env.max_episode_length for env in parts.values())
+        sizes = [env.num_envs for env in parts.values()]
+        self.num_envs = sum(sizes)
+        self._sizes = sizes
+
+    @property
+    def obs_dim(self) -> int:
+        """Length of one observation vector."""
+        return self.obs_builder.obs_dim
+
+    @property
+    def episode_length_buf(self) -> torch.Tensor:
+        """Control steps since each learner drone's episode started, parts concatenated."""
+        return torch.cat([env.episode_length_buf for env in self.parts.values()])
+
+    @episode_length_buf.setter
+    def episode_length_buf(self, value: torch.Tensor) -> None:
+        for env, part in zip(self.parts.values(), value.split(self._sizes), strict=True):
+            env.episode_length_buf = part
+
+    def set_opponent_policies(self, policies: dict[str, OpponentPolicy | None]) -> None:
+        """Drive each named part's opponent slots with its policy from the next reset on."""
+        for fmt, policy in policies.items():
+            self.parts[fmt].set_opponent_policy(policy)
+
+    def set_training_progress(self, fraction: float) -> None:
+        """Pass the stage's progress on to every part."""
+        for env in self.parts.values():
+            env.set_training_progress(fraction)
+
+    def reset(self) -> TensorDict:
+        """Reset every world of every part and return the learner observations."""
+        return torch.cat([env.reset() for env in self.parts.values()])
+
+    def current_observations(self) -> TensorDict:
+        """The learner observations of the last step or reset."""
+        return torch.cat([env.current_observations() for env in self.parts.values()])
+
+    def step(self, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
+        """One control step of every part; the same returns as :meth:`RaceEnv.step`, rows in part order."""
+        out = [env.step(a) for env, a in zip(self.parts.values(), actions.split(self._sizes), strict=True)]
+        obs = torch.cat([o[0] for o in out])
+        rewards = torch.cat([o[1] for o in out])
+        dones = torch.cat([o[2] for o in out])
+        time_outs = torch.cat([o[3]["time_outs"] for o in out])
+        return obs, rewards, dones, {"time_outs": time_outs, "log": _merge_logs([(o[3]["log"], o[2]) for o in out])}
+
+    def take_stats(self) -> dict[str, float]:
+        """Sums over the learner episodes of every part ended since the last call."""
+        total: dict[str, float] = {}
+        for env in self.parts.values():
+            for key, value in env.take_stats().items():
+                total[key] = total.get(key, 0.0) + value
+        return total
+
+    def pop_stats(self) -> dict[str, float]:
+        """Means over every part's ended learner episodes, and ``success/<format>`` of each part."""
+        per_part = {fmt: env.take_stats() for fmt, env in self.parts.items()}
+        total = {key: sum(s[key] for s in per_part.values()) for key in next(iter(per_part.values()))}
+        out = summarize_stats(total)
+        for fmt, s in per_part.items():
+            out[f"success/{fmt}"] = s["successes"] / max(s["episodes"], 1.0)
+        return out
+
+
+def _merge_logs(logs: list[tuple[dict, torch.Tensor]]) -> dict:
+    """Episode means of several parts, weighted by the episodes each ended this step."""
+    weights = [float(dones.sum()) for _, dones in logs]
+    total = sum(weights)
+    if total == 0:
+        return {}
+    keys = {k for log, _ in logs for k in log}
+    return {k: sum(w * log[k] for (log, _), w in zip(logs, weights, strict=True) if k in log) / total for k in keys}
+
+
+def training_env(track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, stage: StageSpec, *, device: str,
+                 seed: int) -> RaceEnv | MixedRaceEnv:
+    """The training env of ``stage``: one :class:`RaceEnv` of its format, or a :class:`MixedRaceEnv` with
+    ``stage.mix``'s shares of the worlds in other formats (the stage's own format first, with the stage's seed)."""
+    if not stage.mix:
+        return RaceEnv(track, airframe, sim, stage.env, world_count=stage.worlds,
+                       drones_per_world=stage.drones_per_world, learner_slots=stage.learner_slots(), device=device,
+                       seed=seed)
+    parts = {
+        fmt: RaceEnv(track, airframe, sim, stage.env, world_count=worlds, drones_per_world=SCENARIO_DRONES[fmt],
+                     learner_slots=learner_slots(fmt), device=device, seed=seed + k * PART_SEED_STRIDE)
+        for k, (fmt, worlds) in enumerate(stage.world_split().items())
+    }
+    return MixedRaceEnv(parts)
