@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Literal
 
 from pydantic import Field, model_validator
@@ -10,7 +11,16 @@ from spiral.config.base import PosInt, StrictModel
 from spiral.config.env import EnvCfg
 from spiral.config.ppo import PPOCfg
 
-__all__ = ["SCENARIO_DRONES", "PromotionCfg", "Scenario", "SelectionCfg", "SelfPlayCfg", "StageSpec", "learner_slots"]
+__all__ = [
+    "SCENARIO_DRONES",
+    "PromotionCfg",
+    "Scenario",
+    "SelectionCfg",
+    "SelfPlayCfg",
+    "StageSpec",
+    "WorldPart",
+    "learner_slots",
+]
 
 Scenario = Literal["solo", "1v1", "2v2"]
 """A race format."""
@@ -22,6 +32,19 @@ SCENARIO_DRONES: dict[str, int] = {"solo": 1, "1v1": 2, "2v2": 4}
 def learner_slots(scenario: str) -> list[int]:
     """Drone slots of team A in ``scenario``: the ones a training stage's learner drives (the rest are opponents)."""
     return [0, 1] if scenario == "2v2" else [0]
+
+
+@dataclass(frozen=True)
+class WorldPart:
+    """A group of a stage's training worlds that race alike."""
+
+    name: str
+    """The format, with ``-mirror`` for worlds whose drones are all learner drones."""
+    scenario: str
+    worlds: int
+    learner_slots: list[int]
+    opponents: bool
+    """Whether the other slots are opponents (pool or frozen policies); otherwise they are absent or learners."""
 
 
 class SelectionCfg(StrictModel):
@@ -76,10 +99,12 @@ class SelfPlayCfg(StrictModel):
         description="Probability that a world's opponents are the learner's current policy (mirror self-play, "
         "pool mode only); the rest are drawn from the pool",
     )
-    mirror_actions: Literal["mean", "sampled"] = Field(
+    mirror_actions: Literal["mean", "sampled", "learner"] = Field(
         default="mean",
-        description="What the learner's copies in mirror worlds fly: its mean action, or an action drawn from its "
-        "action distribution like the learner drones' own (opponents as noisy as the learner)",
+        description="What the learner's copies in mirror worlds fly: its mean action, an action drawn from its "
+        "action distribution like the learner drones' own (opponents as noisy as the learner), or `learner`: every "
+        "drone of a mirror world is a learner drone (sampled actions that PPO trains on, parameters shared), and "
+        "the share p_self of each format's worlds races that way",
     )
     opponent_offset: float = Field(
         default=0.0, ge=0, le=1,
@@ -102,6 +127,8 @@ class SelfPlayCfg(StrictModel):
             raise ValueError("p_self: frozen opponents (PPO without self-play) cannot race the learner itself")
         if self.mode == "pool" and self.opponent_from is not None:
             raise ValueError("opponent_from: only frozen opponents come from one stage; pool opponents are the pool")
+        if self.mirror_actions != "mean" and self.p_self == 0:
+            raise ValueError(f"mirror_actions: {self.mirror_actions!r} is for mirror worlds, but p_self is 0")
         if self.p_latest + self.p_first > 1:
             raise ValueError(f"p_first: p_latest + p_first = {self.p_latest + self.p_first} exceeds 1")
         return self
@@ -164,6 +191,20 @@ class StageSpec(StrictModel):
         """Drones in each world of this stage's race format."""
         return SCENARIO_DRONES[self.scenario]
 
+    def world_parts(self) -> list[WorldPart]:
+        """The training worlds by how they race: each format of :meth:`world_split`, its mirror share split off as
+        all-learner worlds when ``selfplay.mirror_actions`` is ``learner``; the stage's own format first."""
+        sp = self.selfplay
+        parts = []
+        for fmt, worlds in self.world_split().items():
+            drones, slots = SCENARIO_DRONES[fmt], learner_slots(fmt)
+            mirror = round(sp.p_self * worlds) if sp.mirror_actions == "learner" and drones > 1 else 0
+            if mirror < worlds:
+                parts.append(WorldPart(fmt, fmt, worlds - mirror, slots, opponents=drones > len(slots)))
+            if mirror:
+                parts.append(WorldPart(f"{fmt}-mirror", fmt, mirror, list(range(drones)), opponents=False))
+        return parts
+
     def learner_slots(self) -> list[int]:
         """Drone slots driven by the learner (team A) in the stage's own format; the other slots are opponents."""
         return learner_slots(self.scenario)
@@ -172,6 +213,6 @@ class StageSpec(StrictModel):
         """PPO iterations of this stage, from ``iterations`` or ``env_steps``."""
         if self.iterations is not None:
             return self.iterations
-        learners = sum(n * len(learner_slots(fmt)) for fmt, n in self.world_split().items())
+        learners = sum(part.worlds * len(part.learner_slots) for part in self.world_parts())
         per_iteration = learners * self.ppo.num_steps_per_env
         return max(1, -(-(self.env_steps or 0) // per_iteration))

@@ -1,4 +1,5 @@
-"""Training worlds of several race formats stepped as one environment (``StageSpec.mix``)."""
+"""Training worlds that race in different ways (other formats: ``StageSpec.mix``; all-learner mirror worlds)
+stepped as one environment."""
 
 from __future__ import annotations
 
@@ -7,18 +8,19 @@ from tensordict import TensorDict
 
 from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
-from spiral.config.stage import SCENARIO_DRONES, StageSpec, learner_slots
+from spiral.config.stage import SCENARIO_DRONES, StageSpec
 from spiral.config.track import TrackSpec
 from spiral.env.race_env import OpponentPolicy, RaceEnv, summarize_stats
 
 __all__ = ["MixedRaceEnv", "training_env"]
 
 PART_SEED_STRIDE = 1_000
-"""Seed offset between the formats of a mixed stage (the stage's own format keeps the stage's seed)."""
+"""Seed offset between the parts of a mixed stage (the first part keeps the stage's seed)."""
 
 
 class MixedRaceEnv:
-    """One :class:`RaceEnv` per race format, stepped together; their learner rows are concatenated in part order.
+    """Named :class:`RaceEnv` parts (race formats, all-learner mirror worlds) stepped together; their learner rows
+    are concatenated in part order.
 
     To PPO it is one env of ``num_envs = Σ part.num_envs`` learner drones. Each part keeps its own worlds, resets,
     opponents and statistics; :meth:`pop_stats` adds the parts' sums and also reports each format's success ratio.
@@ -89,7 +91,7 @@ class MixedRaceEnv:
         return total
 
     def pop_stats(self) -> dict[str, float]:
-        """Means over every part's ended learner episodes, and ``success/<format>`` of each part."""
+        """Means over every part's ended learner episodes, and ``success/<part>`` of each part."""
         per_part = {fmt: env.take_stats() for fmt, env in self.parts.items()}
         total = {key: sum(s[key] for s in per_part.values()) for key in next(iter(per_part.values()))}
         out = summarize_stats(total)
@@ -110,15 +112,13 @@ def _merge_logs(logs: list[tuple[dict, torch.Tensor]]) -> dict:
 
 def training_env(track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, stage: StageSpec, *, device: str,
                  seed: int) -> RaceEnv | MixedRaceEnv:
-    """The training env of ``stage``: one :class:`RaceEnv` of its format, or a :class:`MixedRaceEnv` with
-    ``stage.mix``'s shares of the worlds in other formats (the stage's own format first, with the stage's seed)."""
-    if not stage.mix:
-        return RaceEnv(track, airframe, sim, stage.env, world_count=stage.worlds,
-                       drones_per_world=stage.drones_per_world, learner_slots=stage.learner_slots(), device=device,
-                       seed=seed)
+    """The training env of ``stage``: one :class:`RaceEnv` when all its worlds race alike, else a
+    :class:`MixedRaceEnv` over :meth:`StageSpec.world_parts` (other formats of ``stage.mix``, all-learner mirror
+    worlds), the first part with the stage's seed."""
     parts = {
-        fmt: RaceEnv(track, airframe, sim, stage.env, world_count=worlds, drones_per_world=SCENARIO_DRONES[fmt],
-                     learner_slots=learner_slots(fmt), device=device, seed=seed + k * PART_SEED_STRIDE)
-        for k, (fmt, worlds) in enumerate(stage.world_split().items())
+        part.name: RaceEnv(track, airframe, sim, stage.env, world_count=part.worlds,
+                           drones_per_world=SCENARIO_DRONES[part.scenario], learner_slots=part.learner_slots,
+                           device=device, seed=seed + k * PART_SEED_STRIDE)
+        for k, part in enumerate(stage.world_parts())
     }
-    return MixedRaceEnv(parts)
+    return next(iter(parts.values())) if len(parts) == 1 else MixedRaceEnv(parts)

@@ -197,10 +197,14 @@ class RaceEnv:
         if self.cfg.obs.priority:
             self.priority = torch.where(drones, torch.rand(w * d, generator=self.generator, device=self.device),
                                         self.priority)
-        racing_teams = self.opponent_policy is not None and bool(self.opponent_slots)
-        self.contested = torch.where(worlds, box & racing_teams, self.contested)
+        self.contested = torch.where(worlds, box & self._teams_race(), self.contested)
         if hasattr(self.opponent_policy, "reset"):
             self.opponent_policy.reset(worlds)
+
+    def _teams_race(self) -> bool:
+        """Whether drones of both race teams take part (opponents are driven, or the learner drives both teams)."""
+        driven = self.learner_slots + (self.opponent_slots if self.opponent_policy is not None else [])
+        return len({int(self.race_team[s]) for s in driven}) > 1
 
     def _reset_drone_buffers(self, drones: torch.Tensor) -> None:
         for buf in (self.last_action, self.lap_time, self.crash_kind, *self.term_sums.values()):
@@ -315,7 +319,7 @@ class RaceEnv:
         return outcome, crashed_now, finished_now
 
     def _race_result(self, racing: torch.Tensor, finished_now: torch.Tensor) -> torch.Tensor:
-        """+1 / −1 per racing drone of the winning / losing team in the contested worlds decided this step.
+        """+1 / −1 per racing drone of the winning / losing race team in the contested worlds decided this step.
 
         The winner is the team of the step's earliest finisher (lap times are interpolated within the step);
         drones already out (crashed, finished, absent) are not paid.
@@ -326,7 +330,7 @@ class RaceEnv:
         result = torch.zeros(w, d, device=self.device)
         if decided.any():
             first = torch.where(fin, self.lap_time.view(w, d), torch.inf).argmin(dim=1)
-            same_team = self.slot_team[None, :] == self.slot_team[first][:, None]
+            same_team = self.race_team[None, :] == self.race_team[first][:, None]
             result = torch.where(same_team, 1.0, -1.0) * (decided[:, None] & racing.view(w, d))
             self.contested &= ~decided
         return result.flatten()

@@ -1,4 +1,5 @@
-"""Pure functions over race results: success ratios with Wilson intervals, lap statistics, crash counts."""
+"""Pure functions over race results: success ratios with intervals that take a race as the unit, lap statistics,
+crash counts."""
 
 from __future__ import annotations
 
@@ -10,17 +11,49 @@ import torch
 from spiral.env.racing import RaceResults
 from spiral.sim import COLLISION_KINDS
 
-__all__ = ["lap_statistics", "summarize_races", "wilson_interval"]
+__all__ = ["clustered_interval", "lap_statistics", "summarize_races", "wilson_interval"]
 
 
 def wilson_interval(successes: int, trials: int, *, z: float = 1.959964) -> tuple[float, float]:
     """Wilson score interval of a binomial proportion (95% by default); (0, 1) for no trials."""
     if trials == 0:
         return 0.0, 1.0
-    p = successes / trials
-    denom = 1.0 + z * z / trials
-    center = (p + z * z / (2 * trials)) / denom
-    half = z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / denom
+    return _wilson(successes / trials, trials, z)
+
+
+def clustered_interval(finished: torch.Tensor, mask: torch.Tensor, *, z: float = 1.959964) -> tuple[float, float]:
+    """95% interval of the per-drone success ratio with the race, not the drone, as the sampling unit.
+
+    The drones of one race are not independent (a contact ends two of them), so the ratio p = Σk_r / Σn_r (k_r of
+    the n_r ``mask`` drones of race r finished) gets the variance of a ratio over independent races,
+    SE² = Σ_r (k_r − p·n_r)² / (Σ_r n_r)², and a Wilson interval with the effective sample size
+    p(1 − p)/SE². That size is at least the number of races R and is capped at the number of drones; with
+    p ∈ {0, 1} (no spread to measure) it is R. With one drone per race the interval is Wilson's over the races.
+
+    Args:
+        finished: Whether each drone finished, shape (R, D).
+        mask: Drones to count, shape (R, D); races without any are left out.
+    """
+    k = (finished & mask).sum(dim=1).double()
+    n = mask.sum(dim=1).double()
+    races = n > 0
+    k, n = k[races], n[races]
+    total, count = float(n.sum()), int(races.sum())
+    if count == 0:
+        return 0.0, 1.0
+    p = float(k.sum()) / total
+    var = float(((k - p * n) ** 2).sum()) / total**2
+    if p in (0.0, 1.0):
+        n_eff = float(count)
+    else:  # no spread between races at all (e.g. one drone of two home in every race): as many as drones
+        n_eff = min(p * (1 - p) / var, total) if var > 0 else total
+    return _wilson(p, max(n_eff, count), z)
+
+
+def _wilson(p: float, n: float, z: float) -> tuple[float, float]:
+    denom = 1.0 + z * z / n
+    center = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
     return max(0.0, center - half), min(1.0, center + half)
 
 
@@ -33,7 +66,12 @@ def lap_statistics(lap_times: torch.Tensor, finished: torch.Tensor) -> tuple[flo
 
 
 def summarize_races(res: RaceResults, slots: list[int] | None = None) -> dict[str, Any]:
-    """Metrics of the drones in ``slots`` (all present drones when None) over every race."""
+    """Metrics of the drones in ``slots`` (all present drones when None) over every race.
+
+    ``success_ratio`` counts drones, with ``success_ci95`` from :func:`clustered_interval` (a race is the unit);
+    ``race_success_ratio`` is the share of races in which every counted drone finished, with a Wilson interval over
+    races (``race_success_ci95``).
+    """
     mask = res.present.clone()
     if slots is not None:
         keep = torch.zeros_like(mask)
@@ -41,6 +79,9 @@ def summarize_races(res: RaceResults, slots: list[int] | None = None) -> dict[st
         mask &= keep
     finished = res.finished[mask]
     n, k = int(mask.sum()), int(finished.sum())
+    raced = mask.any(dim=1)
+    races = int(raced.sum())
+    all_home = int(((res.finished | ~mask).all(dim=1) & raced).sum())
     mean, std = lap_statistics(res.lap_time[mask], finished)
     kinds = res.crash_kind[mask]
     crashes = {kind: int(((kinds & bit) != 0).sum()) for kind, bit in COLLISION_KINDS.items()}
@@ -49,7 +90,10 @@ def summarize_races(res: RaceResults, slots: list[int] | None = None) -> dict[st
     return {
         "drones": n,
         "success_ratio": k / n if n else 0.0,
-        "success_ci95": list(wilson_interval(k, n)),
+        "success_ci95": list(clustered_interval(res.finished, mask)),
+        "races": races,
+        "race_success_ratio": all_home / races if races else 0.0,
+        "race_success_ci95": list(wilson_interval(all_home, races)),
         "lap_time_mean": mean,
         "lap_time_std": std,
         "mean_speed": float(speed.mean()) if speed.numel() else None,

@@ -10,7 +10,7 @@ import torch
 
 from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
-from spiral.config.stage import SCENARIO_DRONES, StageSpec, learner_slots
+from spiral.config.stage import SCENARIO_DRONES, StageSpec
 from spiral.config.track import TrackSpec
 from spiral.selfplay.matchmaking import Matchmaker
 from spiral.selfplay.opponents import PoolOpponents
@@ -80,11 +80,12 @@ def run_stage(
     matchmaker = Matchmaker(len(ids), latest=latest, p_latest=stage.selfplay.p_latest,
                             p_first=stage.selfplay.p_first, mode=stage.selfplay.sampling, device=device)
     members = [policies[i] for i in ids]  # one list, shared by every format's opponents
+    p_self = 0.0 if stage.selfplay.mirror_actions == "learner" else stage.selfplay.p_self  # else: own parts
     opponents = {
-        fmt: PoolOpponents(members, matchmaker, world_count=worlds,
-                           per_world=SCENARIO_DRONES[fmt] - len(learner_slots(fmt)), generator=generator,
-                           p_self=stage.selfplay.p_self, offset=stage.selfplay.opponent_offset)
-        for fmt, worlds in stage.world_split().items() if fmt != "solo"
+        part.name: PoolOpponents(members, matchmaker, world_count=part.worlds,
+                                 per_world=SCENARIO_DRONES[part.scenario] - len(part.learner_slots),
+                                 generator=generator, p_self=p_self, offset=stage.selfplay.opponent_offset)
+        for part in stage.world_parts() if part.opponents
     }
 
     def add_opponent(path: Path) -> None:

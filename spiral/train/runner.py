@@ -106,11 +106,12 @@ class StageTrainer:
         self.env: RaceEnv | MixedRaceEnv = training_env(track, airframe, sim, stage, device=device,
                                                         seed=self.dist.seed(seed))
         opponents = opponent if isinstance(opponent, dict) else {stage.scenario: opponent} if opponent else {}
+        opponents = {name: policy for name, policy in opponents.items() if policy is not None}
         if opponents:
             if isinstance(self.env, MixedRaceEnv):
                 self.env.set_opponent_policies(opponents)
             else:
-                self.env.set_opponent_policy(opponents[stage.scenario])
+                self.env.set_opponent_policy(next(iter(opponents.values())))
             self.env.reset()  # the first episodes were drawn without opponents
         self.eval_env = RaceEnv(track, airframe, sim, stage.env, world_count=stage.selection.races,
                                 drones_per_world=d, learner_slots=list(range(d)), device=device,

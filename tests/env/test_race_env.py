@@ -236,6 +236,23 @@ def test_race_outcome_pays_the_first_finishers_team_and_charges_the_other_once(o
     assert not env.contested.any()
 
 
+def test_race_outcome_between_two_learner_drones_pays_by_race_team(oval2):
+    """A mirror world whose two drones are both learners (no opponent policy): the race is contested, and when slot
+    1 finishes first it gets +w and slot 0, still racing, −w."""
+    reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, lap=0.0, collision=0.0, win=5.0)
+    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), auto_reset=False, reward=reward)
+    fly = waypoint_policy(env, torch.tensor([1]))
+    obs = env.reset()
+    assert env.contested.all()
+    place(env, [[2.5, -2.5, 1.0], [-1.2, -1.0, 1.0]])
+    for _ in range(env.max_episode_length):
+        obs, _, _, _ = env.step(torch.cat([torch.zeros(1, 4), fly(obs)]))
+        if env.finished[1]:
+            break
+    assert bool(env.finished[1]) and not bool(env.crashed.any())
+    assert env.term_sums["win"].tolist() == pytest.approx([-5.0, 5.0])
+
+
 def test_only_start_box_races_against_opponents_are_contested(oval2):
     """Contest the winner of start-box races with opponents present, not of track starts or solo flights."""
     def contested(track_start_prob: float, opponents: bool) -> torch.Tensor:
@@ -247,6 +264,8 @@ def test_only_start_box_races_against_opponents_are_contested(oval2):
     assert contested(0.0, opponents=True).all()
     assert not contested(1.0, opponents=True).any()
     assert not contested(0.0, opponents=False).any()
+    solo = make_env(oval2, worlds=4, drones=1, learners=(0,))
+    assert not solo.contested.any()
 
 
 def test_crash_pays_the_penalty_once_and_ends_the_episode(oval2):

@@ -53,3 +53,40 @@ def test_race_summary_counts_successes_crashes_and_speed():
     assert s["crash_gates"] == {"2": 1}
     assert "drone_contacts" not in s  # results without crash partners (e.g. made by hand) leave it out
     assert summarize_races(res, [0])["success_ratio"] == pytest.approx(0.5)
+
+
+def hand_results(finished: list[list[bool]]) -> RaceResults:
+    f = torch.tensor(finished)
+    zeros = torch.zeros(f.shape)
+    return RaceResults(finished=f, crashed=~f, crash_kind=torch.where(f, 0, 8).int(), lap_time=zeros + 5.0 * f,
+                       gates_passed=zeros.long(), distance=zeros + f * 20.0, present=torch.ones_like(f))
+
+
+def test_per_race_success_needs_every_counted_drone_home():
+    """Four 1v1 races: both home, one contact (both down), one of two home, both home. Per drone 5/8, per race 2/4;
+    counting team A's slot only, 3 of 4 races."""
+    res = hand_results([[True, True], [False, False], [True, False], [True, True]])
+    s = summarize_races(res)
+    assert (s["success_ratio"], s["races"], s["race_success_ratio"]) == (5 / 8, 4, 0.5)
+    assert s["race_success_ci95"] == pytest.approx(list(wilson_interval(2, 4)))
+    assert summarize_races(res, [0])["race_success_ratio"] == 0.75
+
+
+def test_success_interval_takes_the_race_as_the_unit():
+    """Drones that crash in pairs carry the information of one race, not two: 40 1v1 races, 10 with a contact,
+    give p = 0.75 with SE² = Σ(k_r − 2p)²/(2R)² = (30·0.25 + 10·2.25)/6400, i.e. an effective 40 races (Wilson over
+    40), where counting 80 independent drones would be narrower. One drone per race is Wilson over the races."""
+    paired = hand_results([[True, True]] * 30 + [[False, False]] * 10)
+    lo, hi = summarize_races(paired)["success_ci95"]
+    assert (lo, hi) == pytest.approx(wilson_interval(30, 40))
+    assert hi - lo > wilson_interval(60, 80)[1] - wilson_interval(60, 80)[0]
+    solo = hand_results([[True]] * 45 + [[False]] * 5)
+    assert summarize_races(solo)["success_ci95"] == pytest.approx(list(wilson_interval(45, 50)))
+
+
+def test_success_interval_of_independent_looking_drones_is_capped_at_the_drone_count():
+    """One of two drones home in every race: no spread between races, the interval is Wilson's over the drones."""
+    res = hand_results([[True, False]] * 20)
+    assert summarize_races(res)["success_ci95"] == pytest.approx(list(wilson_interval(20, 40)))
+    assert summarize_races(hand_results([[True, True]] * 20))["success_ci95"] == pytest.approx(
+        list(wilson_interval(20, 20)))
