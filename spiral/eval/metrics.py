@@ -43,9 +43,8 @@ def clustered_interval(finished: torch.Tensor, mask: torch.Tensor, *, z: float =
         return 0.0, 1.0
     p = float(k.sum()) / total
     var = float(((k - p * n) ** 2).sum()) / total**2
-    if p in (0.0, 1.0):
-        n_eff = float(count)
-    else:  # no spread between races at all (e.g. one drone of two home in every race): as many as drones
+    n_eff = float(count)  # p ∈ {0, 1}: no spread to measure
+    if 0 < p < 1:  # no spread between races at all (e.g. one drone of two home in every race): as many as drones
         n_eff = min(p * (1 - p) / var, total) if var > 0 else total
     return _wilson(p, max(n_eff, count), z)
 
