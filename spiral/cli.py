@@ -192,18 +192,24 @@ def evaluate(
     sides: Annotated[str, typer.Option(
         "--sides", help="With --against: 'both' races every placement twice, sides swapped; 'a': method on team A "
         "only")] = "both",
+    separation: Annotated[str, typer.Option(
+        "--separation", help="Flight stack of every drone: 'keep' (as trained), 'none' (no separation filter) or "
+        "DISTANCE,HORIZON_S,GAIN (a filter)")] = "keep",
+    downwash: Annotated[bool | None, typer.Option(
+        "--downwash/--no-downwash", help="Switch the simulator's downwash on or off (default: as trained)")] = None,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
     json_out: JsonOut = None,
 ) -> None:
     """Race methods from seeded start placements (identical for every method) and report their metrics."""
-    from spiral.eval.evaluate import evaluate_methods, format_eval
+    from spiral.eval.evaluate import FlightOverride, evaluate_methods, format_eval, parse_separation
 
     if scenario not in ("solo", "1v1", "2v2"):
         raise ValueError(f"--scenario: expected solo, 1v1 or 2v2, got {scenario!r}")
     methods = dict(_parse_method(m) for m in method)
     opponent = _parse_method(against) if against else None
+    flight = FlightOverride(separation=parse_separation(separation), downwash=downwash)
     result = evaluate_methods(load_track(track), methods, scenario=scenario, runs=runs, seed=seed, device=device,
-                              against=opponent, sides=sides)
+                              against=opponent, sides=sides, flight=flight)
     typer.echo(format_eval(result))
     _write_json(json_out, result)
 

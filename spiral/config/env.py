@@ -29,6 +29,13 @@ class ObsCfg(StrictModel):
         description="Add whether each of the 2 nearest drones is a team mate (2v2: slots 0, 1 against 2, 3), so a "
         "policy shared by a team can treat its team mate otherwise than an opponent (not in the paper)",
     )
+    closest_approach: bool = Field(
+        default=False,
+        description="Add, for each of the 2 nearest drones, where it will be relative to the drone at their closest "
+        "approach within approach_horizon_s if both keep their velocities (3) and when, as a fraction of the horizon "
+        "(1): a time-to-collision sensor (not in the paper)",
+    )
+    approach_horizon_s: PosFloat = Field(default=0.5, description="Look-ahead of the closest-approach inputs [s]")
     priority: bool = Field(
         default=False,
         description="Add a random priority per drone, drawn uniformly in [0, 1) at every race start: the drone's "

@@ -51,7 +51,8 @@ class ObservationBuilder:
     def extra_dim(self) -> int:
         """Inputs outside the ego state, presence flags and history."""
         c = self.cfg
-        return 6 * c.gate_normals + 3 * c.pid_integral + 6 * c.opponent_velocity + 2 * c.teammates + 3 * c.priority
+        return (6 * c.gate_normals + 3 * c.pid_integral + 6 * c.opponent_velocity + 2 * c.teammates
+                + 8 * c.closest_approach + 3 * c.priority)
 
     @property
     def obs_dim(self) -> int:
@@ -61,9 +62,11 @@ class ObservationBuilder:
     def layout(self) -> dict:
         """Description of the observation vector, stored in checkpoints to refuse mismatched policies."""
         layout = {"obs_dim": self.obs_dim, **self.cfg.model_dump()}
-        for option in ("teammates", "priority"):  # layouts stored before an option existed stay equal
-            if not layout[option]:
+        for option in ("teammates", "priority", "closest_approach"):  # layouts stored before an option existed
+            if not layout[option]:                                      # stay equal
                 del layout[option]
+        if not self.cfg.closest_approach:
+            del layout["approach_horizon_s"]
         return layout
 
     def push(self, features: torch.Tensor, fresh: torch.Tensor) -> None:

@@ -457,20 +457,36 @@ class RaceEnv:
             extras.append(self.gate_forward[gate_idx].view(-1, 6))
         if c.pid_integral:
             extras.append(self.integral)
-        if c.opponent_velocity:
-            w, d = self.world_count, self.drones_per_world
+        w, d = self.world_count, self.drones_per_world
+        if c.opponent_velocity or c.closest_approach:
             vel_w = self.vel.view(w, d, 3)
             near_vel = torch.gather(vel_w, 1, near_idx.view(w, -1, 1).expand(-1, -1, 3)).view(w, d, 2, 3)
-            extras.append(((near_vel - vel_w[:, :, None]) * near_mask[..., None]).view(-1, 6))
+            rel_vel = (near_vel - vel_w[:, :, None]) * near_mask[..., None]
+        if c.opponent_velocity:
+            extras.append(rel_vel.view(-1, 6))
         if c.teammates:
             mate = self.race_team[near_idx] == self.race_team[None, :, None]
             extras.append((mate & near_mask).view(-1, 2).float())
+        if c.closest_approach:
+            extras.append(self._closest_approach(near_idx, near_mask, rel_vel))
         if c.priority:
             prio = self.priority.view(self.world_count, self.drones_per_world)
             higher = (torch.gather(prio, 1, near_idx.view(self.world_count, -1)).view(near_idx.shape)
                       - prio[:, :, None]) * near_mask
             extras.append(torch.cat([self.priority[:, None], higher.view(-1, 2)], dim=-1))
         return self.obs_builder.build(ego, presence, extras)
+
+    def _closest_approach(self, near_idx: torch.Tensor, near_mask: torch.Tensor, rel_vel: torch.Tensor) -> torch.Tensor:
+        """Per nearest drone (N, 2 · 4): its position relative to the drone at their closest approach within the
+        horizon, both at constant velocity, and the time of that approach over the horizon (zeros when absent)."""
+        w, d = self.world_count, self.drones_per_world
+        pos_w = self.pos.view(w, d, 3)
+        near_pos = torch.gather(pos_w, 1, near_idx.view(w, -1, 1).expand(-1, -1, 3)).view(w, d, 2, 3)
+        rel = (near_pos - pos_w[:, :, None]) * near_mask[..., None]
+        horizon = self.cfg.obs.approach_horizon_s
+        t = (-(rel * rel_vel).sum(-1) / rel_vel.square().sum(-1).clamp_min(1e-9)).clamp(0.0, horizon)
+        miss = rel + rel_vel * t[..., None]
+        return torch.cat([miss, (t / horizon)[..., None]], dim=-1).view(-1, 8)
 
     @property
     def obs_dim(self) -> int:

@@ -8,7 +8,8 @@ through the same action interface, so when it races a learned policy it uses tha
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import json
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +17,7 @@ import torch
 
 from spiral.baselines import opponent_policy, se_ibr_policy
 from spiral.config.airframe import AIRFRAMES, AirframeCfg
-from spiral.config.env import ActionCfg, EnvCfg, ObsCfg
+from spiral.config.env import ActionCfg, EnvCfg, ObsCfg, SeparationCfg
 from spiral.config.sim import SimCfg
 from spiral.config.stage import SCENARIO_DRONES
 from spiral.config.track import TrackSpec
@@ -50,6 +51,7 @@ __all__ = [
     "TEAMS",
     "Agent",
     "EvalLayout",
+    "FlightOverride",
     "check_sides",
     "cross_play",
     "eval_env_for",
@@ -57,6 +59,7 @@ __all__ = [
     "evaluate_policy",
     "format_eval",
     "load_agent",
+    "parse_separation",
     "race_agents",
     "setup_race",
 ]
@@ -86,6 +89,53 @@ class EvalLayout:
         return cls(airframe or AIRFRAMES["cf2x"], sim or SimCfg(), EnvCfg(), "defaults")
 
 
+KEEP = "keep"
+"""A :class:`FlightOverride` separation setting that keeps each policy's own."""
+
+
+@dataclass(frozen=True)
+class FlightOverride:
+    """Changes to the flight stack the policies were trained with, for one evaluation (zero-shot tests).
+
+    Every drone of the races flies with them, whichever method commands it.
+    """
+
+    separation: SeparationCfg | str | None = KEEP
+    """A separation filter between policy and PID (``SeparationCfg``), ``None`` for none (the paper's stack), or
+    ``"keep"``: the trained layout's own."""
+    downwash: bool | None = None
+    """Switch the simulator's downwash on or off; None keeps the trained setting."""
+
+    def apply(self, layout: EvalLayout) -> EvalLayout:
+        """``layout`` with these changes."""
+        env, sim = layout.env, layout.sim
+        if self.separation != KEEP:
+            env = env.model_copy(update={"action": env.action.model_copy(update={"separation": self.separation})})
+        if self.downwash is not None:
+            sim = sim.model_copy(update={"downwash": self.downwash})
+        return replace(layout, env=env, sim=sim)
+
+    def to_json(self) -> dict[str, Any]:
+        """What changes, for evaluation files."""
+        out: dict[str, Any] = {}
+        if isinstance(self.separation, SeparationCfg) or self.separation is None:
+            out["separation"] = None if self.separation is None else self.separation.model_dump()
+        if self.downwash is not None:
+            out["downwash"] = self.downwash
+        return out
+
+
+def parse_separation(text: str) -> SeparationCfg | str | None:
+    """``keep``, ``none`` or ``DISTANCE,HORIZON_S,GAIN`` as a :class:`FlightOverride` separation setting."""
+    if text in (KEEP, "none"):
+        return None if text == "none" else KEEP
+    try:
+        distance, horizon, gain = (float(x) for x in text.split(","))
+    except ValueError:
+        raise ValueError(f"--separation: expected keep, none or DISTANCE,HORIZON_S,GAIN, got {text!r}") from None
+    return SeparationCfg(distance=distance, horizon_s=horizon, gain=gain)
+
+
 def load_agent(spec: str | Path, *, device: str = "cpu") -> Agent:
     """The planner for ``se-ibr`` (any case), else the policy of the checkpoint at ``spec``."""
     return SE_IBR if str(spec).lower() == SE_IBR else load_policy(Path(spec), device=device)
@@ -112,10 +162,12 @@ def _race_env(layout: EvalLayout, track: TrackSpec, scenario: str, runs: int, se
 
 
 def setup_race(track: TrackSpec, scenario: str, runs: int, seed: int, agent: Agent, opponent: Agent | None = None,
-               *, device: str = "cpu", layout: EvalLayout | None = None) -> tuple[RaceEnv, Policy]:
+               *, device: str = "cpu", layout: EvalLayout | None = None,
+               flight: FlightOverride | None = None) -> tuple[RaceEnv, Policy]:
     """A fresh race env and the policy of its learner slots: ``agent`` everywhere, or team A vs ``opponent``.
 
-    The env takes ``agent``'s layout if it is learned, else ``opponent``'s, else ``layout`` (defaults when None).
+    The env takes ``agent``'s layout if it is learned, else ``opponent``'s, else ``layout`` (defaults when None),
+    changed by ``flight``.
     """
     if opponent is not None and scenario == "solo":
         raise ValueError("cross-play needs a 1v1 or 2v2 scenario")
@@ -123,6 +175,8 @@ def setup_race(track: TrackSpec, scenario: str, runs: int, seed: int, agent: Age
         _check_compatible(agent, opponent)
     learned = [a for a in (agent, opponent) if isinstance(a, FrozenPolicy)]
     chosen = EvalLayout.of_policy(learned[0]) if learned else (layout or EvalLayout.default())
+    if flight is not None:
+        chosen = flight.apply(chosen)
     env = _race_env(chosen, track, scenario, runs, seed, device=device, team_a_only=opponent is not None)
     if opponent is not None:
         opp: OpponentPolicy = opponent_policy(env) if isinstance(opponent, str) else opponent
@@ -139,10 +193,11 @@ def _check_compatible(a: FrozenPolicy, b: FrozenPolicy) -> None:
 
 
 def race_agents(track: TrackSpec, scenario: str, runs: int, seed: int, agent: Agent, opponent: Agent | None = None,
-                *, device: str = "cpu", layout: EvalLayout | None = None,
-                record: bool = False) -> tuple[RaceResults, torch.Tensor | None]:
+                *, device: str = "cpu", layout: EvalLayout | None = None, record: bool = False,
+                flight: FlightOverride | None = None) -> tuple[RaceResults, torch.Tensor | None]:
     """Race ``agent`` (self-match) or team ``agent`` against team ``opponent``; winners only in cross-play."""
-    env, policy = setup_race(track, scenario, runs, seed, agent, opponent, device=device, layout=layout)
+    env, policy = setup_race(track, scenario, runs, seed, agent, opponent, device=device, layout=layout,
+                             flight=flight)
     res = run_races(env, policy, record=record, teams=TEAMS[scenario])
     return res, race_winners(res, TEAMS[scenario]) if opponent is not None else None
 
@@ -154,8 +209,8 @@ def evaluate_policy(policy: FrozenPolicy, track: TrackSpec, scenario: str, runs:
 
 
 def cross_play(a: Agent, b: Agent, track: TrackSpec, scenario: str, runs: int, seed: int, *,
-               device: str = "cpu", layout: EvalLayout | None = None,
-               sides: str = "both") -> tuple[RaceResults, torch.Tensor]:
+               device: str = "cpu", layout: EvalLayout | None = None, sides: str = "both",
+               flight: FlightOverride | None = None) -> tuple[RaceResults, torch.Tensor]:
     """Team ``a`` against team ``b``: per-drone results and each race's winner (0 = ``a``, 1 = ``b``, −1 = none).
 
     ``sides="a"``: ``runs`` races with ``a`` on team A's slots (the first ones). ``sides="both"``: every placement is
@@ -164,11 +219,11 @@ def cross_play(a: Agent, b: Agent, track: TrackSpec, scenario: str, runs: int, s
     ``a``'s are in team A's slots of the results as well.
     """
     check_sides(sides)
-    res, winners = race_agents(track, scenario, runs, seed, a, b, device=device, layout=layout)
+    res, winners = race_agents(track, scenario, runs, seed, a, b, device=device, layout=layout, flight=flight)
     assert winners is not None
     if sides == "a":
         return res, winners
-    swapped, won = race_agents(track, scenario, runs, seed, b, a, device=device, layout=layout)
+    swapped, won = race_agents(track, scenario, runs, seed, b, a, device=device, layout=layout, flight=flight)
     assert won is not None
     team_a, team_b = TEAMS[scenario][0], TEAMS[scenario][-1]
     back = swapped.permuted([*team_b, *team_a])
@@ -178,7 +233,7 @@ def cross_play(a: Agent, b: Agent, track: TrackSpec, scenario: str, runs: int, s
 def evaluate_methods(track: TrackSpec, methods: dict[str, str | Path], *, scenario: str, runs: int, seed: int,
                      device: str = "cpu", against: tuple[str, str | Path] | None = None,
                      airframe: AirframeCfg | None = None, sim: SimCfg | None = None,
-                     sides: str = "both") -> dict[str, Any]:
+                     sides: str = "both", flight: FlightOverride | None = None) -> dict[str, Any]:
     """The evaluation JSON of ``spiral eval``: metrics of each named method in ``scenario``.
 
     A method is a checkpoint path or ``se-ibr``. Without ``against`` every drone of a race runs the method
@@ -187,9 +242,11 @@ def evaluate_methods(track: TrackSpec, methods: dict[str, str | Path], *, scenar
     see :func:`cross_play`; ``win_rate_by_side`` splits the win rate by where the method started). Planner-only
     races use the layout
     of the first learned method (or ``airframe``/``sim`` and default env settings when there is none); the
-    entry's ``layout`` says which.
+    entry's ``layout`` says which. ``flight`` changes the flight stack of every drone (JSON ``flight``).
     """
     out: dict[str, Any] = {"track": track.name, "scenario": scenario, "runs": runs, "seed": seed, "methods": {}}
+    if flight is not None and flight.to_json():
+        out["flight"] = flight.to_json()
     check_sides(sides)
     if against is not None:
         out["against"] = {"name": against[0], "checkpoint": str(against[1])}
@@ -204,11 +261,11 @@ def evaluate_methods(track: TrackSpec, methods: dict[str, str | Path], *, scenar
     for name, agent in agents.items():
         entry: dict[str, Any] = {"checkpoint": str(methods[name])}
         if opponent is None:
-            res, _ = race_agents(track, scenario, runs, seed, agent, device=device, layout=fallback)
+            res, _ = race_agents(track, scenario, runs, seed, agent, device=device, layout=fallback, flight=flight)
             entry.update(summarize_races(res))
         else:
             res, winners = cross_play(agent, opponent, track, scenario, runs, seed, device=device, layout=fallback,
-                                      sides=sides)
+                                      sides=sides, flight=flight)
             won = (winners == 0).float()
             entry.update({**summarize_races(res, team_a), "win_rate": float(won.mean()),
                           "loss_rate": float((winners == 1).float().mean()),
@@ -228,12 +285,16 @@ def format_eval(result: dict[str, Any]) -> str:
         head += f", against {result['against']['name']}"
         if result.get("sides") == "both":
             head += " (each placement raced from both sides)"
-    lines = [head, f"{'method':<20} {'success':>8} {'95% CI':>15} {'lap [s]':>14} {'win':>6}  crashes"]
+    if "flight" in result:
+        head += f", flight stack changed: {json.dumps(result['flight'])}"
+    lines = [head, f"{'method':<20} {'success':>8} {'95% CI':>15} {'races':>6} {'lap [s]':>14} {'win':>6}  crashes"]
     for name, m in result["methods"].items():
         lap = f"{m['lap_time_mean']:.2f} ± {m['lap_time_std']:.2f}" if m["lap_time_mean"] is not None else "-"
         lo, hi = m["success_ci95"]
         win = f"{m['win_rate']:.2f}" if "win_rate" in m else "-"
         crashes = ", ".join(f"{k} {v}" for k, v in m["crashes"].items() if v)
-        lines.append(f"{name:<20} {m['success_ratio']:>8.2f} {f'[{lo:.2f}, {hi:.2f}]':>15} {lap:>14} {win:>6}  "
-                     f"{crashes or 'none'}")
+        lines.append(f"{name:<20} {m['success_ratio']:>8.2f} {f'[{lo:.2f}, {hi:.2f}]':>15} "
+                     f"{m['race_success_ratio']:>6.2f} {lap:>14} {win:>6}  {crashes or 'none'}")
+    lines.append("success: drones home; 95% CI with the race as the unit; races: share of races with every counted "
+                 "drone home")
     return "\n".join(lines)

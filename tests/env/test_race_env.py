@@ -125,6 +125,23 @@ def test_priority_inputs_give_the_own_priority_and_how_much_higher_the_nearest_d
     assert not torch.equal(env.priority, torch.tensor([0.5, 0.9, 0.2, 0.6]))
 
 
+def test_closest_approach_inputs_predict_where_and_when_the_nearest_drones_pass(oval2):
+    """Drone 1 0.4 m ahead and 0.1 m aside, closing at 2 m/s: they pass 0.1 m apart at t* = 0.2 s, 0.4 of the 0.5 s
+    horizon; each drone sees the other's offset at that moment. A drone that moves away is at its closest now."""
+    obs_cfg = ObsCfg(history_len=1, closest_approach=True, approach_horizon_s=0.5)
+    env = make_env(oval2, worlds=1, drones=3, learners=(0, 1, 2), obs=obs_cfg)
+    assert env.obs_dim == 12 + 2 + 8 + HISTORY_FEATURES
+    place(env, [[-1.0, -1.0, 1.0], [-0.6, -0.9, 1.0], [-1.0, -2.0, 1.0]])
+    env.vel[:] = torch.tensor([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    approach = env._build_observations()[:, 14:22].view(3, 2, 4)
+    torch.testing.assert_close(approach[0, 0], torch.tensor([0.0, 0.1, 0.0, 0.4]))
+    torch.testing.assert_close(approach[1, 0], torch.tensor([0.0, -0.1, 0.0, 0.4]))
+    torch.testing.assert_close(approach[0, 1], torch.tensor([0.0, -1.0, 0.0, 0.0]))  # drone 2 flies off
+    env.out[1] = env.out[2] = 1
+    env.get_observations()
+    assert not env._build_observations()[0, 14:22].any()
+
+
 def test_observation_gives_next_two_gates_relative_to_the_drone(oval2):
     """Report gate 0 then gate 1 relative to the drone's position."""
     env = make_env(oval2, worlds=1, obs=ObsCfg(history_len=1))
