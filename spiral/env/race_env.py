@@ -171,33 +171,37 @@ class RaceEnv:
         return self.get_observations()
 
     def _reset_worlds(self, worlds: torch.Tensor) -> None:
-        """Draw new starts for the worlds in the bool mask ``worlds`` and reset them in the simulator."""
-        w, d = self.world_count, self.drones_per_world
-        pos, yaw = sample_box_starts(self.track, w, d, self.generator, device=self.device)
+        """Draw new starts for the worlds in the bool mask ``worlds`` and reset them in the simulator.
+
+        Starts are drawn for those worlds only, in world order, so a reset of every world draws what it always did.
+        """
+        d = self.drones_per_world
+        idx = worlds.nonzero().squeeze(1)
+        n = idx.numel()
+        pos, yaw = sample_box_starts(self.track, n, d, self.generator, device=self.device)
         vel = torch.zeros_like(pos)
-        gate = torch.zeros(w, d, dtype=torch.int32, device=self.device)
-        box = torch.ones(w, dtype=torch.bool, device=self.device)
+        gate = torch.zeros(n, d, dtype=torch.int32, device=self.device)
+        box = torch.ones(n, dtype=torch.bool, device=self.device)
         if self.auto_reset and self.cfg.episode.track_start_prob > 0:
             t_pos, t_vel, t_yaw, t_gate = sample_track_starts(
-                self.track, w, d, self.generator, max_speed=self.cfg.episode.track_start_speed, device=self.device)
-            use = (torch.rand(w, generator=self.generator, device=self.device) < self.cfg.episode.track_start_prob)
+                self.track, n, d, self.generator, max_speed=self.cfg.episode.track_start_speed, device=self.device)
+            use = (torch.rand(n, generator=self.generator, device=self.device) < self.cfg.episode.track_start_prob)
             pos, vel = torch.where(use[:, None, None], t_pos, pos), torch.where(use[:, None, None], t_vel, vel)
             yaw, gate = torch.where(use[:, None], t_yaw, yaw), torch.where(use[:, None], t_gate.int(), gate)
             box = ~use
         t = wp.to_torch
         t(self._wp_mask).copy_(worlds.int())
-        t(self._wp_pos).copy_(pos.reshape(-1, 3))
-        t(self._wp_vel).copy_(vel.reshape(-1, 3))
-        t(self._wp_yaw).copy_(yaw.reshape(-1))
-        t(self._wp_gate).copy_(gate.reshape(-1))
+        t(self._wp_pos).view(-1, d, 3)[idx] = pos
+        t(self._wp_vel).view(-1, d, 3)[idx] = vel
+        t(self._wp_yaw).view(-1, d)[idx] = yaw
+        t(self._wp_gate).view(-1, d)[idx] = gate
         self.world.reset(self._wp_mask, self._wp_pos, self._wp_yaw, init_vel=self._wp_vel,
                          init_next_gate=self._wp_gate)
         drones = worlds.repeat_interleave(d)
         self._reset_drone_buffers(drones)
         if self.cfg.obs.priority:
-            self.priority = torch.where(drones, torch.rand(w * d, generator=self.generator, device=self.device),
-                                        self.priority)
-        self.contested = torch.where(worlds, box & self._teams_race(), self.contested)
+            self.priority[drones] = torch.rand(n * d, generator=self.generator, device=self.device)
+        self.contested[idx] = box & self._teams_race()
         if hasattr(self.opponent_policy, "reset"):
             self.opponent_policy.reset(worlds)
 

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from tensordict import TensorDict
 
 from spiral.baselines import opponent_policy, se_ibr_policy
 from spiral.config.airframe import AIRFRAMES, AirframeCfg
@@ -46,16 +47,19 @@ Agent = FrozenPolicy | str
 """A loaded method: a learned policy or :data:`SE_IBR`."""
 
 __all__ = [
+    "MIXED_SLOTS",
     "SE_IBR",
     "SIDES",
     "TEAMS",
     "Agent",
     "EvalLayout",
     "FlightOverride",
+    "SlotPolicy",
     "check_sides",
     "cross_play",
     "eval_env_for",
     "evaluate_methods",
+    "evaluate_mixed_teams",
     "evaluate_policy",
     "format_eval",
     "load_agent",
@@ -275,6 +279,52 @@ def evaluate_methods(track: TrackSpec, methods: dict[str, str | Path], *, scenar
         if isinstance(agent, str) and (opponent is None or isinstance(opponent, str)):
             entry["layout"] = fallback.source
         out["methods"][name] = entry
+    return out
+
+
+MIXED_SLOTS: tuple[list[int], list[int]] = ([0, 2], [1, 3])
+"""2v2 slots of the first and second method in a mixed-team race: each team has one drone of each."""
+
+
+class SlotPolicy:
+    """Drives every slot of a race env's worlds, each slot with its own policy (rows are world-major)."""
+
+    def __init__(self, policies: list[Policy]) -> None:
+        self.policies = policies
+
+    def __call__(self, obs: TensorDict) -> torch.Tensor:
+        """Actions of every drone: slot ``s`` of each world from ``policies[s]``."""
+        d = len(self.policies)
+        slot = torch.arange(obs.batch_size[0], device=obs.device) % d
+        actions = torch.zeros(obs.batch_size[0], 4, device=obs.device)
+        for s, policy in enumerate(self.policies):
+            actions[slot == s] = policy(obs[slot == s])
+        return actions
+
+
+def evaluate_mixed_teams(track: TrackSpec, methods: dict[str, str | Path], *, runs: int, seed: int,
+                         device: str = "cpu", flight: FlightOverride | None = None) -> dict[str, Any]:
+    """2v2 races of two learned methods in mixed teams: each team has one drone of each method
+    (:data:`MIXED_SLOTS`), so every drone races a stranger as its team mate and as an opponent. Per method, the
+    metrics of its drones (no win rate: the teams are alike)."""
+    if len(methods) != 2:
+        raise ValueError(f"mixed teams need exactly two methods, got {len(methods)}")
+    agents = {name: load_agent(path, device=device) for name, path in methods.items()}
+    if any(not isinstance(a, FrozenPolicy) for a in agents.values()):
+        raise ValueError("mixed teams are raced by learned policies only")
+    a, b = agents.values()
+    _check_compatible(a, b)  # type: ignore[arg-type]
+    layout = EvalLayout.of_policy(a)  # type: ignore[arg-type]
+    if flight is not None:
+        layout = flight.apply(layout)
+    env = _race_env(layout, track, "2v2", runs, seed, device=device, team_a_only=False)
+    res = run_races(env, SlotPolicy([a, b, a, b]), teams=TEAMS["2v2"])  # type: ignore[list-item]
+    out: dict[str, Any] = {"track": track.name, "scenario": "2v2", "runs": runs, "seed": seed, "mixed": True,
+                           "methods": {}}
+    if flight is not None and flight.to_json():
+        out["flight"] = flight.to_json()
+    for (name, path), slots in zip(methods.items(), MIXED_SLOTS, strict=True):
+        out["methods"][name] = {"checkpoint": str(path), "slots": slots, **summarize_races(res, slots)}
     return out
 
 

@@ -388,3 +388,19 @@ def test_race_critic_sees_every_other_drone_opponents_first(oval2):
     rows = env.get_observations()["critic"][1, env.obs_dim :].view(3, 8)  # drone 1: opponents 2 and 3, teammate 0
     assert rows[1].tolist() == [0.0] * 6 + [0.0, 2.0]
     assert torch.allclose(rows[2, :3], torch.tensor([0.0, -0.5, 0.0]), atol=1e-6) and rows[2, 6] == 1.0
+
+
+def test_resetting_some_worlds_draws_starts_for_them_only_and_a_full_reset_draws_as_before(oval2):
+    """Worlds 1 and 3 of 4 restart in the start box; 0 and 2 keep their state. A reset of every world draws the
+    placements of a fresh env with the same seed (evaluation placements do not depend on earlier partial resets)."""
+    env = make_env(oval2, worlds=4, drones=2, learners=(0,))
+    fresh = make_env(oval2, worlds=4, drones=2, learners=(0,))
+    torch.testing.assert_close(env.pos, fresh.pos)
+    env.pos[:] = 5.0
+    env._reset_worlds(torch.tensor([False, True, False, True]))
+    pos = env.pos.view(4, 2, 3)
+    assert (pos[[0, 2]] == 5.0).all()
+    lo = torch.tensor(oval2.start.center) - torch.tensor(oval2.start.size) / 2
+    hi = lo + torch.tensor(oval2.start.size)
+    assert ((pos[[1, 3]] >= lo - 1e-6) & (pos[[1, 3]] <= hi + 1e-6)).all()
+    assert ((pos[[1, 3], 0] - pos[[1, 3], 1]).norm(dim=-1) >= oval2.start.min_separation - 1e-6).all()

@@ -50,16 +50,22 @@ def test_report_builds_tables_figures_and_csv_from_a_tiny_run(sprint, tiny_check
     md = md_path.read_text()
     bound = json.loads((out / "bound.json").read_text())["lap_time"]
 
-    assert f"| PPO Selfplay (SPIRAL) | 9.87 ± 0.12 | 0.75 [0.30, 0.95] | {9.87 / bound:.2f} | 13.7124 ± 0.0005 |" in md
-    assert "| PPO No Selfplay | missing | missing | – | 16.3134 ± 0.0727 | 0.8000 ± 0.0200 |" in md
+    # an eval.json written before races were counted has no per-race success: "–"
+    assert f"| PPO Selfplay (SPIRAL) | 9.87 ± 0.12 | 0.75 [0.30, 0.95] | – | {9.87 / bound:.2f} | 13.7124 ± 0.0005 |" in md
+    assert "| PPO No Selfplay | missing | missing | missing | – | 16.3134 ± 0.0727 | 0.8000 ± 0.0200 |" in md
     # 2 races of 4 drones, none home: the interval takes the 2 races as the unit, not the 8 drones
-    assert "| PPO No Selfplay | – (no finished lap) | 0.00 [0.00, 0.66] | – | 17.82 ± 0.27 | 0.31 ± 0.12 |" in md
+    assert "| PPO No Selfplay | – (no finished lap) | 0.00 [0.00, 0.66] | 0.00 | – | 17.82 ± 0.27 | 0.31 ± 0.12 |" in md
     assert "no pool-mode 2v2 stage" in md and "pass --se-ibr" in md
     assert "Every drone flew with the paper's flight stack (no separation filter)." in md
     assert md.count("(draws ") == 2  # one pairing per scenario: each scenario has one learned approach
-    assert sorted(logs) == ["report: running cross-1v1-spiral-vs-spiral (2 races, seed 0)",
+    assert sorted(logs) == sorted(["report: running cross-1v1-spiral-vs-spiral (2 races, seed 0)",
                             "report: running cross-2v2-noselfplay-vs-noselfplay (2 races, seed 0)",
-                            "report: running self-2v2-noselfplay (2 races, seed 0)"]
+                            *(f"report: running self-{s}-{k}-final (2 races, seed 0)" for s in ("1v1", "2v2")
+                              for k in ("noselfplay", "spiral")),
+                            "report: running self-1v1-spiral-downwash (2 races, seed 0)",
+                            "report: running self-2v2-noselfplay (2 races, seed 0)",
+                            "report: running self-2v2-noselfplay-downwash (2 races, seed 0)",
+                            *(f"report: running self-solo-{k}-final (2 races, seed 0)" for k in ("noselfplay", "spiral"))])
 
     with open(out / "results.csv") as f:
         rows = {(r["scenario"], r["approach"]): r for r in csv.DictReader(f)}
@@ -111,7 +117,8 @@ def test_report_races_the_learned_policies_again_from_held_out_placements(sprint
     row = next(line for line in section.splitlines() if line.startswith("| 1v1 |"))
     lo, hi = spiral["success_ci95"]
     assert row.split(" | ")[1].startswith(f"{spiral['success_ratio']:.3f} [{lo:.2f}, {hi:.2f}]")
-    assert row.endswith(f"| {duel['win_rate']:.2f} / {duel['loss_rate']:.2f} / {duel['draws']:.2f} |")
+    assert row.endswith(f"| {duel['win_rate']:.2f} / {duel['loss_rate']:.2f} / {duel['draws']:.2f}; "
+                        f"home {duel['success_ratio']:.3f} |")
     assert "| 2v2 | missing |" in section and section.split("| 2v2 |")[1].split("\n")[0].endswith("| – |")
     assert "(seed 7)" in section and "protocol's placements (seed 0)" in section
 

@@ -1,0 +1,145 @@
+"""Report sections beyond the paper's tables: the learned methods under the opt-in separation filter, the final
+policy of each method in every race format, racing strangers, and downwash they never trained with."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from spiral.config.env import SeparationCfg
+from spiral.eval.evaluate import SE_IBR, FlightOverride
+from spiral.eval.runs import MODE_OF, Evaluations, RowResult, StageRun
+
+__all__ = ["FORMATS", "Robustness", "filter_rows", "final_stages", "measure_robustness", "robustness_markdown"]
+
+FORMATS = ("solo", "1v1", "2v2")
+"""Race formats a final policy is raced in."""
+
+NAMES = {"spiral": "SPIRAL", "noselfplay": "PPO No Selfplay", "se-ibr": "SE-IBR"}
+"""Short method names of these sections."""
+
+
+@dataclass
+class Robustness:
+    """What the extra sections measured (None where a method or its stage is missing)."""
+
+    formats: dict[str, dict[str, RowResult]] = field(default_factory=dict)
+    """Approach -> format -> self-match of the approach's final policy."""
+    strangers: dict[str, dict[str, dict[str, Any]]] = field(default_factory=dict)
+    """Scenario -> approach -> opponent label -> metrics of the approach's drones (cross-play entries)."""
+    downwash: dict[str, dict[str, RowResult]] = field(default_factory=dict)
+    """Scenario -> approach -> self-match with downwash on."""
+    runs: int = 0
+    seed: int = 0
+    final_names: dict[str, str] = field(default_factory=dict)
+    """Approach -> the stage whose best is its final policy."""
+
+
+def final_stages(stages: list[StageRun]) -> dict[str, StageRun]:
+    """Each learned approach's final policy: the stage published under a name (``publish_as``), else its last
+    stage."""
+    out = {}
+    for key, mode in MODE_OF.items():
+        own = [s for s in stages if s.mode == mode and s.best.is_file()]
+        published = [s for s in own if s.spec["stage"].get("publish_as")]
+        if published or own:
+            out[key] = (published or own)[-1]
+    return out
+
+
+def filter_rows(ev: Evaluations, separation: SeparationCfg) -> dict[str, list[RowResult]]:
+    """Per scenario, the learned approaches' self-matches with the separation filter, raced with ``ev``."""
+    out = {}
+    for scenario in ("1v1", "2v2"):
+        agents = {key: a for key in MODE_OF if (a := ev.agent(scenario, key)) is not None}
+        out[scenario] = [ev.flown(scenario, key, a, FlightOverride(separation=separation), "filter")
+                         for key, a in agents.items()]
+    return out
+
+
+def measure_robustness(ev: Evaluations, protocol: Evaluations, stages: list[StageRun], *,
+                       se_ibr: bool) -> Robustness:
+    """Race everything the extra sections need: self-matches and pairings with ``ev``'s races and seed; pairings
+    with SE-IBR (when ``se_ibr``) with ``protocol``'s, the races of the cross-play tables."""
+    out = Robustness(runs=ev.runs, seed=ev.seed)
+    finals = final_stages(stages)
+    out.final_names = {key: stage.name for key, stage in finals.items()}
+    for key, stage in finals.items():
+        out.formats[key] = {fmt: ev.flown(fmt, key, str(stage.best), FlightOverride(), "final") for fmt in FORMATS}
+    for scenario in ("1v1", "2v2"):
+        agents = {key: a for key in MODE_OF if (a := ev.agent(scenario, key)) is not None}
+        out.downwash[scenario] = {key: ev.flown(scenario, key, a, FlightOverride(downwash=True), "downwash")
+                                  for key, a in agents.items()}
+        out.strangers[scenario] = _strangers(ev, protocol, scenario, agents, se_ibr)
+    return out
+
+
+def _strangers(ev: Evaluations, protocol: Evaluations, scenario: str, agents: dict[str, str],
+               se_ibr: bool) -> dict[str, dict[str, Any]]:
+    """Approach -> opponent label -> metrics of the approach's drones; each pairing is raced once and read from
+    both teams."""
+    rows: dict[str, dict[str, Any]] = {key: {"itself": ev.self_match(scenario, key).metrics} for key in agents}
+    keys = list(agents)
+    for i, a in enumerate(keys):
+        for b in keys[i + 1:]:
+            entry = ev.cross(scenario, (a, agents[a]), (b, agents[b]))
+            rows[a][NAMES[b]] = entry
+            rows[b][NAMES[a]] = {**entry["opponent"], "win_rate": entry["loss_rate"],
+                                 "loss_rate": entry["win_rate"], "draws": entry["draws"]}
+            if scenario == "2v2":
+                mixed = ev.mixed((a, agents[a]), (b, agents[b]))
+                rows[a]["mixed teams"], rows[b]["mixed teams"] = mixed[a], mixed[b]
+    if se_ibr:
+        for key in keys:
+            rows[key][f"{NAMES['se-ibr']} ({protocol.runs} races)"] = protocol.cross(
+                scenario, (key, agents[key]), ("se-ibr", SE_IBR))
+    return rows
+
+
+def robustness_markdown(rb: Robustness, sides: str) -> list[str]:
+    """The sections' markdown lines."""
+    where = f"{rb.runs} placements of seed {rb.seed}"
+    lines = ["## One policy for every format", "",
+             f"Each method's final policy ({', '.join(f'{NAMES[k]}: stage {n}' for k, n in rb.final_names.items())}) "
+             f"in self-matches of every race format, from {where}.", "",
+             "| Method | " + " | ".join(FORMATS) + " |", "|---" * (len(FORMATS) + 1) + "|"]
+    for key, by_format in rb.formats.items():
+        lines.append(f"| {NAMES[key]} | " + " | ".join(_self_cell(by_format[f].metrics) for f in FORMATS) + " |")
+    side = "each placement from both sides" if sides == "both" else "on team A"
+    lines += ["", "## Racing strangers", "",
+              f"Each learned method (its stage's best, as in the tables) racing drones it did not train with, from "
+              f"{where} ({side}): success of its drones with its 95% interval, races in which all of its drones "
+              "finished, its crashes (gate frames / drone contacts) and, against a team, its win / loss / draw. Mixed "
+              "teams: 2v2 races whose teams each have one drone of each method.", "",
+              "| Scenario | Method | Against | Success | Races all home | Crashes gate / drone | Win / loss / draw |",
+              "|---|---|---|---|---|---|---|"]
+    for scenario, by_key in rb.strangers.items():
+        for key, rows in by_key.items():
+            for label, m in rows.items():
+                lines.append(f"| {scenario} | {NAMES[key]} | {label} | {_stranger_cells(m)} |")
+    lines += ["", "## Downwash (zero-shot)", "",
+              f"Self-matches from {where} with the simulator's downwash on (a force under each drone on the drones "
+              "below it; docs/physics.md); no policy trained with it.", "",
+              "| Scenario | " + " | ".join(NAMES[k] for k in MODE_OF) + " |", "|---" * (len(MODE_OF) + 1) + "|"]
+    for scenario, by_key in rb.downwash.items():
+        lines.append(f"| {scenario} | " + " | ".join(_self_cell(by_key[k].metrics) if k in by_key else "missing"
+                                                       for k in MODE_OF) + " |")
+    return [*lines, ""]
+
+
+def _self_cell(m: dict[str, Any] | None) -> str:
+    if m is None:
+        return "missing"
+    lo, hi = m["success_ci95"]
+    lap = "no finished lap" if m["lap_time_mean"] is None else f"{m['lap_time_mean']:.2f} s"
+    return f"{m['success_ratio']:.3f} [{lo:.2f}, {hi:.2f}], {lap}"
+
+
+def _stranger_cells(m: dict[str, Any] | None) -> str:
+    if m is None:
+        return "missing | – | – | –"
+    lo, hi = m["success_ci95"]
+    crashes = m["crashes"]
+    races = f"{m['race_success_ratio']:.3f}" if "race_success_ratio" in m else "–"
+    duel = f"{m['win_rate']:.2f} / {m['loss_rate']:.2f} / {m['draws']:.2f}" if "win_rate" in m else "–"
+    return f"{m['success_ratio']:.3f} [{lo:.2f}, {hi:.2f}] | {races} | {crashes['gate']} / {crashes['drone']} | {duel}"

@@ -1,0 +1,229 @@
+"""A pipeline's run folder as the report reads it: its stages, and their evaluations found there or run and cached.
+
+Inputs are read from ``runs/<pipeline>/``: each ``train-<stage>/spec.json`` (scenario, self-play mode, airframe,
+simulator, track), ``train-<stage>/best.pt``, ``train-<stage>/train_log.jsonl`` and ``eval-<stage>/eval.json``.
+Evaluations the run folder lacks are run with the same races and seed and cached under ``<out>/evals/`` with the
+checksums of the checkpoints they used, so a second report reuses them.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from spiral.config.airframe import AIRFRAMES, AirframeCfg
+from spiral.config.sim import SimCfg
+from spiral.config.track import TrackSpec
+from spiral.eval.evaluate import SE_IBR, FlightOverride, evaluate_methods, evaluate_mixed_teams
+from spiral.train.checkpoint import file_sha256
+
+__all__ = ["MODE_OF", "Evaluations", "RowResult", "StageRun", "find_stages", "load_json", "read_train_log",
+           "run_protocol", "run_setup", "track_of_run"]
+
+MODE_OF = {"spiral": "pool", "noselfplay": "frozen"}
+"""Self-play mode of the stages of each learned approach."""
+
+
+@dataclass
+class StageRun:
+    """One training stage found in a run folder."""
+
+    name: str
+    scenario: str
+    mode: str
+    """Self-play mode: ``pool`` (SPIRAL) or ``frozen`` (PPO without self-play)."""
+    train_dir: Path
+    eval_path: Path
+    spec: dict[str, Any]
+
+    @property
+    def best(self) -> Path:
+        """The stage's best policy."""
+        return self.train_dir / "best.pt"
+
+
+@dataclass
+class RowResult:
+    """One cell row of a table: an approach in a scenario."""
+
+    scenario: str
+    key: str
+    agent: str | None = None
+    """Checkpoint path or ``se-ibr`` that produced (or can produce) the numbers."""
+    metrics: dict[str, Any] | None = None
+    source: str = ""
+    note: str = ""
+
+
+def find_stages(run_root: Path) -> list[StageRun]:
+    """Stages with a ``train-<stage>/spec.json`` under ``run_root``, in name order."""
+    out = []
+    for spec_path in sorted(Path(run_root).glob("train-*/spec.json")):
+        spec = json.loads(spec_path.read_text())
+        stage = spec["stage"]
+        out.append(StageRun(stage["name"], stage["scenario"], stage["selfplay"]["mode"], spec_path.parent,
+                            Path(run_root) / f"eval-{stage['name']}" / "eval.json", spec))
+    return out
+
+
+def track_of_run(run_root: Path) -> TrackSpec:
+    """The track recorded in the run folder's stage specs."""
+    stages = find_stages(run_root)
+    if not stages:
+        raise FileNotFoundError(f"{run_root}: no train-<stage>/spec.json (is this runs/<pipeline>?)")
+    return TrackSpec.model_validate(stages[0].spec["track"])
+
+
+def read_train_log(path: Path) -> list[dict[str, Any]]:
+    """Rows of a ``train_log.jsonl`` (a half-written last line is skipped)."""
+    if not path.is_file():
+        return []
+    rows = []
+    for line in path.read_text().splitlines():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    return rows
+
+
+class Evaluations:
+    """Finds evaluation results in the run folder, or runs and caches them under ``<out>/evals``."""
+
+    def __init__(self, run_root: Path, track: TrackSpec, out_dir: Path, stages: list[StageRun], *, runs: int,
+                 seed: int, device: str, se_ibr: bool, airframe: AirframeCfg, sim: SimCfg,
+                 log: Callable[[str], None], prefix: str = "", sides: str = "both") -> None:
+        self.run_root, self.track, self.cache, self.prefix = run_root, track, out_dir / "evals", prefix
+        self.sides = sides
+        self.stages, self.runs, self.seed, self.device = stages, runs, seed, device
+        self.se_ibr, self.airframe, self.sim, self.log = se_ibr, airframe, sim, log
+
+    def stage_for(self, scenario: str, key: str) -> StageRun | None:
+        """The stage of approach ``key`` in ``scenario``; one named like the scenario wins a tie."""
+        found = [s for s in self.stages if s.scenario == scenario and s.mode == MODE_OF[key]]
+        found.sort(key=lambda s: (s.name not in (scenario, f"{scenario}-noselfplay"), s.name))
+        return found[0] if found else None
+
+    def agent(self, scenario: str, key: str) -> str | None:
+        """Checkpoint (or ``se-ibr``) of approach ``key`` in ``scenario``, if it exists."""
+        if key == "se-ibr":
+            return SE_IBR
+        stage = self.stage_for(scenario, key)
+        return str(stage.best) if stage is not None and stage.best.is_file() else None
+
+    def self_match(self, scenario: str, key: str) -> RowResult:
+        """Self-match metrics of approach ``key`` in ``scenario``: found, run, or missing with a reason."""
+        res = RowResult(scenario, key, agent=self.agent(scenario, key))
+        if key == "se-ibr":
+            found = self._find_se_ibr(scenario)
+            if found is not None:
+                res.metrics, res.source = found
+                return res
+            if not self.se_ibr:
+                res.note = "not evaluated: pass --se-ibr to run the planner (slow, minutes per scenario)"
+                return res
+        else:
+            stage = self.stage_for(scenario, key)
+            if stage is None:
+                res.note = f"no {MODE_OF[key]}-mode {scenario} stage in {self.run_root}"
+                return res
+            data = load_json(stage.eval_path)
+            if data is not None and (data["runs"], data["seed"]) == (self.runs, self.seed) and data["methods"]:
+                res.metrics, res.source = next(iter(data["methods"].values())), str(stage.eval_path)
+                return res
+            if res.agent is None:
+                res.note = f"stage '{stage.name}' has no best.pt"
+                return res
+        assert res.agent is not None
+        data, path = self._run(f"self-{scenario}-{key}", scenario, {key: res.agent}, None)
+        res.metrics, res.source = data["methods"][key], str(path)
+        return res
+
+    def flown(self, scenario: str, key: str, agent: str, flight: FlightOverride, variant: str) -> RowResult:
+        """Self-match of ``agent`` (approach ``key``) with another flight stack; ``variant`` names it in the cache."""
+        data, path = self._run(f"self-{scenario}-{key}-{variant}", scenario, {key: agent}, None, flight=flight)
+        return RowResult(scenario, key, agent=agent, metrics=data["methods"][key], source=str(path))
+
+    def cross(self, scenario: str, a: tuple[str, str], b: tuple[str, str], *, flight: FlightOverride | None = None,
+              variant: str = "") -> dict[str, Any]:
+        """Team ``a`` (key, agent) against team ``b``: the method entry of the evaluation JSON (with the opponent
+        team's metrics under ``opponent``)."""
+        tag = f"cross-{scenario}-{a[0]}-vs-{b[0]}" + (f"-{variant}" if variant else "")
+        data, _ = self._run(tag, scenario, {a[0]: a[1]}, b, flight=flight)
+        return data["methods"][a[0]]
+
+    def mixed(self, a: tuple[str, str], b: tuple[str, str]) -> dict[str, Any]:
+        """2v2 races in mixed teams (one drone of ``a`` and one of ``b`` per team): each method's entry."""
+        data, _ = self._run(f"mixed-2v2-{a[0]}-{b[0]}", "2v2", {a[0]: a[1], b[0]: b[1]}, None, mixed=True)
+        return data["methods"]
+
+    def _find_se_ibr(self, scenario: str) -> tuple[dict[str, Any], str] | None:
+        paths = [self.cache / f"self-{scenario}-se-ibr.json", *sorted(self.run_root.glob("*/eval*.json"))]
+        for path in paths:
+            data = load_json(path)
+            if data is None or data.get("scenario") != scenario or "against" in data:
+                continue
+            if (data.get("runs"), data.get("seed")) != (self.runs, self.seed):
+                continue
+            for entry in data.get("methods", {}).values():
+                if str(entry.get("checkpoint", "")).lower() == SE_IBR:
+                    return entry, str(path)
+        return None
+
+    def _run(self, tag: str, scenario: str, methods: dict[str, str], against: tuple[str, str] | None, *,
+             flight: FlightOverride | None = None, mixed: bool = False) -> tuple[dict[str, Any], Path]:
+        """Run ``spiral eval`` for ``methods`` (optionally against a team, or in mixed teams) unless a matching
+        cache exists."""
+        agents = [*methods.values(), *([against[1]] if against else [])]
+        inputs = {"track": self.track.model_dump(mode="json"), "scenario": scenario, "runs": self.runs,
+                  "seed": self.seed, "agents": [a if a == SE_IBR else _checksum(Path(a)) for a in agents],
+                  **({"sides": self.sides} if against else {}), **({"mixed": True} if mixed else {}),
+                  **({"flight": flight.to_json()} if flight is not None and flight.to_json() else {})}
+        inputs = json.loads(json.dumps(inputs))  # compare as read back: tuples become lists
+        path = self.cache / f"{self.prefix}{tag}.json"
+        cached = load_json(path)
+        if cached is not None and cached.get("inputs") == inputs:
+            return cached, path
+        self.log(f"report: running {self.prefix}{tag} ({self.runs} races, seed {self.seed})")
+        if mixed:
+            data = evaluate_mixed_teams(self.track, methods, runs=self.runs, seed=self.seed, device=self.device,
+                                        flight=flight)
+        else:
+            data = evaluate_methods(self.track, methods, scenario=scenario, runs=self.runs, seed=self.seed,
+                                    device=self.device, against=against, airframe=self.airframe, sim=self.sim,
+                                    sides=self.sides, flight=flight)
+        data["inputs"] = inputs
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(data, indent=2) + "\n")
+        return data, path
+
+
+def load_json(path: Path) -> dict[str, Any] | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def _checksum(path: Path) -> str:
+    side = load_json(path.with_suffix(".json"))
+    return side["sha256"] if side and "sha256" in side else file_sha256(path)
+
+
+def run_protocol(stages: list[StageRun], runs: int | None, seed: int | None) -> tuple[int, int]:
+    """Races and seed: as given, else those of the pipeline's stage evaluations, else 50 and 0."""
+    for stage in stages:
+        data = load_json(stage.eval_path)
+        if data is not None:
+            return runs or data["runs"], data["seed"] if seed is None else seed
+    return runs or 50, 0 if seed is None else seed
+
+
+def run_setup(stages: list[StageRun]) -> tuple[AirframeCfg, SimCfg]:
+    for stage in stages:
+        if "airframe" in stage.spec and "sim" in stage.spec:
+            return AirframeCfg.model_validate(stage.spec["airframe"]), SimCfg.model_validate(stage.spec["sim"])
+    return AIRFRAMES["cf2x"], SimCfg()
