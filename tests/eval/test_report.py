@@ -51,7 +51,8 @@ def test_report_builds_tables_figures_and_csv_from_a_tiny_run(sprint, tiny_check
     bound = json.loads((out / "bound.json").read_text())["lap_time"]
 
     # an eval.json written before races were counted has no per-race success: "–"
-    assert f"| PPO Selfplay (SPIRAL) | 9.87 ± 0.12 | 0.75 [0.30, 0.95] | – | {9.87 / bound:.2f} | 13.7124 ± 0.0005 |" in md
+    ratio = f"{9.87 / bound:.2f}"
+    assert f"| PPO Selfplay (SPIRAL) | 9.87 ± 0.12 | 0.75 [0.30, 0.95] | – | {ratio} | 13.7124 ± 0.0005 |" in md
     assert "| PPO No Selfplay | missing | missing | missing | – | 16.3134 ± 0.0727 | 0.8000 ± 0.0200 |" in md
     # 2 races of 4 drones, none home: the interval takes the 2 races as the unit, not the 8 drones
     assert "| PPO No Selfplay | – (no finished lap) | 0.00 [0.00, 0.66] | 0.00 | – | 17.82 ± 0.27 | 0.31 ± 0.12 |" in md
@@ -65,7 +66,8 @@ def test_report_builds_tables_figures_and_csv_from_a_tiny_run(sprint, tiny_check
                             "report: running self-1v1-spiral-downwash (2 races, seed 0)",
                             "report: running self-2v2-noselfplay (2 races, seed 0)",
                             "report: running self-2v2-noselfplay-downwash (2 races, seed 0)",
-                            *(f"report: running self-solo-{k}-final (2 races, seed 0)" for k in ("noselfplay", "spiral"))])
+                            *(f"report: running self-solo-{k}-final (2 races, seed 0)"
+                              for k in ("noselfplay", "spiral"))])
 
     with open(out / "results.csv") as f:
         rows = {(r["scenario"], r["approach"]): r for r in csv.DictReader(f)}
