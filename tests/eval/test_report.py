@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from spiral.config import AIRFRAMES, SimCfg, TrackSpec
+from spiral.config import AIRFRAMES, SeparationCfg, SimCfg, TrackSpec
 from spiral.eval.report import _flight_stack, build_report, find_stages
 from tests.eval.conftest import tiny_stage
 
@@ -156,3 +156,38 @@ def test_report_races_each_pairing_once_when_both_sides_are_raced(sprint, tiny_c
     assert "the row method flies team A's start slots in all 2 races" in md
     with pytest.raises(ValueError, match="sides"):
         build_report(root, sprint, tmp_path / "a", bound_steps=8, sides="swap")
+
+
+def test_report_races_the_filter_rows_final_policies_strangers_and_downwash(sprint, tiny_checkpoint, tmp_path):
+    """Filter rows fly the same checkpoints with the filter; each method's final policy races every format; a pairing
+    of the two methods is raced once and read from both teams; mixed teams split each team between the methods;
+    downwash is switched on for every drone. All from the held-out placements, cached with what changed."""
+    root, out = tmp_path / "runs" / "tiny", tmp_path / "report"
+    fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("1v1-noselfplay", "1v1", "frozen"),
+                                                    ("2v2", "2v2", "pool")))
+    separation = SeparationCfg(distance=0.25, horizon_s=0.4, gain=1.5)
+    md = build_report(root, sprint, out, bound_steps=8, cross_play=False, holdout=(2, 5), separation=separation,
+                      log=lambda _: None).read_text()
+    evals = out / "evals"
+    filtered = json.loads((evals / "self-1v1-spiral-filter.json").read_text())
+    assert filtered["flight"] == {"separation": separation.model_dump()} and filtered["runs"] == 2
+    assert "| PPO Selfplay (SPIRAL) + separation filter |" in md and "| PPO No Selfplay + separation filter |" in md
+
+    final = json.loads((evals / "holdout-self-solo-spiral-final.json").read_text())
+    assert final["methods"]["spiral"]["checkpoint"].endswith("train-2v2/best.pt") and final["seed"] == 5
+    formats = md[md.index("## One policy for every format"):].splitlines()
+    assert "(SPIRAL: stage 2v2, PPO No Selfplay: stage 2v2-noselfplay)" in formats[2]
+    assert sum(line.startswith(("| SPIRAL |", "| PPO No Selfplay |")) for line in formats[:9]) == 2
+
+    duel = json.loads((evals / "holdout-cross-1v1-spiral-vs-noselfplay.json").read_text())["methods"]["spiral"]
+    assert not (evals / "holdout-cross-1v1-noselfplay-vs-spiral.json").exists()
+    strangers = md[md.index("## Racing strangers"):md.index("## Downwash")]
+    row = next(r for r in strangers.splitlines() if r.startswith("| 1v1 | PPO No Selfplay | SPIRAL |"))
+    assert row.endswith(f"| {duel['loss_rate']:.2f} / {duel['win_rate']:.2f} / {duel['draws']:.2f} |")
+    mixed = json.loads((evals / "holdout-mixed-2v2-spiral-noselfplay.json").read_text())
+    assert mixed["methods"]["spiral"]["slots"] == [0, 2] and mixed["methods"]["noselfplay"]["slots"] == [1, 3]
+    assert "| 2v2 | SPIRAL | mixed teams |" in strangers
+
+    downwash = json.loads((evals / "holdout-self-2v2-noselfplay-downwash.json").read_text())
+    assert downwash["flight"] == {"downwash": True}
+    assert md.index("## Downwash (zero-shot)") < md.index("## Lap-time reference")
