@@ -144,6 +144,12 @@ class EpisodeCfg(StrictModel):
     )
     track_start_speed: NonNegFloat = Field(default=1.0, description="Largest initial speed of a track start [m/s]")
     time_limit_s: PosFloat | None = Field(default=None, description="Episode time limit; the track's when absent")
+    start_cut_prob: float = Field(
+        default=0.0, ge=0, le=1,
+        description="Share of start-box episodes cut after start_cut_s (a time-out: the value is bootstrapped), so "
+        "that more of the samples come from the start, where the drones race as a pack",
+    )
+    start_cut_s: PosFloat = Field(default=1.5, description="Race time after which a cut episode ends [s]")
 
 
 class EnvCfg(StrictModel):

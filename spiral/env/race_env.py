@@ -138,6 +138,8 @@ class RaceEnv:
         self.crash_kind = torch.zeros(n, dtype=torch.int32, device=dev)
         self.episode_length_buf = torch.zeros(self.num_envs, dtype=torch.long, device=dev)
         self.term_sums = {name: torch.zeros(n, device=dev) for name in REWARD_TERMS}
+        self.cut_time = torch.full((self.world_count,), math.inf, device=dev)
+        """Race time at which each world's episode is cut short (``episode.start_cut_prob``), else inf [s]."""
         self.contested = torch.zeros(self.world_count, dtype=torch.bool, device=dev)
         """Start-box race against opponents whose winner is not known yet."""
         self._wp_mask = wp.zeros(self.world_count, dtype=wp.int32, device=self.world.device)
@@ -202,6 +204,9 @@ class RaceEnv:
         if self.cfg.obs.priority:
             self.priority[drones] = torch.rand(n * d, generator=self.generator, device=self.device)
         self.contested[idx] = box & self._teams_race()
+        if self.auto_reset and self.cfg.episode.start_cut_prob > 0:
+            cut = box & (torch.rand(n, generator=self.generator, device=self.device) < self.cfg.episode.start_cut_prob)
+            self.cut_time[idx] = torch.where(cut, self.cfg.episode.start_cut_s, math.inf)
         if hasattr(self.opponent_policy, "reset"):
             self.opponent_policy.reset(worlds)
 
@@ -360,8 +365,9 @@ class RaceEnv:
         return (along.squeeze(-1) ** 2 + kappa**2 * (lateral**2).sum(-1)).sqrt()
 
     def _world_done(self, terminated: torch.Tensor) -> torch.Tensor:
-        """Worlds that end now: a learner drone terminated, the time limit, or a non-finite state."""
-        time_up = self.world_time() >= self.time_limit - 1e-6
+        """Worlds that end now: a learner drone terminated, the time limit (or the cut of a start), or a non-finite
+        state."""
+        time_up = self.world_time() >= torch.clamp(self.cut_time, max=self.time_limit) - 1e-6
         return terminated.view(self.world_count, -1).any(dim=1) | time_up | (self.world_nonfinite != 0)
 
     def _log_episodes(self, dones: torch.Tensor, world_done: torch.Tensor) -> dict[str, float]:

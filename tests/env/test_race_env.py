@@ -404,3 +404,21 @@ def test_resetting_some_worlds_draws_starts_for_them_only_and_a_full_reset_draws
     hi = lo + torch.tensor(oval2.start.size)
     assert ((pos[[1, 3]] >= lo - 1e-6) & (pos[[1, 3]] <= hi + 1e-6)).all()
     assert ((pos[[1, 3], 0] - pos[[1, 3], 1]).norm(dim=-1) >= oval2.start.min_separation - 1e-6).all()
+
+
+@pytest.mark.parametrize(("track_start_prob", "cut_at"), [(0.0, 0.5), (1.0, None)], ids=["box-start", "track-start"])
+def test_cut_start_box_episodes_end_as_time_outs_after_the_cut(oval2, track_start_prob, cut_at):
+    """With every start-box episode cut at 0.5 s, hovering drones time out after 24 control steps (0.5 s at 48 Hz),
+    bootstrapped rather than terminated; episodes started along the track run to the time limit."""
+    env = make_env(oval2, worlds=2, drones=2, learners=(0,),
+                   episode={"track_start_prob": track_start_prob, "start_cut_prob": 1.0, "start_cut_s": 0.5})
+    env.set_opponent_policy(lambda obs: torch.zeros(len(obs["policy"]), 4))
+    env.reset()
+    for step in range(1, 60):
+        _, _, dones, extras = env.step(torch.zeros(2, 4))
+        if dones.any():
+            break
+    if cut_at is None:
+        assert not dones.any() and env.cut_time.isinf().all()
+    else:
+        assert step == round(cut_at / env.dt) and dones.all() and extras["time_outs"].all()
