@@ -414,11 +414,11 @@ def test_cut_start_box_episodes_end_as_time_outs_after_the_cut(oval2, track_star
                    episode={"track_start_prob": track_start_prob, "start_cut_prob": 1.0, "start_cut_s": 0.5})
     env.set_opponent_policy(lambda obs: torch.zeros(len(obs["policy"]), 4))
     env.reset()
-    for step in range(1, 60):
+    steps, dones, time_outs = 0, torch.zeros(2, dtype=torch.bool), None
+    while steps < 60 and not dones.any():
         _, _, dones, extras = env.step(torch.zeros(2, 4))
-        if dones.any():
-            break
+        steps, time_outs = steps + 1, extras["time_outs"]
     if cut_at is None:
         assert not dones.any() and env.cut_time.isinf().all()
     else:
-        assert step == round(cut_at / env.dt) and dones.all() and extras["time_outs"].all()
+        assert steps == round(cut_at / env.dt) and dones.all() and time_outs.all()
