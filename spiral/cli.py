@@ -127,11 +127,15 @@ def run(
     checkpoints_dir: CkptDir = Path("checkpoints"),
     jobs: Annotated[int, typer.Option("--jobs", "-j", min=1, help="Independent steps run side by side, each in its "
                                       "own process with its share of the CPU cores")] = 1,
+    accept_code_changes: Annotated[bool, typer.Option(
+        "--accept-code-changes", help="Keep steps that ran with other spiral source code (same spec and inputs) "
+        "instead of rerunning them")] = False,
 ) -> None:
     """Run a pipeline's steps in order; complete steps are skipped, interrupted training resumes."""
     from spiral.pipeline import PipelineRunner
 
-    runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device)
+    runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device,
+                            accept_code_changes=accept_code_changes)
     ran = runner.run(start=from_step, only=only, force=force, jobs=jobs)
     typer.echo(f"pipeline '{runner.plan.spec.name}': {len(ran)} step(s) ran, {len(runner.steps) - len(ran)} skipped")
 
@@ -139,11 +143,15 @@ def run(
 @app.command()
 @handles_errors
 def status(pipeline: Path, json_out: JsonOut = None, runs_dir: RunsDir = Path("runs"),
-           checkpoints_dir: CkptDir = Path("checkpoints")) -> None:
+           checkpoints_dir: CkptDir = Path("checkpoints"),
+           accept_code_changes: Annotated[bool, typer.Option(
+               "--accept-code-changes", help="Count steps that ran with other spiral source code as complete")] = False,
+           ) -> None:
     """Show each step as complete, stale (why), partial (last checkpoint) or missing."""
     from spiral.pipeline import PipelineRunner
 
-    runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir)
+    runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir,
+                            accept_code_changes=accept_code_changes)
     for s in runner.status():
         extra = "; ".join(x for x in (s.reason, s.detail) if x)
         typer.echo(f"{s.name:<28} {s.status}{f' ({extra})' if extra else ''}")

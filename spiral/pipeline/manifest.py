@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import time
@@ -12,23 +13,49 @@ from typing import Any
 import spiral
 from spiral.train.checkpoint import atomic_write_bytes, file_sha256
 
-__all__ = ["MANIFEST", "StepState", "fingerprint", "read_manifest", "step_state", "write_manifest"]
+__all__ = ["MANIFEST", "Fingerprint", "StepState", "fingerprint", "read_manifest", "source_hash", "step_state",
+           "write_manifest"]
 
 MANIFEST = "manifest.json"
 
 
-def fingerprint(name: str, section: Any, input_fingerprints: list[str]) -> str:
-    """Hash of the step name, its resolved spec section, its inputs' fingerprints and the spiral version."""
-    blob = json.dumps({"step": name, "spec": section, "inputs": input_fingerprints, "version": spiral.__version__},
-                      sort_keys=True, default=str)
-    return hashlib.sha256(blob.encode()).hexdigest()
+@functools.cache
+def source_hash() -> str:
+    """SHA-256 of the spiral package's Python source: every ``*.py`` file under it, by relative path and content."""
+    root = Path(spiral.__file__).resolve().parent
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()
 
 
-def write_manifest(step_dir: Path, name: str, fp: str, outputs: dict[str, Path], info: dict[str, Any]) -> None:
+@dataclass(frozen=True)
+class Fingerprint:
+    """A step's fingerprint: ``full`` sees the spiral source as well, ``spec`` only the spec and inputs."""
+
+    full: str
+    spec: str
+
+
+def fingerprint(name: str, section: Any, inputs: list[Fingerprint], *, source: str | None = None) -> Fingerprint:
+    """Hash of the step name, its resolved spec section, its inputs' fingerprints and the spiral version; the
+    ``full`` one also of the package source (:func:`source_hash` when None), so that a code change reruns it."""
+
+    def digest(blob: dict[str, Any]) -> str:
+        return hashlib.sha256(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()
+
+    base = {"step": name, "spec": section, "version": spiral.__version__}
+    return Fingerprint(full=digest({**base, "inputs": [i.full for i in inputs], "source": source or source_hash()}),
+                       spec=digest({**base, "inputs": [i.spec for i in inputs]}))
+
+
+def write_manifest(step_dir: Path, name: str, fp: Fingerprint, outputs: dict[str, Path],
+                   info: dict[str, Any]) -> None:
     """Record the outputs' checksums and the fingerprint, atomically, after every output is persisted."""
     data = {
         "step": name,
-        "fingerprint": fp,
+        "fingerprint": fp.full,
+        "spec_fingerprint": fp.spec,
         "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "outputs": {key: {"path": str(p), "sha256": file_sha256(p)} for key, p in outputs.items()},
         "info": info,
@@ -52,13 +79,20 @@ class StepState:
     reason: str = ""
 
 
-def step_state(step_dir: Path, fp: str) -> StepState:
-    """Compare a step's folder against the fingerprint it should have."""
+def step_state(step_dir: Path, fp: Fingerprint, *, accept_code_changes: bool = False) -> StepState:
+    """Compare a step's folder against the fingerprint it should have.
+
+    A step that ran with other spiral source but the same spec and inputs is stale, unless ``accept_code_changes``
+    (then it is complete: its results are kept knowingly).
+    """
     manifest = read_manifest(step_dir)
     if manifest is None:
         return StepState("partial", "started, no manifest") if step_dir.exists() else StepState("missing")
-    if manifest.get("fingerprint") != fp:
-        return StepState("stale", "its spec, an input or the spiral version changed")
+    if manifest.get("fingerprint") != fp.full:
+        if manifest.get("spec_fingerprint") != fp.spec:
+            return StepState("stale", "its spec, an input or the spiral version changed")
+        if not accept_code_changes:
+            return StepState("stale", "the spiral source changed since it ran (--accept-code-changes keeps it)")
     for key, out in manifest.get("outputs", {}).items():
         path = Path(out["path"])
         if not path.is_file():

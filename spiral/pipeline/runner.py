@@ -13,7 +13,7 @@ from typing import Any
 from spiral.config.load import load_pipeline
 from spiral.pipeline.graph import PipelinePlan, select_steps
 from spiral.pipeline.lock import PipelineLock
-from spiral.pipeline.manifest import StepState, fingerprint, read_manifest, step_state, write_manifest
+from spiral.pipeline.manifest import Fingerprint, StepState, fingerprint, read_manifest, step_state, write_manifest
 from spiral.pipeline.step import Step, StepContext
 from spiral.train.checkpoint import atomic_write_bytes, list_checkpoints
 
@@ -40,19 +40,22 @@ class PipelineRunner:
     """Loads a pipeline file and runs or reports its steps."""
 
     def __init__(self, path: Path, *, runs_dir: Path = Path("runs"), checkpoints_dir: Path = Path("checkpoints"),
-                 log: Callable[[str], None] = print, progress: bool = True, device: str | None = None) -> None:
+                 log: Callable[[str], None] = print, progress: bool = True, device: str | None = None,
+                 accept_code_changes: bool = False) -> None:
         spec, track = load_pipeline(path)
         if device is not None:
             spec = spec.model_copy(update={"device": device})
         self.path, self.log, self.progress = Path(path), log, progress
+        self.accept_code_changes = accept_code_changes
+        """Treat steps that ran with other spiral source (same spec and inputs) as complete."""
         self.plan = PipelinePlan(spec, track, self.path, Path(runs_dir), Path(checkpoints_dir))
         self.steps = self.plan.steps()
 
     def _dir(self, step: Step) -> Path:
         return self.plan.run_root / step.dirname
 
-    def _fingerprints(self) -> dict[str, str]:
-        fps: dict[str, str] = {}
+    def _fingerprints(self) -> dict[str, Fingerprint]:
+        fps: dict[str, Fingerprint] = {}
         for step in self.steps:
             fps[step.name] = fingerprint(step.name, step.spec_section, [fps[i] for i in step.inputs])
         return fps
@@ -61,7 +64,7 @@ class PipelineRunner:
         """Each step: complete, stale (why), partial (last checkpoint) or missing; stale inputs make steps stale."""
         fps, out, stale_inputs = self._fingerprints(), [], set()
         for step in self.steps:
-            state = step_state(self._dir(step), fps[step.name])
+            state = self._state(step, fps[step.name])
             if state.status == "complete" and stale_inputs & set(step.inputs):
                 state = StepState("stale", "an input step is not complete")
             if state.status != "complete":
@@ -89,7 +92,7 @@ class PipelineRunner:
                 if step.name not in selected:
                     continue
                 must = step.name in forced or any(i in todo for i in step.inputs)
-                state = step_state(self._dir(step), fps[step.name])
+                state = self._state(step, fps[step.name])
                 if state.status == "complete" and not must and not (start and step.name == start):
                     self.log(f"step '{step.name}' unchanged, skipping")
                     continue
@@ -105,15 +108,18 @@ class PipelineRunner:
     def run_step(self, name: str, *, fresh: bool = False) -> None:
         """Run one step now, resuming it if it was interrupted (the caller holds the pipeline lock)."""
         step, fp = self._step(name), self._fingerprints()[name]
-        self._run_step(step, fp, step_state(self._dir(step), fp), fresh=fresh)
+        self._run_step(step, fp, self._state(step, fp), fresh=fresh)
 
-    def _run_step(self, step: Step, fp: str, state: StepState, *, fresh: bool) -> None:
+    def _state(self, step: Step, fp: Fingerprint) -> StepState:
+        return step_state(self._dir(step), fp, accept_code_changes=self.accept_code_changes)
+
+    def _run_step(self, step: Step, fp: Fingerprint, state: StepState, *, fresh: bool) -> None:
         step_dir = self._dir(step)
         resume = step.resumable and not fresh and state.status == "partial" and self._started_as(step_dir, fp)
         if not resume and step_dir.exists():
             shutil.rmtree(step_dir)
         step_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(step_dir / FINGERPRINT_FILE, fp.encode())
+        atomic_write_bytes(step_dir / FINGERPRINT_FILE, f"{fp.full}\n{fp.spec}".encode())
         inputs = {name: read_manifest(self._dir(self._step(name))) or {} for name in step.inputs}
         self.log(f"step '{step.name}' {'resuming' if resume else 'running'}")
         t0 = time.perf_counter()
@@ -127,12 +133,13 @@ class PipelineRunner:
         write_manifest(step_dir, step.name, fp, outputs, info)
         self.log(f"step '{step.name}' done in {info['wall_time_s']:.1f} s")
 
-    @staticmethod
-    def _started_as(step_dir: Path, fp: str) -> bool:
+    def _started_as(self, step_dir: Path, fp: Fingerprint) -> bool:
+        """Whether the interrupted step started with this fingerprint (its spec one, with accepted code changes)."""
         try:
-            return (step_dir / FINGERPRINT_FILE).read_text() == fp
+            started = (step_dir / FINGERPRINT_FILE).read_text().split("\n")
         except OSError:
             return False
+        return started[0] == fp.full or (self.accept_code_changes and started[-1] == fp.spec)
 
     def _step(self, name: str) -> Step:
         return next(s for s in self.steps if s.name == name)

@@ -107,6 +107,8 @@ def _spawn(runner, step: Step, fresh: bool, threads: int, log_dir: Path) -> Step
            "--device", runner.plan.spec.device, "--threads", str(threads)]
     if fresh:
         cmd.append("--fresh")
+    if runner.accept_code_changes:
+        cmd.append("--accept-code-changes")
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
            "PYTHONUNBUFFERED": "1"}
     log_path = log_dir / f"{step.dirname}.log"
@@ -129,6 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", required=True)
     parser.add_argument("--threads", type=int, required=True)
     parser.add_argument("--fresh", action="store_true")
+    parser.add_argument("--accept-code-changes", action="store_true")
     args = parser.parse_args(argv)
 
     import torch
@@ -137,7 +140,8 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(args.threads)
     runner = PipelineRunner(args.pipeline, runs_dir=args.runs_dir, checkpoints_dir=args.checkpoints_dir,
-                            device=args.device, progress=False, log=lambda m: print(m, flush=True))
+                            device=args.device, progress=False, log=lambda m: print(m, flush=True),
+                            accept_code_changes=args.accept_code_changes)
     try:
         runner.run_step(args.step, fresh=args.fresh)
     except PipelineError as exc:

@@ -72,6 +72,30 @@ def test_changing_a_stage_parameter_reruns_that_step_and_downstream_only(tmp_pat
     assert runner.run() == ["train:1v1", "eval:1v1", "promote:1v1"]
 
 
+def test_a_change_to_the_spiral_source_makes_finished_steps_stale_unless_accepted(tmp_path, monkeypatch):
+    """Steps that ran with other package source are stale and rerun; --accept-code-changes keeps them knowingly."""
+    from spiral.pipeline import manifest
+
+    path = write_pipeline(tmp_path)
+    assert len(runner_for(path, tmp_path).run()) == 3
+    monkeypatch.setattr(manifest, "source_hash", lambda: "edited rewards.py")
+    status = runner_for(path, tmp_path).status()
+    assert {s.status for s in status} == {"stale"}
+    assert status[0].reason == "the spiral source changed since it ran (--accept-code-changes keeps it)"
+    kept = PipelineRunner(path, runs_dir=tmp_path / "runs", checkpoints_dir=tmp_path / "ckpt", progress=False,
+                          log=lambda _: None, accept_code_changes=True)
+    assert {s.status for s in kept.status()} == {"complete"} and kept.run() == []
+    assert runner_for(path, tmp_path).run() == ["train:solo", "eval:solo", "promote:solo"]
+
+
+def test_fingerprints_differ_by_source_and_share_their_spec_part():
+    from spiral.pipeline.manifest import Fingerprint, fingerprint, source_hash
+
+    assert len(source_hash()) == 64
+    a, b = (fingerprint("train:solo", {"x": 1}, [Fingerprint("u", "v")], source=src) for src in ("one", "two"))
+    assert a.full != b.full and a.spec == b.spec
+
+
 def test_killed_training_step_resumes_and_ends_with_the_full_iteration_count(tmp_path):
     """SIGKILL `spiral run` after its first checkpoint; the rerun resumes and finishes every iteration."""
     path = write_pipeline(tmp_path, iterations=30)
