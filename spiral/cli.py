@@ -287,19 +287,33 @@ def report(
     sides: Annotated[str, typer.Option(
         "--sides", help="Head to head: 'both' races every placement twice, sides swapped; 'a': row method on team A "
         "only")] = "both",
+    separation: Annotated[str, typer.Option(
+        "--separation", help="Also race the learned methods with this separation filter, DISTANCE,HORIZON_S,GAIN, as "
+        "extra table rows ('none': no such rows)")] = "none",
+    robustness: Annotated[bool, typer.Option(
+        "--robustness/--no-robustness", help="Final policies in every format, racing strangers, downwash")] = True,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
 ) -> None:
     """Write results.md (the paper's tables, cross-play, lap-time reference), results.csv and figures."""
+    from spiral.eval.evaluate import KEEP, parse_separation
     from spiral.eval.report import build_report, track_of_run
 
     spec = load_track(track) if track is not None else track_of_run(run_dir)
+    filter_row = parse_separation(separation)
+    if filter_row == KEEP:
+        raise ValueError("--separation: expected none or DISTANCE,HORIZON_S,GAIN")
     command = f"spiral report {run_dir}" + (" --se-ibr" if se_ibr else "") + (f" --runs {runs}" if runs else "")
     if holdout_runs:
         command += f" --holdout-runs {holdout_runs} --holdout-seed {holdout_seed}"
     if sides != "both":
         command += f" --sides {sides}"
+    if filter_row is not None:
+        command += f" --separation {separation}"
+    if not robustness:
+        command += " --no-robustness"
     path = build_report(run_dir, spec, out or run_dir / "report", runs=runs, device=device, se_ibr=se_ibr,
-                        command=command, holdout=(holdout_runs, holdout_seed) if holdout_runs else None, sides=sides)
+                        command=command, holdout=(holdout_runs, holdout_seed) if holdout_runs else None, sides=sides,
+                        separation=filter_row, robustness=robustness)  # type: ignore[arg-type]
     typer.echo(f"wrote {path}")
 
 

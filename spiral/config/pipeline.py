@@ -9,6 +9,7 @@ from pydantic import Field, model_validator
 
 from spiral.config.airframe import AirframeSel
 from spiral.config.base import PosInt, StrictModel
+from spiral.config.env import SeparationCfg
 from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 
@@ -49,6 +50,15 @@ class ReportCfg(StrictModel):
     enabled: bool = Field(default=True, description="Add the report step")
     se_ibr: bool = Field(default=False, description="Race the SE-IBR planner for the tables (minutes on a CPU)")
     cross_play: bool = Field(default=True, description="Cross-play win-rate matrices")
+    separation: SeparationCfg | None = Field(
+        default=None,
+        description="A separation filter raced as an extra row under each table (`+ separation filter`), with the "
+        "same checkpoints: an opt-in deployment layer, never part of what the methods learned; null: no such rows",
+    )
+    robustness: bool = Field(
+        default=True,
+        description="Sections on each method's final policy in every format, racing strangers and downwash",
+    )
 
 
 class PipelineSpec(StrictModel):

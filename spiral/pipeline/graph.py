@@ -112,7 +112,7 @@ class PipelinePlan:
             results = build_report(self.run_root, self.track, ctx.step_dir, runs=ev.runs, seed=ev.seed,
                                    device=self.spec.device, se_ibr=cfg.se_ibr, cross_play=cfg.cross_play,
                                    holdout=(ev.holdout_runs, ev.holdout_seed) if ev.holdout_runs else None,
-                                   sides=ev.sides,
+                                   sides=ev.sides, separation=cfg.separation, robustness=cfg.robustness,
                                    airframe=resolve_airframe(self.spec.airframe),
                                    command=f"spiral run {self.source}", log=ctx.log)
             ctx.log(f"report: {results}")
