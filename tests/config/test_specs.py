@@ -153,7 +153,8 @@ def test_pipeline_names_evaluation_sides_when_it_is_not_a_head_to_head_protocol(
 
 @pytest.mark.parametrize("name", ["full.yaml", "smoke.yaml"])
 def test_shipped_baseline_stages_match_their_self_play_stage_but_for_the_opponents(name):
-    """PPO without self-play is an ablation: same env (reward, observation, actions), PPO and budget per format."""
+    """PPO without self-play is an ablation: same env (reward, observation, actions), PPO, budget and format mix per
+    format."""
     stages = load_pipeline(ROOT / "pipelines" / name)[0].stages
     frozen = [s for s in stages if s.selfplay.mode == "frozen"]
     assert {s.scenario for s in frozen} == {"1v1", "2v2"}
@@ -164,4 +165,5 @@ def test_shipped_baseline_stages_match_their_self_play_stage_but_for_the_opponen
         assert stage.env == twin.env, stage.name
         assert stage.ppo == twin.ppo, stage.name
         assert (stage.worlds, stage.iteration_budget()) == (twin.worlds, twin.iteration_budget()), stage.name
+        assert stage.mix == twin.mix, stage.name
         assert stage.selfplay.promotion == twin.selfplay.promotion, stage.name
