@@ -167,6 +167,19 @@ class StageSpec(StrictModel):
         return self
 
     @model_validator(mode="after")
+    def _solo_races_nobody(self) -> StageSpec:
+        if self.scenario != "solo":
+            return self
+        if "selfplay" in self.model_fields_set:
+            raise ValueError("selfplay: a solo stage races no opponents")
+        nonsense = {"env.reward.win": self.env.reward.win > 0, "env.reward.proximity": self.env.reward.proximity > 0,
+                    "env.critic": self.env.critic == "race", "env.shield": self.env.shield is not None}
+        bad = [name for name, set_ in nonsense.items() if set_]
+        if bad:
+            raise ValueError(f"{bad[0]}: a solo stage has no other drone for it to act on")
+        return self
+
+    @model_validator(mode="after")
     def _mix_of_other_formats(self) -> StageSpec:
         if not self.mix:
             return self

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -167,3 +168,20 @@ def test_shipped_baseline_stages_match_their_self_play_stage_but_for_the_opponen
         assert (stage.worlds, stage.iteration_budget()) == (twin.worlds, twin.iteration_budget()), stage.name
         assert stage.mix == twin.mix, stage.name
         assert stage.selfplay.promotion == twin.selfplay.promotion, stage.name
+
+
+@pytest.mark.parametrize(("options", "field"), [
+    ({"selfplay": {"p_self": 0.5}}, "selfplay"),
+    ({"env": {"reward": {"win": 3.0}}}, "env.reward.win"),
+    ({"env": {"reward": {"proximity": 0.1}}}, "env.reward.proximity"),
+    ({"env": {"critic": "race"}}, "env.critic"),
+    ({"env": {"shield": {}}}, "env.shield"),
+], ids=["selfplay", "outcome", "proximity", "race-critic", "shield"])
+def test_a_solo_stage_refuses_options_that_act_on_other_drones(tmp_path, options, field):
+    """Options that need other drones make no sense in a solo stage: the error names the stage and the field."""
+    path = tmp_path / "p.yaml"
+    stage = {"name": "solo", "scenario": "solo", "iterations": 1, **options}
+    path.write_text(json.dumps({"kind": "pipeline", "name": "p", "track": str(ROOT / "tracks" / "oval4.yaml"),
+                                "stages": [stage]}))
+    with pytest.raises(SpecError, match=rf"stages\.0.*{field}"):
+        load_pipeline(path)
