@@ -52,6 +52,11 @@ class SelectionCfg(StrictModel):
 
     interval: PosInt = Field(default=25, description="Iterations between evaluations")
     races: PosInt = Field(default=64, description="Seeded races from the start box per evaluation")
+    average: float = Field(
+        default=0.0, ge=0, lt=1,
+        description="Decay d of the moving average of the policy's weights (θ̄ ← d·θ̄ + (1 − d)·θ after every PPO "
+        "update) that selection and promotion race and best.pt keeps; 0: the current policy",
+    )
 
 
 class PromotionCfg(StrictModel):

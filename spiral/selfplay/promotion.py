@@ -102,7 +102,7 @@ class PromotionSelector:
     def __call__(self, trainer: StageTrainer, it: int) -> dict[str, float]:
         """Race the learner against the best and in a self-match; promote it when the rule holds."""
         own, best_own = trainer.evaluate_pair(it, self.best)
-        learner = trainer.runner.get_inference_policy(device=self.device)
+        learner = trainer.candidate_policy()
         result = head_to_head(self.env, learner, self.best)
         trainer.runner.alg.train_mode()
         learner_rating, best_rating = elo_update(self.best_rating, self.best_rating, result.score, self.cfg.elo_k)

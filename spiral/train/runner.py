@@ -28,10 +28,14 @@ from spiral.env.race_env import OpponentPolicy, RaceEnv
 from spiral.env.racing import Policy, run_races
 from spiral.env.vec_env import RaceVecEnv
 from spiral.train import distributed
+from spiral.train.averaging import PolicyAverage
 from spiral.train.checkpoint import CheckpointError, load_checkpoint, newest_valid_checkpoint, save_checkpoint
 from spiral.train.inputs import calibrate_inputs, model_inputs, silence_inputs, unused_inputs, widen_inputs
 
 __all__ = ["EvalScore", "StageTrainer", "TrainResult", "seed_everything"]
+
+AVERAGE_KEY = "average_actor_state_dict"
+"""Checkpoint key of the moving average of the actor's weights (``selection.average``)."""
 
 WARMUP_S = 2.0
 """Flight time of the rollout that measures the statistics of inputs new to a stage [s]."""
@@ -129,6 +133,8 @@ class StageTrainer:
         self.selector = selector or StageTrainer.select_by_solo_eval
         """Called every ``selection_interval`` iterations; keeps ``best.pt`` and returns numbers to log."""
         self.selection_interval = selection_interval or stage.selection.interval
+        self.average: PolicyAverage | None = None
+        """Moving average of the policy's weights: the candidate selection races (``selection.average`` > 0)."""
         self._resume_or_init(init_checkpoint)
         if self.runner.is_distributed:
             distributed.share_training_state(self)
@@ -158,10 +164,15 @@ class StageTrainer:
             meta["eval"] = {"success": score.success, "lap_time": score.lap_time, "iteration": score.iteration}
         return meta
 
-    def _save(self, path: Path, iteration: int, score: EvalScore | None = None) -> None:
+    def _save(self, path: Path, iteration: int, score: EvalScore | None = None, *, candidate: bool = False) -> None:
+        """A training checkpoint; with ``candidate`` its actor is the policy selection raced (the average, if any)."""
         state = self.runner.alg.save()
         state["iter"] = iteration
         state["infos"] = None
+        if self.average is not None:
+            state[AVERAGE_KEY] = self.average.state_dict()
+            if candidate:
+                state["actor_state_dict"] = self.average.state_dict()
         save_checkpoint(path, state, self._meta(iteration, score))
 
     def _resume_or_init(self, init_checkpoint: Path | None) -> None:
@@ -170,6 +181,7 @@ class StageTrainer:
             data = load_checkpoint(newest, map_location=self.device)
             self._check_layout(data, newest)
             self.runner.alg.load(data, None, strict=True)
+            self._start_average(data.get(AVERAGE_KEY))
             self.start_iteration = data["iter"] + 1  # rsl-rl stores the last completed iteration
             best = data["spiral"].get("best", {})
             if best.get("iteration", -1) >= 0:
@@ -188,6 +200,16 @@ class StageTrainer:
             self.log(f"stage '{self.stage.name}' starts from {init_checkpoint}")
             self._clamp_noise()
             self._take_up_new_inputs()
+        if self.average is None:
+            self._start_average(None)
+
+    def _start_average(self, state: dict[str, torch.Tensor] | None) -> None:
+        """Start the moving average at the current policy, or at a saved average."""
+        if self.stage.selection.average <= 0:
+            return
+        self.average = PolicyAverage(self.runner.alg.get_policy(), self.stage.selection.average)
+        if state is not None:
+            self.average.load_state_dict(state)
 
     def _clamp_noise(self) -> None:
         """Bring the action noise taken over from the init policy into this stage's range, where it trains."""
@@ -238,11 +260,18 @@ class StageTrainer:
 
     # Evaluation
 
+    def candidate_policy(self) -> Policy:
+        """The learner's deterministic policy that selection and promotion race: the moving average of its weights
+        (``selection.average``), else the current one."""
+        if self.average is not None:
+            return self.average.policy()
+        return self.runner.get_inference_policy(device=self.device)
+
     def evaluate(self, iteration: int, policy: Policy | None = None) -> EvalScore:
-        """Race ``policy`` (the learner's deterministic policy by default) from seeded start-box placements
-        (self-match in multi-drone stages)."""
+        """Race ``policy`` (the learner's candidate by default) from seeded start-box placements (self-match in
+        multi-drone stages)."""
         if policy is None:
-            policy = self.runner.get_inference_policy(device=self.device)
+            policy = self.candidate_policy()
         res = run_races(self.eval_env, policy)
         self.runner.alg.train_mode()
         ok = res.finished[res.present]
@@ -289,6 +318,8 @@ class StageTrainer:
                     alg.compute_returns(obs)
                 t_collect = time.perf_counter() - t0
                 losses = alg.update()
+                if self.average is not None:
+                    self.average.update(alg.get_policy())
                 self.runner.current_learning_iteration = it
                 row = {"iteration": it, "wall_s": time.perf_counter() - t_start, "collect_s": t_collect,
                        "learn_s": time.perf_counter() - t0 - t_collect,
@@ -315,9 +346,9 @@ class StageTrainer:
                            env_steps, history)
 
     def save_best(self, iteration: int, score: EvalScore | None = None) -> Path:
-        """Write the learner as ``best.pt`` and return its path."""
+        """Write the learner's candidate policy as ``best.pt`` and return its path."""
         path = self.run_dir / "best.pt"
-        self._save(path, iteration, score)
+        self._save(path, iteration, score, candidate=True)
         return path
 
     def select_by_solo_eval(self, it: int) -> dict[str, float]:
