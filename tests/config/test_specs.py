@@ -185,3 +185,11 @@ def test_a_solo_stage_refuses_options_that_act_on_other_drones(tmp_path, options
                                 "stages": [stage]}))
     with pytest.raises(SpecError, match=rf"stages\.0.*{field}"):
         load_pipeline(path)
+
+
+def test_the_shipped_pipeline_flies_the_papers_stack_and_reports_the_filter_as_an_extra_row():
+    """No stage of full.yaml puts a separation filter between policy and PID (training or evaluation); the filter
+    appears only as the report's extra row."""
+    spec = load_pipeline(ROOT / "pipelines" / "full.yaml")[0]
+    assert all(stage.env.action.separation is None for stage in spec.stages)
+    assert spec.report.separation is not None
