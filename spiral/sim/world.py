@@ -113,6 +113,8 @@ class World:
         self._reset_mask = wp.zeros(world_count, dtype=wp.int32, device=self.device)
         self._graph = None
         self.use_graph = wp.get_device(self.device).is_cuda
+        self._launches: list | None = None
+        """The control step's kernel launches with their arguments packed once (CPU: replayed each step)."""
 
     @property
     def time_step(self) -> float:
@@ -127,33 +129,51 @@ class World:
                     self._simulate()
                 self._graph = capture.graph
             wp.capture_launch(self._graph)
+        elif self.replay_launches and self._launches is not None:
+            self.race.step_passes.zero_()
+            self.race.step_collision.zero_()
+            for cmd in self._launches:
+                cmd.launch()
+        elif self.replay_launches:
+            self._launches = self._simulate(record=True)
         else:
             self._simulate()
 
-    def _simulate(self) -> None:
+    replay_launches = True
+    """On the CPU, pack the kernels' arguments once and replay the launches (Python's share of a launch is most of
+    its cost at small world counts); False launches each kernel afresh, the plain path tests compare it with."""
+
+    def _simulate(self, *, record: bool = False) -> list:
+        """Launch one control step's kernels in order; with ``record``, return the launches (arguments packed) as
+        well, after running them."""
         s, r, n, d = self.state, self.race, self.drone_count, self.drones_per_world
         dt = float(self.sim.dt)
         r.step_passes.zero_()
         r.step_collision.zero_()
         mode = 0 if self.sim.control_mode == "pid" else 1
+        launches = []
+
+        def launch(kernel, dim: int, inputs: list, outputs: list) -> None:
+            cmd = wp.launch(kernel, dim, inputs=inputs, outputs=outputs, device=self.device, record_cmd=record)
+            if record:
+                cmd.launch()
+                launches.append(cmd)
+
         for k in range(self.sim.substeps):
             if self.sim.downwash:
-                wp.launch(drone_downwash, n, inputs=[s.pos, r.crashed, self.params, d], outputs=[self.ext_force],
-                          device=self.device)
-            wp.launch(control_and_integrate, n,
-                      inputs=[s.pos, s.vel, s.quat, s.omega, s.rpm, self.cmd, self.integral, r.crashed,
-                              self.ext_force, self.params, mode, d, dt],
-                      outputs=[s.prev_pos, r.world_nonfinite], device=self.device)
-            wp.launch(detect_collisions, n, inputs=[s.pos, r.crashed, self.track, self.params, d],
-                      outputs=[r.contact], device=self.device)
-            wp.launch(detect_gate_crossing, n,
-                      inputs=[s.prev_pos, s.pos, self.track, r.world_substeps, d, k, dt, r.crashed],
-                      outputs=[r.next_gate, r.gates_passed, r.step_passes, r.pass_time], device=self.device)
-            wp.launch(apply_contacts, n, inputs=[r.contact, r.world_substeps, d, k, dt],
-                      outputs=[r.step_collision, r.crashed, r.crash_time], device=self.device)
-        wp.launch(advance_clocks, self.world_count, inputs=[self.sim.substeps], outputs=[r.world_substeps],
-                  device=self.device)
-        wp.launch(euler_angles, n, inputs=[s.quat], outputs=[self.rpy], device=self.device)
+                launch(drone_downwash, n, [s.pos, r.crashed, self.params, d], [self.ext_force])
+            launch(control_and_integrate, n,
+                   [s.pos, s.vel, s.quat, s.omega, s.rpm, self.cmd, self.integral, r.crashed, self.ext_force,
+                    self.params, mode, d, dt],
+                   [s.prev_pos, r.world_nonfinite])
+            launch(detect_collisions, n, [s.pos, r.crashed, self.track, self.params, d], [r.contact])
+            launch(detect_gate_crossing, n, [s.prev_pos, s.pos, self.track, r.world_substeps, d, k, dt, r.crashed],
+                   [r.next_gate, r.gates_passed, r.step_passes, r.pass_time])
+            launch(apply_contacts, n, [r.contact, r.world_substeps, d, k, dt],
+                   [r.step_collision, r.crashed, r.crash_time])
+        launch(advance_clocks, self.world_count, [self.sim.substeps], [r.world_substeps])
+        launch(euler_angles, n, [s.quat], [self.rpy])
+        return launches
 
     def reset(
         self,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from spiral.sim.bench import format_bench_table, run_sim_bench, run_sim_bench_two_process
 
 
@@ -13,7 +15,9 @@ def test_bench_rows_and_table(kernels, gate_track):
     for r in rows:
         assert abs(r["drone_substeps_per_s"] - 5 * r["drone_ctrl_steps_per_s"]) <= 3
         assert r["numpy_drone_ctrl_steps_per_s"] > 0 and r["numpy_steps"] == 4
-        assert abs(r["speedup_vs_numpy"] - r["drone_ctrl_steps_per_s"] / r["numpy_drone_ctrl_steps_per_s"]) < 0.01
+        # rates are rounded to whole steps per second: at tiny sizes that moves their ratio by up to ~1%
+        assert r["speedup_vs_numpy"] == pytest.approx(r["drone_ctrl_steps_per_s"] / r["numpy_drone_ctrl_steps_per_s"],
+                                                      rel=0.01, abs=0.01)
         assert r["mean_speed_m_s"] > 0.1
     assert result["settings"]["substeps"] == 5 and result["settings"]["freeze_crashed"] is False
     assert result["device"] == "cpu" and result["machine"]["cores"] >= 1
