@@ -134,6 +134,11 @@ class RewardCfg(StrictModel):
         "drones, -1 to the other team's drones still racing (start-box races against opponents only; not in the "
         "paper; 0 leaves the paper's reward)",
     )
+    forfeit: bool = Field(
+        default=False,
+        description="Charge a drone that crashes while its race is undecided the loss (-1 x win) at once: a crash "
+        "forfeits the race, so crashing never spares a drone the loss of finishing behind (not in the paper)",
+    )
 
 
 class EpisodeCfg(StrictModel):
@@ -168,6 +173,12 @@ class EnvCfg(StrictModel):
         "(`race`: a centralised critic; relative position and velocity, still racing, lead in gates passed; "
         "opponents first, then teammates). Training only: policies never see these inputs",
     )
+
+    @model_validator(mode="after")
+    def _forfeit_needs_outcome(self) -> EnvCfg:
+        if self.reward.forfeit and self.reward.win == 0:
+            raise ValueError("reward.forfeit: charges the race outcome term, but reward.win is 0")
+        return self
 
     @model_validator(mode="after")
     def _intervention_needs_shield(self) -> EnvCfg:

@@ -320,27 +320,31 @@ class RaceEnv:
             to_gate=self.gate_center[self.next_gate.long()] - self.pos,
             lap_time=torch.where(finished_now, self.lap_time, torch.zeros_like(self.lap_time)),
             nearest=self._nearest_distance() if self.cfg.reward.proximity > 0 else None,
-            race_result=self._race_result(racing & ~crashed_now, finished_now) if self.cfg.reward.win > 0 else None,
+            race_result=(self._race_result(racing & ~crashed_now, finished_now, crashed_now)
+                         if self.cfg.reward.win > 0 else None),
             intervention=torch.where(racing, self.intervention, 0.0) if self.cfg.shield is not None else None,
         )
         for name in ("dist_before", "dist_after"):  # no reward for frozen drones
             setattr(outcome, name, torch.where(racing, getattr(outcome, name), torch.zeros_like(dist_before)))
         return outcome, crashed_now, finished_now
 
-    def _race_result(self, racing: torch.Tensor, finished_now: torch.Tensor) -> torch.Tensor:
+    def _race_result(self, racing: torch.Tensor, finished_now: torch.Tensor, crashed_now: torch.Tensor) -> torch.Tensor:
         """+1 / −1 per racing drone of the winning / losing race team in the contested worlds decided this step.
 
         The winner is the team of the step's earliest finisher (lap times are interpolated within the step);
-        drones already out (crashed, finished, absent) are not paid.
+        drones already out (crashed, finished, absent) are not paid. With ``reward.forfeit`` a drone that crashes
+        while its race is undecided gets −1 at that step (a crash forfeits the race).
         """
         w, d = self.world_count, self.drones_per_world
         fin = finished_now.view(w, d)
         decided = self.contested & fin.any(dim=1)
         result = torch.zeros(w, d, device=self.device)
+        if self.cfg.reward.forfeit:
+            result = -(self.contested[:, None] & crashed_now.view(w, d)).float()
         if decided.any():
             first = torch.where(fin, self.lap_time.view(w, d), torch.inf).argmin(dim=1)
             same_team = self.race_team[None, :] == self.race_team[first][:, None]
-            result = torch.where(same_team, 1.0, -1.0) * (decided[:, None] & racing.view(w, d))
+            result = result + torch.where(same_team, 1.0, -1.0) * (decided[:, None] & racing.view(w, d))
             self.contested &= ~decided
         return result.flatten()
 

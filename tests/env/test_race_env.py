@@ -270,6 +270,23 @@ def test_race_outcome_between_two_learner_drones_pays_by_race_team(oval2):
     assert env.term_sums["win"].tolist() == pytest.approx([-5.0, 5.0])
 
 
+@pytest.mark.parametrize("forfeit", [False, True])
+def test_a_crash_forfeits_an_undecided_race_only_when_asked(oval2, forfeit):
+    """The opponent dives into the ground while the race is undecided: with ``forfeit`` it is charged the loss
+    (−w) at the crash, otherwise nothing; the hovering learner is paid nothing either way."""
+    reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, lap=0.0, collision=0.0, win=5.0, forfeit=forfeit)
+    env = make_env(oval2, worlds=1, drones=2, learners=(0,), auto_reset=False, reward=reward)
+    env.set_opponent_policy(lambda obs: torch.tensor([[0.0, 0.0, -1.0, 0.0]]))
+    env.reset()
+    for _ in range(100):
+        env.step(torch.zeros(1, 4))
+        if env.crashed[1]:
+            break
+    assert bool(env.crashed[1]) and not bool(env.crashed[0])
+    assert env.term_sums["win"].tolist() == [0.0, -5.0 if forfeit else 0.0]
+    assert bool(env.contested[0])  # nobody has finished: the race is still open for the learner
+
+
 def test_only_start_box_races_against_opponents_are_contested(oval2):
     """Contest the winner of start-box races with opponents present, not of track starts or solo flights."""
     def contested(track_start_prob: float, opponents: bool) -> torch.Tensor:
