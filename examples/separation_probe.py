@@ -17,9 +17,9 @@ import argparse
 from pathlib import Path
 
 from spiral.config import SeparationCfg, load_track
+from spiral.core.checkpoint import FrozenPolicy, load_policy
 from spiral.eval.evaluate import TEAMS, race_agents
 from spiral.eval.metrics import summarize_races
-from spiral.train import FrozenPolicy, load_policy
 
 
 def with_filter(policy: FrozenPolicy, separation: SeparationCfg | None) -> None:

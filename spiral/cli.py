@@ -31,8 +31,8 @@ CkptDir = Annotated[Path, typer.Option("--checkpoints-dir", help="Folder of prom
 
 
 def _expected_errors() -> tuple[type[Exception], ...]:
+    from spiral.core.checkpoint import CheckpointError
     from spiral.pipeline import PipelineError, PipelineLockedError
-    from spiral.train import CheckpointError
 
     return SpecError, PipelineError, PipelineLockedError, CheckpointError, FileNotFoundError, ValueError
 

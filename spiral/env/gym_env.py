@@ -28,6 +28,7 @@ from spiral.config.load import load_track
 from spiral.config.sim import SimCfg
 from spiral.config.stage import SCENARIO_DRONES
 from spiral.config.track import TrackSpec
+from spiral.core.checkpoint import load_policy
 from spiral.env.race_env import OpponentPolicy, RaceEnv
 
 __all__ = [
@@ -81,9 +82,7 @@ def _model(value: Any, model: type, what: str) -> Any:
 
 
 def _checkpoint_opponent(path: Path, device: str) -> tuple[Any, dict[str, Any]]:
-    """The frozen policy of a checkpoint and its stored env settings (imported here: train depends on env)."""
-    from spiral.train.checkpoint import load_policy
-
+    """The frozen policy of a checkpoint and its stored env settings."""
     policy = load_policy(path, device=device)
     return policy, policy.meta["env"]
 

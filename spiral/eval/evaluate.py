@@ -22,10 +22,10 @@ from spiral.config.env import ActionCfg, EnvCfg, ObsCfg, SeparationCfg
 from spiral.config.sim import SimCfg
 from spiral.config.stage import SCENARIO_DRONES
 from spiral.config.track import TrackSpec
+from spiral.core.checkpoint import FrozenPolicy, load_policy
 from spiral.env.race_env import OpponentPolicy, RaceEnv
 from spiral.env.racing import Policy, RaceResults, concat_results, race_winners, run_races
 from spiral.eval.metrics import summarize_races
-from spiral.train.checkpoint import FrozenPolicy, load_policy
 
 TEAMS: dict[str, list[list[int]]] = {"solo": [[0]], "1v1": [[0], [1]], "2v2": [[0, 1], [2, 3]]}
 """Drone slots of each team in each scenario."""

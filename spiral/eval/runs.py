@@ -17,8 +17,8 @@ from typing import Any
 from spiral.config.airframe import AIRFRAMES, AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
+from spiral.core.files import file_sha256
 from spiral.eval.evaluate import SE_IBR, FlightOverride, evaluate_methods, evaluate_mixed_teams
-from spiral.train.checkpoint import file_sha256
 
 __all__ = ["MODE_OF", "Evaluations", "RowResult", "StageRun", "find_stages", "load_json", "read_train_log",
            "run_protocol", "run_setup", "track_of_run"]

@@ -12,10 +12,10 @@ from spiral.config.airframe import resolve_airframe
 from spiral.config.pipeline import PipelineSpec
 from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
+from spiral.core.files import atomic_write_bytes
 from spiral.eval.evaluate import evaluate_methods
 from spiral.pipeline.step import Step, StepContext
 from spiral.selfplay.curriculum import run_stage
-from spiral.train.checkpoint import atomic_write_bytes
 
 __all__ = ["PipelinePlan", "select_steps"]
 

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import spiral
-from spiral.train.checkpoint import atomic_write_bytes, file_sha256
+from spiral.core.files import atomic_write_bytes, file_sha256
 
 __all__ = ["MANIFEST", "Fingerprint", "StepState", "fingerprint", "read_manifest", "source_hash", "step_state",
            "write_manifest"]

@@ -11,11 +11,12 @@ from pathlib import Path
 from typing import Any
 
 from spiral.config.load import load_pipeline
+from spiral.core.checkpoint import list_checkpoints
+from spiral.core.files import atomic_write_bytes
 from spiral.pipeline.graph import PipelinePlan, select_steps
 from spiral.pipeline.lock import PipelineLock
 from spiral.pipeline.manifest import Fingerprint, StepState, fingerprint, read_manifest, step_state, write_manifest
 from spiral.pipeline.step import Step, StepContext
-from spiral.train.checkpoint import atomic_write_bytes, list_checkpoints
 
 __all__ = ["PipelineError", "PipelineRunner", "StepStatus"]
 

@@ -12,11 +12,11 @@ from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.stage import SCENARIO_DRONES, StageSpec
 from spiral.config.track import TrackSpec
+from spiral.core.checkpoint import CheckpointError, load_checkpoint, load_policy
 from spiral.selfplay.matchmaking import Matchmaker
 from spiral.selfplay.opponents import PoolOpponents
 from spiral.selfplay.pool import INITIAL_RATING, Pool
 from spiral.selfplay.promotion import PromotionSelector
-from spiral.train.checkpoint import CheckpointError, load_checkpoint, load_policy
 from spiral.train.runner import StageTrainer, TrainResult
 
 __all__ = ["run_stage"]

@@ -7,8 +7,8 @@ from collections.abc import Callable
 import torch
 from tensordict import TensorDict
 
+from spiral.core.checkpoint import FrozenPolicy
 from spiral.selfplay.matchmaking import Matchmaker
-from spiral.train.checkpoint import FrozenPolicy
 
 __all__ = ["PoolOpponents"]
 

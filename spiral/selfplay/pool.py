@@ -9,7 +9,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from spiral.train.checkpoint import CheckpointError, FrozenPolicy, atomic_write_bytes, file_sha256, load_policy
+from spiral.core.checkpoint import CheckpointError, FrozenPolicy, load_policy
+from spiral.core.files import atomic_write_bytes, file_sha256
 
 __all__ = ["INITIAL_RATING", "Pool", "PoolMember"]
 

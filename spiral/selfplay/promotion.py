@@ -10,10 +10,10 @@ from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.stage import PromotionCfg, StageSpec
 from spiral.config.track import TrackSpec
+from spiral.core.checkpoint import FrozenPolicy, load_policy
 from spiral.env.race_env import RaceEnv
 from spiral.env.racing import Policy, race_winners, run_races
 from spiral.selfplay.pool import Pool
-from spiral.train.checkpoint import FrozenPolicy, load_policy
 from spiral.train.runner import StageTrainer
 
 __all__ = ["HeadToHead", "PromotionSelector", "elo_update", "head_to_head", "should_promote"]

@@ -1,18 +1,18 @@
-"""PPO training of a stage (rsl-rl) with checkpoints, resume and selection by evaluation."""
+"""PPO training of a stage (rsl-rl) with checkpoints, resume and selection by evaluation.
+
+``load_policy`` is re-exported here because the README's example imports it from this package; it lives in
+:mod:`spiral.core.checkpoint`, with the rest of the checkpoint format.
+"""
 
 from __future__ import annotations
 
-from spiral.train.checkpoint import CheckpointError, FrozenPolicy, load_checkpoint, load_policy, save_checkpoint
+from spiral.core.checkpoint import load_policy
 from spiral.train.runner import EvalScore, StageTrainer, TrainResult, seed_everything
 
 __all__ = [
-    "CheckpointError",
     "EvalScore",
-    "FrozenPolicy",
     "StageTrainer",
     "TrainResult",
-    "load_checkpoint",
     "load_policy",
-    "save_checkpoint",
     "seed_everything",
 ]

@@ -22,7 +22,8 @@ from typing import Any, Literal
 
 import torch
 
-from spiral.train.checkpoint import FrozenPolicy, atomic_write_bytes, file_sha256, load_policy
+from spiral.core.checkpoint import FrozenPolicy, load_policy
+from spiral.core.files import atomic_write_bytes, file_sha256
 
 __all__ = ["EXPORT_FORMATS", "export_metadata", "export_policy", "load_torchscript"]
 

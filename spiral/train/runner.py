@@ -23,14 +23,15 @@ from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
+from spiral.core.checkpoint import CheckpointError, load_checkpoint, newest_valid_checkpoint, save_checkpoint
+from spiral.core.inputs import silence_inputs, unused_inputs
 from spiral.env.mixed import MixedRaceEnv, training_env
 from spiral.env.race_env import OpponentPolicy, RaceEnv
 from spiral.env.racing import Policy, run_races
 from spiral.env.vec_env import RaceVecEnv
 from spiral.train import distributed
 from spiral.train.averaging import PolicyAverage
-from spiral.train.checkpoint import CheckpointError, load_checkpoint, newest_valid_checkpoint, save_checkpoint
-from spiral.train.inputs import calibrate_inputs, model_inputs, silence_inputs, unused_inputs, widen_inputs
+from spiral.train.inputs import calibrate_inputs, model_inputs, widen_inputs
 
 __all__ = ["EvalScore", "StageTrainer", "TrainResult", "seed_everything"]
 

@@ -10,8 +10,8 @@ from rsl_rl.models import MLPModel
 from tensordict import TensorDict
 
 from spiral.config import AIRFRAMES, EnvCfg, PPOCfg, SimCfg
+from spiral.core.checkpoint import save_checkpoint
 from spiral.env import ObservationBuilder
-from spiral.train import save_checkpoint
 
 SMALL_ENV = EnvCfg.model_validate({"obs": {"history_len": 2, "gate_normals": True}})
 """Observation layout of the ecosystem tests (short history: small inputs, fast steps)."""

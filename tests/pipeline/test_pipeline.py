@@ -14,8 +14,8 @@ import pytest
 import yaml
 
 from spiral.config import SpecError
+from spiral.core.checkpoint import list_checkpoints, newest_valid_checkpoint
 from spiral.pipeline import PipelineLock, PipelineLockedError, PipelineRunner
-from spiral.train.checkpoint import list_checkpoints, newest_valid_checkpoint
 
 ROOT = Path(__file__).resolve().parents[2]
 

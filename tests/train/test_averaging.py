@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from spiral.config import AIRFRAMES, SimCfg
-from spiral.train import StageTrainer, load_checkpoint
+from spiral.core.checkpoint import load_checkpoint
+from spiral.train import StageTrainer
 from spiral.train.averaging import PolicyAverage
 from spiral.train.runner import AVERAGE_KEY
 from tests.train.test_trainer import tiny_stage

@@ -7,10 +7,11 @@ import torch
 from tensordict import TensorDict
 
 from spiral.config import AIRFRAMES, SimCfg, StageSpec
+from spiral.core.checkpoint import CheckpointError, load_checkpoint
+from spiral.core.inputs import UNUSED_STD, silence_inputs, unused_inputs
 from spiral.selfplay import run_stage
 from spiral.train import StageTrainer, load_policy
-from spiral.train.checkpoint import CheckpointError, load_checkpoint
-from spiral.train.inputs import UNUSED_STD, calibrate_inputs, silence_inputs, unused_inputs
+from spiral.train.inputs import calibrate_inputs
 
 CF2X = AIRFRAMES["cf2x"]
 COMMON = {"worlds": 8, "env": {"obs": {"history_len": 1, "gate_normals": True, "pid_integral": True}},

@@ -9,9 +9,9 @@ import torch
 from tensordict import TensorDict
 
 from spiral.config import AIRFRAMES, SimCfg, StageSpec
+from spiral.core.checkpoint import CheckpointError
 from spiral.selfplay import Matchmaker, Pool, PoolOpponents, run_stage
 from spiral.train import StageTrainer, load_policy
-from spiral.train.checkpoint import CheckpointError
 
 CF2X = AIRFRAMES["cf2x"]
 COMMON = {"worlds": 8, "env": {"obs": {"history_len": 1, "gate_normals": True, "pid_integral": True}},

@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from spiral.config import AIRFRAMES, PPOCfg, SimCfg, StageSpec
+from spiral.core.checkpoint import CheckpointError, list_checkpoints, load_checkpoint, newest_valid_checkpoint
 from spiral.eval.evaluate import evaluate_policy
-from spiral.train import CheckpointError, StageTrainer, load_checkpoint, load_policy
-from spiral.train.checkpoint import list_checkpoints, newest_valid_checkpoint
+from spiral.train import StageTrainer, load_policy
 
 CF2X = AIRFRAMES["cf2x"]
 

@@ -1,12 +1,11 @@
-"""Atomic, checksummed checkpoints with metadata, and loading a frozen policy from one."""
+"""The checkpoint format (atomic, checksummed, with spiral metadata), frozen policies and loading them."""
 
 from __future__ import annotations
 
 import hashlib
+import io
 import json
-import os
 import re
-import tempfile
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -15,13 +14,13 @@ import torch
 from rsl_rl.models import MLPModel
 from tensordict import TensorDict
 
-from spiral.train.inputs import silence_inputs, unused_inputs
+from spiral.core.files import atomic_write_bytes, file_sha256
+from spiral.core.inputs import silence_inputs, unused_inputs
 
 __all__ = [
+    "FORMAT",
     "CheckpointError",
     "FrozenPolicy",
-    "atomic_write_bytes",
-    "file_sha256",
     "list_checkpoints",
     "load_checkpoint",
     "load_policy",
@@ -30,34 +29,11 @@ __all__ = [
 ]
 
 FORMAT = "spiral-checkpoint-1"
+"""Value of ``meta["format"]`` in every spiral checkpoint."""
 
 
 class CheckpointError(Exception):
     """A checkpoint is missing, truncated, corrupt or of an incompatible layout."""
-
-
-def file_sha256(path: Path) -> str:
-    """SHA-256 of a file's bytes."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file, fsync and rename, so readers never see half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _versions() -> dict[str, str]:
@@ -75,8 +51,6 @@ def save_checkpoint(path: Path, state: dict[str, Any], meta: dict[str, Any]) -> 
 
     The sidecar is written after the checkpoint, so a checkpoint without a matching sidecar is incomplete.
     """
-    import io
-
     meta = {"format": FORMAT, "versions": _versions(), **meta}
     buf = io.BytesIO()
     torch.save({**state, "spiral": meta}, buf)
@@ -158,7 +132,7 @@ def load_policy(path: Path, *, device: str = "cpu") -> FrozenPolicy:
     """Rebuild the actor of a checkpoint for inference (its normaliser included).
 
     Inputs that never varied while it trained (a solo policy's opponent slots) are silenced: the policy acts as it
-    did in its own stage and ignores them (:mod:`spiral.train.inputs`).
+    did in its own stage and ignores them (:mod:`spiral.core.inputs`).
     """
     data = load_checkpoint(path, map_location=device)
     meta = data["spiral"]
