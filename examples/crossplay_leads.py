@@ -18,8 +18,9 @@ from pathlib import Path
 import torch
 
 from spiral.config import load_track
+from spiral.core.scenario import TEAMS
 from spiral.env import RaceResults
-from spiral.eval.evaluate import TEAMS, race_agents
+from spiral.eval.evaluate import race_agents
 from spiral.sim import COLLISION_KINDS
 from spiral.train import load_policy
 

@@ -18,7 +18,8 @@ from pathlib import Path
 
 from spiral.config import SeparationCfg, load_track
 from spiral.core.checkpoint import FrozenPolicy, load_policy
-from spiral.eval.evaluate import TEAMS, race_agents
+from spiral.core.scenario import TEAMS
+from spiral.eval.evaluate import race_agents
 from spiral.eval.metrics import summarize_races
 
 

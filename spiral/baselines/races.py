@@ -18,6 +18,8 @@ import torch
 from spiral.baselines.centreline import Centreline
 from spiral.baselines.se_ibr import PlannerPolicy, opponent_policy, se_ibr_policy
 from spiral.config import AIRFRAMES, EnvCfg, SimCfg, TrackSpec, load_track
+from spiral.core.outcome import race_winner
+from spiral.core.scenario import SCENARIO_DRONES
 from spiral.env import RaceEnv, RaceResults, run_races
 
 __all__ = ["duel_statistics", "head_to_head", "paired_duel", "race_progress", "self_match", "winners"]
@@ -124,11 +126,10 @@ def duel_statistics(track: TrackSpec, res: RaceResults, *, a: int = 0, b: int = 
 
 
 def winners(res: RaceResults, *, a: int = 0, b: int = 1) -> np.ndarray:
-    """Winning slot of each 1v1 race (first to finish; a finisher beats a crashed or timed-out drone), −1 if none."""
-    fin, lap = res.finished.numpy(), res.lap_time.numpy()
-    a_wins = fin[:, a] & (~fin[:, b] | (lap[:, a] < lap[:, b]))
-    b_wins = fin[:, b] & (~fin[:, a] | (lap[:, b] < lap[:, a]))
-    return np.where(a_wins, a, np.where(b_wins, b, -1))
+    """Winning slot of each race between slots ``a`` and ``b`` (:func:`~spiral.core.outcome.race_winner`), −1 if
+    none."""
+    team = race_winner(res.finished, res.lap_time, [[a], [b]]).numpy()
+    return np.where(team == 0, a, np.where(team == 1, b, -1))
 
 
 def paired_duel(res: RaceResults, control: RaceResults, *, slot: int) -> dict[str, Any]:
@@ -181,7 +182,7 @@ def main(argv: list[str] | None = None) -> None:
         out.update(opponent_cfg=args.opponent_cfg, slot0=_summary(res, [0]), slot1=_summary(res, [1]),
                    duel=duel_statistics(track, res), timing=pol.planner.timing(), opponent_timing=opp.planner.timing())
     else:
-        drones = {"solo": 1, "1v1": 2, "2v2": 4}[args.scenario]
+        drones = SCENARIO_DRONES[args.scenario]
         res, pol = self_match(track, drones, runs=args.runs, seed=args.seed, **args.cfg)
         out.update(summary=_summary(res), timing=pol.planner.timing())
         if drones == 2:

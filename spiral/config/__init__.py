@@ -10,21 +10,12 @@ from spiral.config.load import KINDS, load_pipeline, load_spec, load_track
 from spiral.config.pipeline import EvaluationCfg, PipelineSpec, ReportCfg
 from spiral.config.ppo import PPOCfg
 from spiral.config.sim import SimCfg
-from spiral.config.stage import (
-    SCENARIO_DRONES,
-    PromotionCfg,
-    Scenario,
-    SelectionCfg,
-    SelfPlayCfg,
-    StageSpec,
-    learner_slots,
-)
+from spiral.config.stage import PromotionCfg, SelectionCfg, SelfPlayCfg, StageSpec
 from spiral.config.track import BoundsCfg, GateSpec, StartCfg, TrackSpec, gate_rotation
 
 __all__ = [
     "AIRFRAMES",
     "KINDS",
-    "SCENARIO_DRONES",
     "ActionCfg",
     "AirframeCfg",
     "AirframeSel",
@@ -40,7 +31,6 @@ __all__ = [
     "PromotionCfg",
     "ReportCfg",
     "RewardCfg",
-    "Scenario",
     "SelectionCfg",
     "SelfPlayCfg",
     "SeparationCfg",
@@ -52,7 +42,6 @@ __all__ = [
     "StrictModel",
     "TrackSpec",
     "gate_rotation",
-    "learner_slots",
     "load_pipeline",
     "load_spec",
     "load_track",

@@ -10,28 +10,9 @@ from pydantic import Field, model_validator
 from spiral.config.base import PosInt, StrictModel
 from spiral.config.env import EnvCfg
 from spiral.config.ppo import PPOCfg
+from spiral.core.scenario import SCENARIO_DRONES, Scenario, learner_slots
 
-__all__ = [
-    "SCENARIO_DRONES",
-    "PromotionCfg",
-    "Scenario",
-    "SelectionCfg",
-    "SelfPlayCfg",
-    "StageSpec",
-    "WorldPart",
-    "learner_slots",
-]
-
-Scenario = Literal["solo", "1v1", "2v2"]
-"""A race format."""
-
-SCENARIO_DRONES: dict[str, int] = {"solo": 1, "1v1": 2, "2v2": 4}
-"""Drones per world of each race format."""
-
-
-def learner_slots(scenario: str) -> list[int]:
-    """Drone slots of team A in ``scenario``: the ones a training stage's learner drives (the rest are opponents)."""
-    return [0, 1] if scenario == "2v2" else [0]
+__all__ = ["PromotionCfg", "SelectionCfg", "SelfPlayCfg", "StageSpec", "WorldPart"]
 
 
 @dataclass(frozen=True)

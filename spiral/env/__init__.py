@@ -7,8 +7,8 @@ from __future__ import annotations
 
 from spiral.env.gym_env import ENV_ID, RaceSingleEnv, RaceVectorEnv, make_race_env, register_envs
 from spiral.env.observations import HISTORY_FEATURES, ObservationBuilder
-from spiral.env.race_env import OpponentPolicy, RaceEnv
-from spiral.env.racing import RaceResults, concat_results, race_winners, run_races
+from spiral.env.race_env import RaceEnv
+from spiral.env.racing import RaceResults, concat_results, run_races
 from spiral.env.rewards import REWARD_TERMS, StepOutcome, compute_rewards
 
 __all__ = [
@@ -16,7 +16,6 @@ __all__ = [
     "HISTORY_FEATURES",
     "REWARD_TERMS",
     "ObservationBuilder",
-    "OpponentPolicy",
     "RaceEnv",
     "RaceResults",
     "RaceSingleEnv",
@@ -25,7 +24,6 @@ __all__ = [
     "compute_rewards",
     "concat_results",
     "make_race_env",
-    "race_winners",
     "register_envs",
     "run_races",
 ]

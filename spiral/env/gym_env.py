@@ -26,10 +26,12 @@ from spiral.config.airframe import AirframeCfg, resolve_airframe
 from spiral.config.env import EnvCfg
 from spiral.config.load import load_track
 from spiral.config.sim import SimCfg
-from spiral.config.stage import SCENARIO_DRONES
 from spiral.config.track import TrackSpec
 from spiral.core.checkpoint import load_policy
-from spiral.env.race_env import OpponentPolicy, RaceEnv
+from spiral.core.policy import OpponentPolicy
+from spiral.core.scenario import SCENARIO_DRONES
+from spiral.core.scenario import learner_slots as team_a_slots
+from spiral.env.race_env import RaceEnv
 
 __all__ = [
     "ENV_ID",
@@ -122,7 +124,7 @@ def make_race_env(
     if scenario not in SCENARIO_DRONES:
         raise ValueError(f"scenario: expected one of {', '.join(SCENARIO_DRONES)}, got {scenario!r}")
     drones = SCENARIO_DRONES[scenario]
-    slots = list(learner_slots) if learner_slots is not None else ([0, 1] if scenario == "2v2" else [0])
+    slots = list(learner_slots) if learner_slots is not None else team_a_slots(scenario)
     policy: OpponentPolicy | None = None
     se_ibr = isinstance(opponent, str) and opponent.lower() == "se-ibr"
     if isinstance(opponent, (str, Path)) and not se_ibr:

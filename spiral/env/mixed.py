@@ -8,9 +8,11 @@ from tensordict import TensorDict
 
 from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
-from spiral.config.stage import SCENARIO_DRONES, StageSpec
+from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
-from spiral.env.race_env import OpponentPolicy, RaceEnv, summarize_stats
+from spiral.core.policy import OpponentPolicy
+from spiral.core.scenario import SCENARIO_DRONES
+from spiral.env.race_env import RaceEnv, summarize_stats
 
 __all__ = ["MixedRaceEnv", "training_env"]
 

@@ -18,8 +18,8 @@ from pettingzoo import ParallelEnv
 from spiral.config.airframe import AirframeCfg
 from spiral.config.env import EnvCfg
 from spiral.config.sim import SimCfg
-from spiral.config.stage import SCENARIO_DRONES
 from spiral.config.track import TrackSpec
+from spiral.core.scenario import SCENARIO_DRONES
 from spiral.env.gym_env import make_race_env
 
 __all__ = ["RaceParallelEnv"]

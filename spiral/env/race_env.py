@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import torch
 import warp as wp
@@ -13,19 +13,16 @@ from spiral.config.airframe import AirframeCfg
 from spiral.config.env import EnvCfg, SeparationCfg
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
+from spiral.core.outcome import race_winner
+from spiral.core.policy import OpponentPolicy, RecordingOpponent, ResettingOpponent
+from spiral.core.scenario import race_teams, team_slots
 from spiral.env.observations import ObservationBuilder, nearest_others
 from spiral.env.rewards import REWARD_TERMS, StepOutcome, compute_rewards
 from spiral.env.separation import separation_offsets
 from spiral.env.starts import sample_box_starts, sample_track_starts
 from spiral.sim import COLLISION_KINDS, World
 
-__all__ = ["OpponentPolicy", "RaceEnv", "summarize_stats"]
-
-OpponentPolicy = Callable[[TensorDict], torch.Tensor]
-"""Maps the observations of the opponent drones (TensorDict with ``policy``, world-major rows) to actions in
-[−1, 1]. Optional methods: ``reset(worlds: bool mask)`` at world resets (to draw new opponents) and
-``record(worlds: indices, learner_won: bool)`` when races end (for matchmaking statistics). An attribute ``live``
-is set by :class:`~spiral.train.StageTrainer` to the learner's current deterministic policy (mirror self-play)."""
+__all__ = ["RaceEnv", "summarize_stats"]
 
 
 def _heading(quat: torch.Tensor) -> torch.Tensor:
@@ -85,9 +82,9 @@ class RaceEnv:
         self.slot_team = torch.tensor([s in self.opponent_slots for s in range(drones_per_world)],
                                       dtype=torch.long, device=self.device)
         """Team of each slot: 0 learners, 1 opponents."""
-        self.race_team = torch.arange(drones_per_world, device=self.device) // max(1, drones_per_world // 2)
-        """Team of each slot in the race format, whoever drives it: the first half of the slots against the second
-        (1v1: 0 against 1; 2v2: 0, 1 against 2, 3). Observed with ``obs.teammates``."""
+        self.race_team = torch.tensor(race_teams(drones_per_world), dtype=torch.long, device=self.device)
+        """Team of each slot in the race format, whoever drives it (:func:`~spiral.core.scenario.race_teams`).
+        Observed with ``obs.teammates``."""
         team = self.slot_team.tolist()
         self.other_slots = torch.tensor(
             [sorted((j for j in range(drones_per_world) if j != s), key=lambda j: (team[j] == team[s], j))
@@ -207,7 +204,7 @@ class RaceEnv:
         if self.auto_reset and self.cfg.episode.start_cut_prob > 0:
             cut = box & (torch.rand(n, generator=self.generator, device=self.device) < self.cfg.episode.start_cut_prob)
             self.cut_time[idx] = torch.where(cut, self.cfg.episode.start_cut_s, math.inf)
-        if hasattr(self.opponent_policy, "reset"):
+        if isinstance(self.opponent_policy, ResettingOpponent):
             self.opponent_policy.reset(worlds)
 
     def _teams_race(self) -> bool:
@@ -252,7 +249,7 @@ class RaceEnv:
         dones = terminated | time_outs
         self.episode_length_buf += 1
         log = self._log_episodes(dones, world_done)
-        if world_done.any() and hasattr(self.opponent_policy, "record"):
+        if world_done.any() and isinstance(self.opponent_policy, RecordingOpponent):
             ended = world_done.nonzero().squeeze(1)
             self.opponent_policy.record(ended, self.learner_won()[ended])
         if self.auto_reset and world_done.any():
@@ -331,9 +328,10 @@ class RaceEnv:
     def _race_result(self, racing: torch.Tensor, finished_now: torch.Tensor, crashed_now: torch.Tensor) -> torch.Tensor:
         """+1 / −1 per racing drone of the winning / losing race team in the contested worlds decided this step.
 
-        The winner is the team of the step's earliest finisher (lap times are interpolated within the step);
-        drones already out (crashed, finished, absent) are not paid. With ``reward.forfeit`` a drone that crashes
-        while its race is undecided gets −1 at that step (a crash forfeits the race).
+        The winner (:func:`~spiral.core.outcome.race_winner`) is the team of the step's earliest finisher (lap times
+        are interpolated within the step); drones already out (crashed, finished, absent) are not paid, nor anyone
+        when two teams finish at exactly the same time. With ``reward.forfeit`` a drone that crashes while its
+        race is undecided gets −1 at that step (a crash forfeits the race).
         """
         w, d = self.world_count, self.drones_per_world
         fin = finished_now.view(w, d)
@@ -342,9 +340,10 @@ class RaceEnv:
         if self.cfg.reward.forfeit:
             result = -(self.contested[:, None] & crashed_now.view(w, d)).float()
         if decided.any():
-            first = torch.where(fin, self.lap_time.view(w, d), torch.inf).argmin(dim=1)
-            same_team = self.race_team[None, :] == self.race_team[first][:, None]
-            result = result + torch.where(same_team, 1.0, -1.0) * (decided[:, None] & racing.view(w, d))
+            winner = race_winner(fin, self.lap_time.view(w, d), team_slots(d))
+            same_team = self.race_team[None, :] == winner[:, None]
+            paid = decided[:, None] & (winner >= 0)[:, None] & racing.view(w, d)
+            result = result + torch.where(same_team, 1.0, -1.0) * paid
             self.contested &= ~decided
         return result.flatten()
 
@@ -395,12 +394,10 @@ class RaceEnv:
         return log
 
     def learner_won(self) -> torch.Tensor:
-        """Per world, whether a learner drone finished before every opponent drone (bool, (W,))."""
-        inf = torch.full_like(self.lap_time, float("inf"))
-        t = torch.where(self.finished, self.lap_time, inf).view(self.world_count, self.drones_per_world)
-        learner = t[:, self.learner_slots].amin(dim=1)
-        opponent = t[:, self.opponent_slots].amin(dim=1) if self.opponent_slots else inf[: self.world_count]
-        return torch.isfinite(learner) & (learner < opponent)
+        """Per world, whether the learner's team won the race against the opponent slots (bool, (W,))."""
+        w, d = self.world_count, self.drones_per_world
+        teams = [self.learner_slots, self.opponent_slots]
+        return race_winner(self.finished.view(w, d), self.lap_time.view(w, d), teams) == 0
 
     def pop_stats(self) -> dict[str, float]:
         """Means over the learner episodes ended since the last call, then start counting afresh."""

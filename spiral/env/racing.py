@@ -2,20 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict
 
+from spiral.core.policy import Policy
 from spiral.env.observations import nearest_others
 from spiral.env.race_env import RaceEnv
 from spiral.sim import COLLISION_KINDS
 
-__all__ = ["RaceResults", "concat_results", "race_winners", "run_races"]
-
-Policy = Callable[[TensorDict], torch.Tensor]
-"""Deterministic policy: observations of the learner drones -> actions."""
+__all__ = ["RaceResults", "concat_results", "run_races"]
 
 
 @dataclass
@@ -162,11 +158,3 @@ def _team_of_slots(teams: list[list[int]], drones: int) -> torch.Tensor:
         team[slots] = i
     return team
 
-
-def race_winners(res: RaceResults, teams: list[list[int]]) -> torch.Tensor:
-    """Index of the winning team of each race (its first drone to finish finished first), −1 when nobody finished."""
-    t = torch.where(res.finished, res.lap_time, torch.full_like(res.lap_time, float("inf")))
-    best = torch.stack([t[:, slots].amin(dim=1) for slots in teams], dim=1)
-    first = best.amin(dim=1)
-    winner = best.argmin(dim=1)
-    return torch.where(torch.isfinite(first), winner, torch.full_like(winner, -1))

@@ -20,15 +20,14 @@ from spiral.baselines import opponent_policy, se_ibr_policy
 from spiral.config.airframe import AIRFRAMES, AirframeCfg
 from spiral.config.env import ActionCfg, EnvCfg, ObsCfg, SeparationCfg
 from spiral.config.sim import SimCfg
-from spiral.config.stage import SCENARIO_DRONES
 from spiral.config.track import TrackSpec
 from spiral.core.checkpoint import FrozenPolicy, load_policy
-from spiral.env.race_env import OpponentPolicy, RaceEnv
-from spiral.env.racing import Policy, RaceResults, concat_results, race_winners, run_races
+from spiral.core.outcome import race_winner
+from spiral.core.policy import OpponentPolicy, Policy
+from spiral.core.scenario import SCENARIO_DRONES, TEAMS
+from spiral.env.race_env import RaceEnv
+from spiral.env.racing import RaceResults, concat_results, run_races
 from spiral.eval.metrics import summarize_races
-
-TEAMS: dict[str, list[list[int]]] = {"solo": [[0]], "1v1": [[0], [1]], "2v2": [[0, 1], [2, 3]]}
-"""Drone slots of each team in each scenario."""
 
 SIDES = ("a", "both")
 """Head-to-head protocols: method on team A's slots only, or every placement raced from both sides."""
@@ -50,7 +49,6 @@ __all__ = [
     "MIXED_SLOTS",
     "SE_IBR",
     "SIDES",
-    "TEAMS",
     "Agent",
     "EvalLayout",
     "FlightOverride",
@@ -203,7 +201,7 @@ def race_agents(track: TrackSpec, scenario: str, runs: int, seed: int, agent: Ag
     env, policy = setup_race(track, scenario, runs, seed, agent, opponent, device=device, layout=layout,
                              flight=flight)
     res = run_races(env, policy, record=record, teams=TEAMS[scenario])
-    return res, race_winners(res, TEAMS[scenario]) if opponent is not None else None
+    return res, race_winner(res.finished, res.lap_time, TEAMS[scenario]) if opponent is not None else None
 
 
 def evaluate_policy(policy: FrozenPolicy, track: TrackSpec, scenario: str, runs: int, seed: int, *,

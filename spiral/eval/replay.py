@@ -25,8 +25,9 @@ from PIL import Image
 from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
+from spiral.core.scenario import TEAMS
 from spiral.env.race_env import RaceEnv
-from spiral.eval.evaluate import TEAMS, EvalLayout, load_agent, setup_race
+from spiral.eval.evaluate import EvalLayout, load_agent, setup_race
 from spiral.eval.plots import _draw_view
 from spiral.sim import COLLISION_KINDS
 

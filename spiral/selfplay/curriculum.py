@@ -10,9 +10,10 @@ import torch
 
 from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
-from spiral.config.stage import SCENARIO_DRONES, StageSpec
+from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
 from spiral.core.checkpoint import CheckpointError, load_checkpoint, load_policy
+from spiral.core.scenario import SCENARIO_DRONES
 from spiral.selfplay.matchmaking import Matchmaker
 from spiral.selfplay.opponents import PoolOpponents
 from spiral.selfplay.pool import INITIAL_RATING, Pool

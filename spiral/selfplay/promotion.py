@@ -11,8 +11,10 @@ from spiral.config.sim import SimCfg
 from spiral.config.stage import PromotionCfg, StageSpec
 from spiral.config.track import TrackSpec
 from spiral.core.checkpoint import FrozenPolicy, load_policy
+from spiral.core.outcome import race_winner
+from spiral.core.policy import Policy
 from spiral.env.race_env import RaceEnv
-from spiral.env.racing import Policy, race_winners, run_races
+from spiral.env.racing import run_races
 from spiral.selfplay.pool import Pool
 from spiral.train.runner import StageTrainer
 
@@ -46,7 +48,7 @@ def head_to_head(env: RaceEnv, challenger: Policy, holder: Policy) -> HeadToHead
     env.set_opponent_policy(holder)
     res = run_races(env, challenger)
     env.set_opponent_policy(None)
-    winners = race_winners(res, [env.learner_slots, env.opponent_slots])
+    winners = race_winner(res.finished, res.lap_time, [env.learner_slots, env.opponent_slots])
     a = res.finished[:, env.learner_slots].float().mean()
     b = res.finished[:, env.opponent_slots].float().mean()
     return HeadToHead(races=len(winners), wins=int((winners == 0).sum()), losses=int((winners == 1).sum()),

@@ -25,9 +25,10 @@ from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
 from spiral.core.checkpoint import CheckpointError, load_checkpoint, newest_valid_checkpoint, save_checkpoint
 from spiral.core.inputs import silence_inputs, unused_inputs
+from spiral.core.policy import MirrorOpponent, OpponentPolicy, Policy
 from spiral.env.mixed import MixedRaceEnv, training_env
-from spiral.env.race_env import OpponentPolicy, RaceEnv
-from spiral.env.racing import Policy, run_races
+from spiral.env.race_env import RaceEnv
+from spiral.env.racing import run_races
 from spiral.env.vec_env import RaceVecEnv
 from spiral.train import distributed
 from spiral.train.averaging import PolicyAverage
@@ -127,7 +128,7 @@ class StageTrainer:
         actor = self.runner.alg.get_policy()  # called plainly it returns the mean action
         sampled = stage.selfplay.mirror_actions == "sampled"
         for policy in opponents.values():
-            if hasattr(policy, "live"):  # mirror self-play: opponents that race the learner's current policy
+            if isinstance(policy, MirrorOpponent):  # mirror self-play: opponents that race the learner's current policy
                 policy.live = functools.partial(actor, stochastic_output=True) if sampled else actor
         self.start_iteration = 0
         self.best = EvalScore(-1.0, -math.inf)

@@ -7,8 +7,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from spiral.env.racing import RaceResults, concat_results, race_winners
-from spiral.eval.evaluate import TEAMS, cross_play, evaluate_methods, load_agent, race_agents
+from spiral.core.outcome import race_winner
+from spiral.core.scenario import TEAMS
+from spiral.env.racing import RaceResults, concat_results
+from spiral.eval.evaluate import cross_play, evaluate_methods, load_agent, race_agents
 
 SHIPPED = Path(__file__).resolve().parents[2] / "checkpoints" / "full"
 SPIRAL_1V1, NOSELFPLAY_1V1 = SHIPPED / "1v1" / "best.pt", SHIPPED / "1v1-noselfplay" / "best.pt"
@@ -40,8 +42,8 @@ def test_swapping_the_teams_slots_moves_each_drone_and_renames_its_contact_partn
     assert swapped.crash_partner.tolist() == [[-1, -1, -1, 1]]
     assert swapped.team.tolist() == [0, 0, 1, 1]
     assert torch.equal(swapped.split_time[0, 0], res.split_time[0, 2])
-    assert race_winners(res, TEAMS["2v2"]).tolist() == [1]
-    assert race_winners(swapped, TEAMS["2v2"]).tolist() == [0]
+    assert race_winner(res.finished, res.lap_time, TEAMS["2v2"]).tolist() == [1]
+    assert race_winner(swapped.finished, swapped.lap_time, TEAMS["2v2"]).tolist() == [0]
     back = swapped.permuted([2, 3, 0, 1])
     for name in ("finished", "crashed", "crash_kind", "lap_time", "crash_partner", "split_time"):
         assert torch.equal(getattr(back, name), getattr(res, name))
@@ -54,7 +56,7 @@ def test_concatenated_results_list_the_races_one_after_another():
     res = two_v_two()
     joined = concat_results([res, res.permuted([2, 3, 0, 1])])
     assert joined.finished.shape == (2, 4) and joined.split_time.shape == (2, 4, 2)
-    assert race_winners(joined, TEAMS["2v2"]).tolist() == [1, 0]
+    assert race_winner(joined.finished, joined.lap_time, TEAMS["2v2"]).tolist() == [1, 0]
     other = two_v_two()
     other.team = torch.tensor([0, 1, 0, 1])
     with pytest.raises(ValueError, match="different teams"):
