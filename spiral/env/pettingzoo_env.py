@@ -20,7 +20,7 @@ from spiral.config.env import EnvCfg
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
 from spiral.core.scenario import SCENARIO_DRONES
-from spiral.env.gym_env import make_race_env
+from spiral.env.factory import make_race_env
 
 __all__ = ["RaceParallelEnv"]
 
@@ -33,7 +33,7 @@ class RaceParallelEnv(ParallelEnv):
     Args:
         track: A ``TrackSpec``, a track YAML file, or the name of a shipped track.
         scenario: Race format.
-        env_cfg, sim, airframe, device, seed: as in :func:`spiral.env.gym_env.make_race_env`.
+        env_cfg, sim, airframe, device, seed: as in :func:`spiral.env.factory.make_race_env`.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"name": "spiral_race_v0", "render_modes": [], "is_parallelizable": True}

@@ -5,8 +5,8 @@ from __future__ import annotations
 from spiral.pipeline.graph import PipelinePlan, select_steps
 from spiral.pipeline.lock import PipelineLock, PipelineLockedError
 from spiral.pipeline.manifest import fingerprint, step_state
-from spiral.pipeline.runner import PipelineError, PipelineRunner, StepStatus
-from spiral.pipeline.step import Step, StepContext
+from spiral.pipeline.runner import PipelineRunner, StepStatus
+from spiral.pipeline.step import PipelineError, Step, StepContext
 
 __all__ = [
     "PipelineError",

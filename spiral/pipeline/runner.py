@@ -16,15 +16,12 @@ from spiral.core.files import atomic_write_bytes
 from spiral.pipeline.graph import PipelinePlan, select_steps
 from spiral.pipeline.lock import PipelineLock
 from spiral.pipeline.manifest import Fingerprint, StepState, fingerprint, read_manifest, step_state, write_manifest
-from spiral.pipeline.step import Step, StepContext
+from spiral.pipeline.parallel import run_parallel
+from spiral.pipeline.step import PipelineError, Step, StepContext
 
-__all__ = ["PipelineError", "PipelineRunner", "StepStatus"]
+__all__ = ["PipelineRunner", "StepStatus"]
 
 FINGERPRINT_FILE = "fingerprint"
-
-
-class PipelineError(Exception):
-    """A step failed; the message names it and the command that resumes."""
 
 
 @dataclass
@@ -99,8 +96,6 @@ class PipelineRunner:
                     continue
                 todo[step.name] = (step, state)  # running upstream steps leaves a step's own folder as it is
             if jobs > 1 and len(todo) > 1:
-                from spiral.pipeline.workers import run_parallel
-
                 return run_parallel(self, [step for step, _ in todo.values()], forced, jobs)
             for step, state in todo.values():
                 self._run_step(step, fps[step.name], state, fresh=step.name in forced)

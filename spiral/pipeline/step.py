@@ -1,4 +1,5 @@
-"""A pipeline step: a function with declared inputs (upstream steps) and a resolved spec section."""
+"""A pipeline step: a function with declared inputs (upstream steps) and a resolved spec section; the error a
+failed step raises."""
 
 from __future__ import annotations
 
@@ -7,7 +8,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["Step", "StepContext"]
+__all__ = ["PipelineError", "Step", "StepContext"]
+
+
+class PipelineError(Exception):
+    """A step failed; the message names it and the command that resumes."""
 
 
 @dataclass

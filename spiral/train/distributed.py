@@ -22,14 +22,12 @@ import os
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 import torch.distributed as dist
+from rsl_rl.algorithms import PPO
 from rsl_rl.runners import OnPolicyRunner
-
-if TYPE_CHECKING:
-    from spiral.train.runner import StageTrainer
 
 __all__ = [
     "DistInfo",
@@ -173,8 +171,9 @@ class GroupRunner(OnPolicyRunner):
                                   "world_size": info.world_size} if info.enabled else None)
 
 
-def share_training_state(trainer: StageTrainer) -> None:
-    """Give every rank rank 0's training state: weights, optimiser, normaliser, start iteration and best score.
+def share_training_state(alg: PPO, start_iteration: int, best: Any, *, device: str) -> tuple[int, Any]:
+    """Give every rank rank 0's training state: weights, optimiser, normaliser (loaded into ``alg``), and return
+    rank 0's start iteration and best score.
 
     Rank 0 may have resumed from a checkpoint the others cannot see, so its state is sent, not read from disk.
 
@@ -184,16 +183,16 @@ def share_training_state(trainer: StageTrainer) -> None:
     payload: list[Any] = [None]
     if current().is_main:
         buf = io.BytesIO()
-        torch.save({"alg": trainer.runner.alg.save(), "start_iteration": trainer.start_iteration,
-                    "best": trainer.best}, buf)
+        torch.save({"alg": alg.save(), "start_iteration": start_iteration, "best": best}, buf)
         payload = [buf.getvalue()]
     dist.broadcast_object_list(payload, src=0)
     if payload[0] is None:
         raise StageCancelledError("rank 0 did not train this stage")
-    if not current().is_main:
-        data = torch.load(io.BytesIO(payload[0]), map_location=trainer.device, weights_only=False)
-        trainer.runner.alg.load(data["alg"], None, strict=True)
-        trainer.start_iteration, trainer.best = data["start_iteration"], data["best"]
+    if current().is_main:
+        return start_iteration, best
+    data = torch.load(io.BytesIO(payload[0]), map_location=device, weights_only=False)
+    alg.load(data["alg"], None, strict=True)
+    return data["start_iteration"], data["best"]
 
 
 def cancel_workers() -> None:

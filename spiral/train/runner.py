@@ -139,7 +139,8 @@ class StageTrainer:
         """Moving average of the policy's weights: the candidate selection races (``selection.average`` > 0)."""
         self._resume_or_init(init_checkpoint)
         if self.runner.is_distributed:
-            distributed.share_training_state(self)
+            self.start_iteration, self.best = distributed.share_training_state(
+                self.runner.alg, self.start_iteration, self.best, device=self.device)
 
     # Checkpoints
 

@@ -10,9 +10,10 @@ from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode, VectorEnv
 
 import spiral.env  # noqa: F401  (registers spiral/Race-v0)
+from spiral.adapters import RaceSingleEnv, RaceVectorEnv
 from spiral.config import AIRFRAMES, SimCfg, load_track
-from spiral.env import RaceEnv, RaceSingleEnv, RaceVectorEnv
-from spiral.env.gym_env import SHIPPED_TRACKS, resolve_track
+from spiral.env import RaceEnv
+from spiral.env.factory import SHIPPED_TRACKS, resolve_track
 
 DOWN = np.array([0.0, 0.0, -1.0, 0.0], dtype=np.float32)
 """Relative action: aim 2 m below the drone, so it hits the ground within a second."""

@@ -4,15 +4,14 @@
 stepped together by one :class:`RaceEnv` (no Python loop, no subprocesses). ``gymnasium.make("spiral/Race-v0")``
 returns :class:`RaceSingleEnv`, one learner drone, for tools that expect a plain ``gymnasium.Env``.
 
-Both take the same keyword arguments (see :func:`make_race_env`): the track (a YAML path, a shipped track's name or a
-``TrackSpec``), the race format, the opponents (none, a checkpoint path, ``"se-ibr"`` or any ``OpponentPolicy``), the
-environment, simulator and airframe settings, the device and the seed.
+Both take the keyword arguments of :func:`spiral.env.factory.make_race_env`: the track (a YAML path, a shipped
+track's name or a ``TrackSpec``), the race format, the opponents (none, a checkpoint path, ``"se-ibr"`` or any
+``OpponentPolicy``), the environment, simulator and airframe settings, the device and the seed. ``import spiral.env``
+registers the id; this module sits above ``spiral.baselines`` because it offers the SE-IBR planner as an opponent.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import gymnasium
@@ -22,136 +21,14 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from spiral.config.airframe import AirframeCfg, resolve_airframe
-from spiral.config.env import EnvCfg
-from spiral.config.load import load_track
-from spiral.config.sim import SimCfg
-from spiral.config.track import TrackSpec
-from spiral.core.checkpoint import load_policy
-from spiral.core.policy import OpponentPolicy
-from spiral.core.scenario import SCENARIO_DRONES
-from spiral.core.scenario import learner_slots as team_a_slots
+from spiral.baselines import opponent_policy
+from spiral.env.factory import OpponentFactory, make_race_env
 from spiral.env.race_env import RaceEnv
 
-__all__ = [
-    "ENV_ID",
-    "SHIPPED_TRACKS",
-    "RaceSingleEnv",
-    "RaceVectorEnv",
-    "make_race_env",
-    "register_envs",
-    "resolve_track",
-]
+__all__ = ["NAMED_OPPONENTS", "RaceSingleEnv", "RaceVectorEnv"]
 
-ENV_ID = "spiral/Race-v0"
-"""gymnasium id of the race environment."""
-
-SHIPPED_TRACKS = Path(__file__).resolve().parents[2] / "tracks"
-"""Folder of the tracks that come with spiral; :func:`resolve_track` finds them by name."""
-
-Opponent = OpponentPolicy | str | Path | None
-"""``None`` (opponent slots stay empty), ``"se-ibr"``, a checkpoint path, or a callable ``OpponentPolicy``."""
-
-
-def register_envs() -> None:
-    """Register ``spiral/Race-v0`` with gymnasium (done on ``import spiral.env``; repeated calls are no-ops)."""
-    if ENV_ID not in gymnasium.registry:
-        gymnasium.register(ENV_ID, entry_point="spiral.env.gym_env:RaceSingleEnv",
-                           vector_entry_point="spiral.env.gym_env:RaceVectorEnv")
-
-
-def resolve_track(track: str | Path | TrackSpec) -> TrackSpec:
-    """A ``TrackSpec`` as is, a YAML file, or the name of a shipped track (``oval4``, ``circuit6``, ...)."""
-    if isinstance(track, TrackSpec):
-        return track
-    path = Path(track)
-    if not path.is_file() and path.suffix == "" and (SHIPPED_TRACKS / f"{track}.yaml").is_file():
-        path = SHIPPED_TRACKS / f"{track}.yaml"
-    if not path.is_file():
-        known = ", ".join(sorted(p.stem for p in SHIPPED_TRACKS.glob("*.yaml")))
-        raise FileNotFoundError(f"track {str(track)!r}: no such file and no shipped track of that name ({known})")
-    return load_track(path)
-
-
-def _model(value: Any, model: type, what: str) -> Any:
-    if value is None:
-        return model()
-    if isinstance(value, model):
-        return value
-    if isinstance(value, dict):
-        return model.model_validate(value)
-    raise TypeError(f"{what}: expected a {model.__name__}, a dict or None, got {type(value).__name__}")
-
-
-def _checkpoint_opponent(path: Path, device: str) -> tuple[Any, dict[str, Any]]:
-    """The frozen policy of a checkpoint and its stored env settings."""
-    policy = load_policy(path, device=device)
-    return policy, policy.meta["env"]
-
-
-def make_race_env(
-    track: str | Path | TrackSpec = "oval4",
-    *,
-    scenario: Literal["solo", "1v1", "2v2"] = "solo",
-    opponent: Opponent = None,
-    env_cfg: EnvCfg | dict | None = None,
-    sim: SimCfg | dict | None = None,
-    airframe: str | AirframeCfg = "cf2x",
-    world_count: int = 1,
-    learner_slots: Sequence[int] | None = None,
-    device: str = "cpu",
-    seed: int = 0,
-    auto_reset: bool = True,
-    env_class: type[RaceEnv] = RaceEnv,
-) -> RaceEnv:
-    """Build a :class:`RaceEnv` from friendly arguments; the adapters of this module and PettingZoo's use it.
-
-    Args:
-        track: A ``TrackSpec``, a track YAML file, or the name of a shipped track.
-        scenario: Race format: ``solo`` (1 drone), ``1v1`` (2) or ``2v2`` (4).
-        opponent: Who flies the opponent slots: ``None`` (absent), ``"se-ibr"`` (the game-theoretic planner),
-            a checkpoint path (its frozen policy; its env settings are used when ``env_cfg`` is None) or a callable.
-        env_cfg: Observation, action, reward and episode settings (``EnvCfg`` or a dict of its fields).
-        sim: Simulator settings (``SimCfg`` or a dict).
-        airframe: A built-in airframe's name or an ``AirframeCfg``.
-        world_count: Races stepped together.
-        learner_slots: Slots the caller drives; the race format's learner team when None (slot 0, or 0 and 1 in 2v2).
-        device: ``cpu`` or ``cuda:N``.
-        seed: Seed of the start placements.
-        auto_reset: Reset a world in ``step`` when its race ends (training); False freezes finished drones.
-        env_class: ``RaceEnv`` or a subclass.
-    """
-    if scenario not in SCENARIO_DRONES:
-        raise ValueError(f"scenario: expected one of {', '.join(SCENARIO_DRONES)}, got {scenario!r}")
-    drones = SCENARIO_DRONES[scenario]
-    slots = list(learner_slots) if learner_slots is not None else team_a_slots(scenario)
-    policy: OpponentPolicy | None = None
-    se_ibr = isinstance(opponent, str) and opponent.lower() == "se-ibr"
-    if isinstance(opponent, (str, Path)) and not se_ibr:
-        policy, stored_env = _checkpoint_opponent(Path(opponent), device)
-        env_cfg = stored_env if env_cfg is None else env_cfg
-    elif callable(opponent):
-        policy = opponent
-    elif opponent is not None and not se_ibr:
-        raise TypeError(f"opponent: expected None, 'se-ibr', a checkpoint path or a callable, got {opponent!r}")
-    if opponent is not None and len(slots) == drones:
-        raise ValueError(f"opponent: a {scenario} race whose every slot is driven by the caller has no opponent slot")
-    air = airframe if isinstance(airframe, AirframeCfg) else resolve_airframe(airframe)
-    env = env_class(resolve_track(track), air, _model(sim, SimCfg, "sim"), _model(env_cfg, EnvCfg, "env_cfg"),
-                    world_count=world_count, drones_per_world=drones, learner_slots=slots, device=device, seed=seed,
-                    auto_reset=auto_reset)
-    if se_ibr:
-        from spiral.baselines import opponent_policy
-
-        policy = opponent_policy(env)
-    if policy is not None:
-        layout = getattr(policy, "obs_layout", None)
-        if layout is not None and layout != env.obs_builder.layout():
-            raise ValueError(f"opponent: checkpoint observation layout {layout} differs from the env's "
-                             f"{env.obs_builder.layout()} (pass env_cfg=None to use the checkpoint's)")
-        env.set_opponent_policy(policy)
-        env.reset()  # the opponents join at a reset
-    return env
+NAMED_OPPONENTS: dict[str, OpponentFactory] = {"se-ibr": opponent_policy}
+"""Opponents the adapters accept by name: ``"se-ibr"``, the game-theoretic planner (any case)."""
 
 
 class _RaceEnvWithFinalObs(RaceEnv):
@@ -214,8 +91,8 @@ class RaceVectorEnv(VectorEnv):
     Args:
         num_envs: Learner drones.
         array_type: ``"numpy"`` (float32 arrays on the CPU) or ``"torch"`` (tensors on ``device``).
-        **kwargs: :func:`make_race_env` arguments (``track``, ``scenario``, ``opponent``, ``env_cfg``, ``sim``,
-            ``airframe``, ``device``, ``seed``).
+        **kwargs: :func:`~spiral.env.factory.make_race_env` arguments (``track``, ``scenario``, ``opponent``,
+            ``env_cfg``, ``sim``, ``airframe``, ``device``, ``seed``).
     """
 
     metadata: ClassVar[dict[str, Any]] = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
@@ -226,7 +103,8 @@ class RaceVectorEnv(VectorEnv):
         per_world = 2 if kwargs.get("scenario") == "2v2" and kwargs.get("learner_slots") is None else 1
         if num_envs < 1 or num_envs % per_world:
             raise ValueError(f"num_envs: expected a positive multiple of {per_world}, got {num_envs}")
-        self.race = make_race_env(world_count=num_envs // per_world, env_class=_RaceEnvWithFinalObs, **kwargs)
+        self.race = make_race_env(world_count=num_envs // per_world, env_class=_RaceEnvWithFinalObs,
+                                  named_opponents=NAMED_OPPONENTS, **kwargs)
         if self.race.num_envs != num_envs:
             raise ValueError(f"num_envs: {num_envs} is not a multiple of the learner slots {self.race.learner_slots}")
         self.num_envs, self.array_type = num_envs, array_type
@@ -274,8 +152,8 @@ class RaceSingleEnv(gymnasium.Env):
 
     ``step`` returns the last observation of a race when it ends (``terminated``: crash or finish; ``truncated``:
     time limit); call ``reset`` to race again. ``info`` holds ``success``, ``crashed`` and ``lap_time`` at the end.
-    The arguments are those of :func:`make_race_env`; ``scenario`` is ``solo`` or ``1v1`` (use the vector or
-    PettingZoo env for ``2v2``, where the caller drives two drones).
+    The arguments are those of :func:`~spiral.env.factory.make_race_env`; ``scenario`` is ``solo`` or ``1v1`` (use
+    the vector or PettingZoo env for ``2v2``, where the caller drives two drones).
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
@@ -284,7 +162,8 @@ class RaceSingleEnv(gymnasium.Env):
         if kwargs.get("scenario") == "2v2":
             raise ValueError("scenario: the single env drives one drone; use gymnasium.make_vec or PettingZoo for 2v2")
         kwargs.pop("render_mode", None)
-        self.race = make_race_env(world_count=1, env_class=_RaceEnvWithFinalObs, **kwargs)
+        self.race = make_race_env(world_count=1, env_class=_RaceEnvWithFinalObs, named_opponents=NAMED_OPPONENTS,
+                                  **kwargs)
         self.observation_space, self.action_space = _spaces(self.race.obs_dim)
 
     @staticmethod
