@@ -35,8 +35,9 @@ class _RaceEnvWithFinalObs(RaceEnv):
     """A :class:`RaceEnv` that keeps its learner drones' last observation before each automatic world reset.
 
     RaceEnv resets finished worlds inside ``step`` and returns the first observation of the new episode; gymnasium's
-    same-step autoreset also wants the last one of the old episode (``final_obs``). It is built here just before the
-    reset, without moving the history buffer, along with how the episode ended.
+    same-step autoreset also wants the last one of the old episode (``final_obs``). The env's
+    :meth:`~RaceEnv.before_auto_reset` hook builds it just before the reset, without moving the history buffer, along
+    with how the episode ended.
     """
 
     final_obs: torch.Tensor
@@ -45,30 +46,13 @@ class _RaceEnvWithFinalObs(RaceEnv):
     """Per learner row at the last reset: ``success`` (finished without collision), ``crashed``, ``lap_time`` [s]
     (NaN when not finished)."""
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        self._stepping = False
-        super().__init__(*args, **kwargs)
-
-    def step(self, actions: torch.Tensor) -> tuple[Any, torch.Tensor, torch.Tensor, dict]:
-        """:meth:`RaceEnv.step`, recording :attr:`final_obs` and :attr:`final_outcome` when a world resets."""
-        self._stepping = True
-        try:
-            return super().step(actions)
-        finally:
-            self._stepping = False
-
-    def _reset_worlds(self, worlds: torch.Tensor) -> None:
-        if self._stepping:
-            history = self.obs_builder.history.clone()
-            self._fresh = torch.zeros_like(self.finished)
-            self._update_history()
-            idx = self.learner_idx
-            self.final_obs = self._build_observations()[idx]
-            self.final_outcome = {"success": self.finished[idx].clone(), "crashed": self.crashed[idx].clone(),
-                                  "lap_time": torch.where(self.finished[idx], self.lap_time[idx],
-                                                          torch.full_like(self.lap_time[idx], float("nan")))}
-            self.obs_builder.history.copy_(history)
-        super()._reset_worlds(worlds)
+    def before_auto_reset(self, worlds: torch.Tensor) -> None:
+        """Record :attr:`final_obs` and :attr:`final_outcome` of the learner rows before ``worlds`` reset."""
+        idx = self.learner_idx
+        self.final_obs = self.peek_observations()[idx]
+        self.final_outcome = {"success": self.finished[idx].clone(), "crashed": self.crashed[idx].clone(),
+                              "lap_time": torch.where(self.finished[idx], self.lap_time[idx],
+                                                      torch.full_like(self.lap_time[idx], float("nan")))}
 
 
 def _spaces(obs_dim: int) -> tuple[spaces.Box, spaces.Box]:

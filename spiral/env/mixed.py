@@ -12,7 +12,8 @@ from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
 from spiral.core.policy import OpponentPolicy
 from spiral.core.scenario import SCENARIO_DRONES
-from spiral.env.race_env import RaceEnv, summarize_stats
+from spiral.env.race_env import RaceEnv
+from spiral.env.stats import summarize_stats
 
 __all__ = ["MixedRaceEnv", "training_env"]
 

@@ -1,15 +1,44 @@
-"""Observation features and the history buffer, batched over every drone of every world."""
+"""What a drone observes: named observation terms, the history buffer, and the layout of named slices.
+
+A drone's observation vector is its enabled terms of :data:`OBS_TERMS` concatenated in that order: ``ego`` (12:
+position, velocity, roll/pitch/yaw, body rates), ``presence`` (2: whether the 2 nearest drones exist), then the
+optional ``gate_normals`` (6), ``pid_integral`` (3), ``opponent_velocity`` (6), ``teammates`` (2),
+``closest_approach`` (8) and ``priority`` (3) (each switched on in ``ObsCfg``), and ``history`` (K entries of
+16, oldest first: :data:`HISTORY_FIELDS`). :meth:`ObservationBuilder.slices` says where each term sits; checkpoints
+store it, and the order and values never change for a given ``ObsCfg`` (trained policies depend on them).
+"""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import torch
+from tensordict import TensorDict
 
-from spiral.config.env import ObsCfg
+from spiral.config.env import EnvCfg, ObsCfg
 
-__all__ = ["HISTORY_FEATURES", "ObservationBuilder", "nearest_others"]
+__all__ = [
+    "HISTORY_FEATURES",
+    "HISTORY_FIELDS",
+    "OBS_TERMS",
+    "Neighbours",
+    "ObsSource",
+    "ObsState",
+    "ObsTerm",
+    "ObservationBuilder",
+    "Observer",
+    "history_entry",
+    "nearest_others",
+    "neighbours",
+    "race_state",
+]
 
 HISTORY_FEATURES = 16
 """Per history entry: 2 nearest drones' relative positions (6), next 2 gates' relative positions (6), action (4)."""
+
+HISTORY_FIELDS: dict[str, tuple[int, int]] = {"opponents": (0, 6), "gates": (6, 12), "action": (12, 16)}
+"""Where each field sits in one history entry: name -> (start, stop)."""
 
 
 def nearest_others(pos: torch.Tensor, present: torch.Tensor, count: int = 2) -> tuple[torch.Tensor, torch.Tensor]:
@@ -38,26 +67,184 @@ def nearest_others(pos: torch.Tensor, present: torch.Tensor, count: int = 2) -> 
     return near_idx.masked_fill(~mask, 0), mask
 
 
+@dataclass(frozen=True)
+class Neighbours:
+    """What each drone looks at: its 2 nearest drones still racing and its next 2 gates."""
+
+    idx: torch.Tensor
+    """Slots of the nearest drones in their world (W, D, 2); 0 where absent."""
+    mask: torch.Tensor
+    """Whether each of them exists (W, D, 2)."""
+    gates: torch.Tensor
+    """Indices of the next gate and the one after (N, 2)."""
+
+    def relative(self, x: torch.Tensor) -> torch.Tensor:
+        """Per-drone vectors ``x`` (N, 3) of the nearest drones minus the drone's own, zero where absent: (W, D, 2,
+        3)."""
+        w, d, _ = self.idx.shape
+        x_w = x.view(w, d, 3)
+        near = torch.gather(x_w, 1, self.idx.view(w, -1, 1).expand(-1, -1, 3)).view(w, d, 2, 3)
+        return (near - x_w[:, :, None]) * self.mask[..., None]
+
+
+def neighbours(pos: torch.Tensor, out: torch.Tensor, next_gate: torch.Tensor, gate_count: int, *, world_count: int,
+               drones_per_world: int) -> Neighbours:
+    """The nearest drones still racing (``out == 0``) and the next 2 gates of every drone."""
+    w, d = world_count, drones_per_world
+    near_idx, near_mask = nearest_others(pos.view(w, d, 3), (out == 0).view(w, d))
+    gates = torch.stack([next_gate.long(), (next_gate.long() + 1) % gate_count], 1)
+    return Neighbours(near_idx, near_mask, gates)
+
+
+def history_entry(pos: torch.Tensor, near: Neighbours, gate_center: torch.Tensor, last_action: torch.Tensor
+                  ) -> torch.Tensor:
+    """This step's history entry of every drone (N, 16): :data:`HISTORY_FIELDS` ``opponents``, ``gates``,
+    ``action``."""
+    rel_opp = near.relative(pos)
+    rel_gates = gate_center[near.gates] - pos[:, None]
+    return torch.cat([rel_opp.view(-1, 6), rel_gates.view(-1, 6), last_action], dim=-1)
+
+
+@dataclass(frozen=True)
+class ObsState:
+    """What the observation terms read: every drone's state (flat, world-major) and what it looks at."""
+
+    pos: torch.Tensor
+    vel: torch.Tensor
+    rpy: torch.Tensor
+    omega: torch.Tensor
+    integral: torch.Tensor
+    """The position controller's integral state (N, 3)."""
+    priority: torch.Tensor
+    """Random priority of each drone for its race (N,)."""
+    race_team: torch.Tensor
+    """Race team of each slot (D,)."""
+    gate_forward: torch.Tensor
+    """Passing direction of every gate (G, 3)."""
+    near: Neighbours
+    history: torch.Tensor
+    """Observed history entries, oldest first (N, K, 16)."""
+
+
+def _ego(s: ObsState, cfg: ObsCfg) -> torch.Tensor:
+    return torch.cat([s.pos, s.vel, s.rpy, s.omega], dim=-1)
+
+
+def _presence(s: ObsState, cfg: ObsCfg) -> torch.Tensor:
+    return s.near.mask.view(-1, 2).float()
+
+
+def _gate_normals(s: ObsState, cfg: ObsCfg) -> torch.Tensor:
+    return s.gate_forward[s.near.gates].view(-1, 6)
+
+
+def _pid_integral(s: ObsState, cfg: ObsCfg) -> torch.Tensor:
+    return s.integral
+
+
+def _opponent_velocity(s: ObsState, cfg: ObsCfg) -> torch.Tensor:
+    return s.near.relative(s.vel).view(-1, 6)
+
+
+def _teammates(s: ObsState, cfg: ObsCfg) -> torch.Tensor:
+    mate = s.race_team[s.near.idx] == s.race_team[None, :, None]
+    return (mate & s.near.mask).view(-1, 2).float()
+
+
+def _closest_approach(s: ObsState, cfg: ObsCfg) -> torch.Tensor:
+    """Per nearest drone (N, 2 · 4): its position relative to the drone at their closest approach within the
+    horizon, both at constant velocity, and the time of that approach over the horizon (zeros when absent)."""
+    rel, rel_vel = s.near.relative(s.pos), s.near.relative(s.vel)
+    horizon = cfg.approach_horizon_s
+    t = (-(rel * rel_vel).sum(-1) / rel_vel.square().sum(-1).clamp_min(1e-9)).clamp(0.0, horizon)
+    miss = rel + rel_vel * t[..., None]
+    return torch.cat([miss, (t / horizon)[..., None]], dim=-1).view(-1, 8)
+
+
+def _priority(s: ObsState, cfg: ObsCfg) -> torch.Tensor:
+    """The drone's own priority, then how much higher the nearest and second nearest drone's is (0 when absent)."""
+    w, d, _ = s.near.idx.shape
+    prio = s.priority.view(w, d)
+    higher = (torch.gather(prio, 1, s.near.idx.view(w, -1)).view(s.near.idx.shape) - prio[:, :, None]) * s.near.mask
+    return torch.cat([s.priority[:, None], higher.view(-1, 2)], dim=-1)
+
+
+def _history(s: ObsState, cfg: ObsCfg) -> torch.Tensor:
+    return s.history.flatten(1)
+
+
+@dataclass(frozen=True)
+class ObsTerm:
+    """One observation feature: its width for an ``ObsCfg`` (0: switched off) and how it is computed."""
+
+    width: Callable[[ObsCfg], int]
+    compute: Callable[[ObsState, ObsCfg], torch.Tensor]
+
+
+OBS_TERMS: dict[str, ObsTerm] = {
+    "ego": ObsTerm(lambda c: 12, _ego),
+    "presence": ObsTerm(lambda c: 2, _presence),
+    "gate_normals": ObsTerm(lambda c: 6 * c.gate_normals, _gate_normals),
+    "pid_integral": ObsTerm(lambda c: 3 * c.pid_integral, _pid_integral),
+    "opponent_velocity": ObsTerm(lambda c: 6 * c.opponent_velocity, _opponent_velocity),
+    "teammates": ObsTerm(lambda c: 2 * c.teammates, _teammates),
+    "closest_approach": ObsTerm(lambda c: 8 * c.closest_approach, _closest_approach),
+    "priority": ObsTerm(lambda c: 3 * c.priority, _priority),
+    "history": ObsTerm(lambda c: c.history_len * HISTORY_FEATURES, _history),
+}
+"""Observation terms by name, in the order they are concatenated (the order is part of every trained policy)."""
+
+
+def race_state(pos: torch.Tensor, vel: torch.Tensor, out: torch.Tensor, gates_passed: torch.Tensor,
+               other_slots: torch.Tensor) -> torch.Tensor:
+    """The race critic's inputs of every drone about every other drone of its world (``other_slots`` (D, D − 1)
+    order), shape (N, 8 (D − 1)): relative position and velocity (zero once the other left the race), whether it
+    still races, and how many more gates it has passed."""
+    d = other_slots.shape[0]
+    w = pos.shape[0] // d
+    pos, vel = pos.view(w, d, 3), vel.view(w, d, 3)
+    racing = (out == 0).view(w, d)[:, other_slots].float()[..., None]
+    gates = gates_passed.view(w, d).float()
+    features = [(pos[:, other_slots] - pos[:, :, None]) * racing, (vel[:, other_slots] - vel[:, :, None]) * racing,
+                racing, (gates[:, other_slots] - gates[:, :, None])[..., None]]
+    return torch.cat(features, dim=-1).reshape(w * d, 8 * (d - 1))
+
+
 class ObservationBuilder:
-    """Builds ``[ego(12), presence(2), extras, history(K·16)]`` for every drone and keeps the history buffer."""
+    """Keeps every drone's history buffer and concatenates its enabled observation terms."""
 
     def __init__(self, cfg: ObsCfg, drone_count: int, *, device: torch.device) -> None:
         self.cfg = cfg
+        self.terms = [name for name, term in OBS_TERMS.items() if term.width(cfg) > 0]
+        """Names of the enabled terms, in observation order."""
         self.length = (cfg.history_len - 1) * cfg.history_stride + 1
         self.history = torch.zeros(drone_count, self.length, HISTORY_FEATURES, device=device)
         """Feature history, oldest first; entries ``::history_stride`` are observed."""
 
     @property
-    def extra_dim(self) -> int:
-        """Inputs outside the ego state, presence flags and history."""
-        c = self.cfg
-        return (6 * c.gate_normals + 3 * c.pid_integral + 6 * c.opponent_velocity + 2 * c.teammates
-                + 8 * c.closest_approach + 3 * c.priority)
-
-    @property
     def obs_dim(self) -> int:
         """Length of one drone's observation vector."""
-        return 12 + 2 + self.extra_dim + self.cfg.history_len * HISTORY_FEATURES
+        return sum(OBS_TERMS[name].width(self.cfg) for name in self.terms)
+
+    def slices(self) -> dict[str, tuple[int, int]]:
+        """Where each enabled term sits in the observation vector: name -> (start, stop), in order."""
+        out, start = {}, 0
+        for name in self.terms:
+            stop = start + OBS_TERMS[name].width(self.cfg)
+            out[name], start = (start, stop), stop
+        return out
+
+    def select(self, obs: torch.Tensor, name: str) -> torch.Tensor:
+        """The columns of term ``name`` in observation rows ``obs`` (..., obs_dim)."""
+        start, stop = self.slices()[name]
+        return obs[..., start:stop]
+
+    def select_history(self, obs: torch.Tensor, field: str) -> torch.Tensor:
+        """Field ``field`` of :data:`HISTORY_FIELDS` of every observed history entry in observation rows ``obs``
+        (..., obs_dim): shape (..., K, width), oldest entry first."""
+        start, stop = HISTORY_FIELDS[field]
+        entries = self.select(obs, "history").unflatten(-1, (self.cfg.history_len, HISTORY_FEATURES))
+        return entries[..., start:stop]
 
     def layout(self) -> dict:
         """Description of the observation vector, stored in checkpoints to refuse mismatched policies."""
@@ -77,7 +264,83 @@ class ObservationBuilder:
         if fresh.any():
             self.history[fresh] = features[fresh, None, :].expand(-1, self.length, -1)
 
-    def build(self, ego: torch.Tensor, presence: torch.Tensor, extras: list[torch.Tensor]) -> torch.Tensor:
+    def observed_history(self) -> torch.Tensor:
+        """The observed history entries (N, K, 16), oldest first."""
+        return self.history[:, :: self.cfg.history_stride]
+
+    def build(self, state: ObsState) -> torch.Tensor:
         """Concatenate the observation of every drone, shape (N, obs_dim)."""
-        hist = self.history[:, :: self.cfg.history_stride].flatten(1)
-        return torch.cat([ego, presence, *extras, hist], dim=-1)
+        return torch.cat([OBS_TERMS[name].compute(state, self.cfg) for name in self.terms], dim=-1)
+
+
+@dataclass(frozen=True)
+class ObsSource:
+    """The race env's tensors that observations are made of: flat over every drone, world-major (N = W · D). The
+    simulator's views and the priorities change in place, so an :class:`Observer` keeps them once."""
+
+    pos: torch.Tensor
+    vel: torch.Tensor
+    rpy: torch.Tensor
+    omega: torch.Tensor
+    integral: torch.Tensor
+    out: torch.Tensor
+    """Non-zero for drones out of the race (crashed, finished or absent)."""
+    next_gate: torch.Tensor
+    gates_passed: torch.Tensor
+    priority: torch.Tensor
+    race_team: torch.Tensor
+    """Race team of each slot (D,)."""
+    gate_center: torch.Tensor
+    gate_forward: torch.Tensor
+    other_slots: torch.Tensor
+    """(D, D − 1): the other slots of each slot's world, as the race critic lists them."""
+
+
+class Observer:
+    """Records every drone's history and builds the observation rows (``policy``, and ``critic`` with the race
+    critic's extra inputs, :func:`race_state`) of a race env's drones."""
+
+    def __init__(self, cfg: EnvCfg, source: ObsSource, *, device: torch.device) -> None:
+        self.source = source
+        self.builder = ObservationBuilder(cfg.obs, source.pos.shape[0], device=device)
+        self.race_critic = cfg.critic == "race"
+        """Whether the critic also sees every other drone of the world."""
+
+    def record(self, last_action: torch.Tensor, fresh: torch.Tensor) -> None:
+        """Observe the current state: a new history entry (``fresh`` drones start a new history) and every drone's
+        rows."""
+        self._push(last_action, fresh)
+        self._policy_rows = self._build()
+        if self.race_critic:
+            v = self.source
+            extra = race_state(v.pos, v.vel, v.out, v.gates_passed, v.other_slots)
+            self._critic_rows = torch.cat([self._policy_rows, extra], dim=-1)
+
+    def rows(self, idx: torch.Tensor) -> TensorDict:
+        """Observation rows of drones ``idx`` from the last :meth:`record`."""
+        obs = self._policy_rows[idx]
+        critic = self._critic_rows[idx] if self.race_critic else obs
+        return TensorDict({"policy": obs, "critic": critic}, batch_size=[idx.numel()])
+
+    def peek(self, last_action: torch.Tensor) -> torch.Tensor:
+        """``policy`` rows of every drone (N, obs_dim) as :meth:`record` would make them now, leaving the history as
+        it is."""
+        history = self.builder.history.clone()
+        self._push(last_action, torch.zeros(history.shape[0], dtype=torch.bool, device=history.device))
+        obs = self._build()
+        self.builder.history.copy_(history)
+        return obs
+
+    def _push(self, last_action: torch.Tensor, fresh: torch.Tensor) -> None:
+        v = self.source
+        d = v.race_team.shape[0]
+        self.near = neighbours(v.pos, v.out, v.next_gate, v.gate_center.shape[0], world_count=v.pos.shape[0] // d,
+                               drones_per_world=d)
+        self.builder.push(history_entry(v.pos, self.near, v.gate_center, last_action), fresh)
+
+    def _build(self) -> torch.Tensor:
+        v = self.source
+        return self.builder.build(ObsState(
+            pos=v.pos, vel=v.vel, rpy=v.rpy, omega=v.omega, integral=v.integral, priority=v.priority,
+            race_team=v.race_team, gate_forward=v.gate_forward, near=self.near,
+            history=self.builder.observed_history()))

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 
+from spiral.config.env import EpisodeCfg
 from spiral.config.track import TrackSpec
 
-__all__ = ["sample_box_starts", "sample_track_starts"]
+__all__ = ["Starts", "draw_starts", "sample_box_starts", "sample_track_starts"]
 
 
 def _place_sequentially(
@@ -79,3 +81,40 @@ def sample_track_starts(
     speed = max_speed * torch.rand(*shape, 1, generator=generator, device=device)
     yaw = torch.atan2(direction[..., 1], direction[..., 0])
     return pos, direction * speed, yaw, target
+
+
+@dataclass(frozen=True)
+class Starts:
+    """Start states of the drones of some worlds."""
+
+    pos: torch.Tensor
+    """Positions (W, D, 3)."""
+    vel: torch.Tensor
+    """Velocities (W, D, 3)."""
+    yaw: torch.Tensor
+    """Yaws (W, D)."""
+    gate: torch.Tensor
+    """Next gate (W, D), int32."""
+    box: torch.Tensor
+    """Whether each world starts in the start box (W,), else along the track."""
+
+
+def draw_starts(track: TrackSpec, episode: EpisodeCfg, world_count: int, drones: int, generator: torch.Generator, *,
+                training: bool, device: torch.device) -> Starts:
+    """Starts in the start box, and in training a share ``episode.track_start_prob`` of worlds along the track.
+
+    The draws depend only on the generator's state: box placements for every world first, then track starts and
+    the choice between them (training with track starts only).
+    """
+    pos, yaw = sample_box_starts(track, world_count, drones, generator, device=device)
+    vel = torch.zeros_like(pos)
+    gate = torch.zeros(world_count, drones, dtype=torch.int32, device=device)
+    box = torch.ones(world_count, dtype=torch.bool, device=device)
+    if training and episode.track_start_prob > 0:
+        t_pos, t_vel, t_yaw, t_gate = sample_track_starts(
+            track, world_count, drones, generator, max_speed=episode.track_start_speed, device=device)
+        use = (torch.rand(world_count, generator=generator, device=device) < episode.track_start_prob)
+        pos, vel = torch.where(use[:, None, None], t_pos, pos), torch.where(use[:, None, None], t_vel, vel)
+        yaw, gate = torch.where(use[:, None], t_yaw, yaw), torch.where(use[:, None], t_gate.int(), gate)
+        box = ~use
+    return Starts(pos, vel, yaw, gate, box)

@@ -27,6 +27,7 @@ from spiral.core.checkpoint import CheckpointError, load_checkpoint, newest_vali
 from spiral.core.inputs import silence_inputs, unused_inputs
 from spiral.core.policy import MirrorOpponent, OpponentPolicy, Policy
 from spiral.env.mixed import MixedRaceEnv, training_env
+from spiral.env.observations import HISTORY_FIELDS
 from spiral.env.race_env import RaceEnv
 from spiral.env.racing import run_races
 from spiral.env.vec_env import RaceVecEnv
@@ -157,6 +158,8 @@ class StageTrainer:
             "track": self.track.name,
             "seed": self.seed,
             "obs_layout": self.env.obs_builder.layout(),
+            "obs_slices": {name: list(span) for name, span in self.env.obs_builder.slices().items()},
+            "obs_history_fields": {name: list(span) for name, span in HISTORY_FIELDS.items()},
             "airframe": self.airframe.model_dump(),
             "sim": self.sim.model_dump(),
             "ppo": self.stage.ppo.model_dump(),

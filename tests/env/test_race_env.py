@@ -3,16 +3,20 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 import torch
 
 from spiral.config import AIRFRAMES, EnvCfg, ObsCfg, RewardCfg, SimCfg, TrackSpec
+from spiral.core.checkpoint import load_policy
 from spiral.env import HISTORY_FEATURES, RaceEnv, compute_rewards, run_races
+from spiral.env.observations import HISTORY_FIELDS, OBS_TERMS
 from spiral.env.rewards import StepOutcome
 from spiral.eval.metrics import summarize_races
 
 CF2X = AIRFRAMES["cf2x"]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def make_env(track: TrackSpec, *, worlds: int = 2, drones: int = 1, learners=(0,), auto_reset: bool = True,
@@ -28,6 +32,16 @@ def place(env: RaceEnv, positions: list[list[float]]) -> None:
     env.pos[: len(positions)] = torch.tensor(positions)
     env.vel.zero_()
     env.get_observations()
+
+
+def term(env: RaceEnv, name: str) -> torch.Tensor:
+    """Observe now and return observation term ``name`` of every learner drone."""
+    return env.obs_builder.select(env.get_observations()["policy"], name)
+
+
+def newest(env: RaceEnv, obs: torch.Tensor, field: str) -> torch.Tensor:
+    """History field ``field`` of the newest history entry in observation rows ``obs``."""
+    return env.obs_builder.select_history(obs, field)[:, -1]
 
 
 def waypoint_policy(env: RaceEnv, drones: torch.Tensor | None = None):
@@ -53,26 +67,53 @@ def test_observation_dimension_matches_the_paper_layout(oval2):
     assert env.get_observations()["policy"].shape == (2, 814)
 
 
+def test_observation_slices_name_every_term_in_its_fixed_order(oval2):
+    """Lay the enabled terms end to end in the registry's order, history last, with the widths the options give."""
+    every = ObsCfg(history_len=2, gate_normals=True, pid_integral=True, opponent_velocity=True, teammates=True,
+                   closest_approach=True, priority=True)
+    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), obs=every)
+    slices = env.obs_builder.slices()
+    assert list(slices) == list(OBS_TERMS)
+    widths = {name: stop - start for name, (start, stop) in slices.items()}
+    assert widths == {"ego": 12, "presence": 2, "gate_normals": 6, "pid_integral": 3, "opponent_velocity": 6,
+                      "teammates": 2, "closest_approach": 8, "priority": 3, "history": 2 * HISTORY_FEATURES}
+    assert [start for start, _ in slices.values()] == [0, *[stop for _, stop in list(slices.values())[:-1]]]
+    assert slices["history"][1] == env.obs_dim
+    assert HISTORY_FIELDS == {"opponents": (0, 6), "gates": (6, 12), "action": (12, 16)}
+    paper = make_env(oval2, obs=ObsCfg(history_len=50)).obs_builder.slices()
+    assert paper == {"ego": (0, 12), "presence": (12, 14), "history": (14, 814)}
+
+
+def test_shipped_checkpoints_keep_their_stored_observation_layout(oval2):
+    """Build, from each shipped policy's stored env settings, an env whose layout is the one stored with it."""
+    paths = sorted((ROOT / "checkpoints").glob("*/*/best.pt"))
+    assert paths
+    for path in paths:
+        policy = load_policy(path)
+        env = RaceEnv(oval2, CF2X, SimCfg(), EnvCfg.model_validate(policy.meta["env"]), world_count=1,
+                      drones_per_world=2, learner_slots=(0,))
+        assert env.obs_builder.layout() == policy.obs_layout, path
+
+
 def test_solo_observation_masks_absent_opponents(oval2):
     """Zero the opponent slots and presence flags when a drone races alone."""
     env = make_env(oval2, obs=ObsCfg(history_len=1))
     obs = env.get_observations()["policy"]
-    assert torch.all(obs[:, 12:14] == 0)
-    assert torch.all(obs[:, 14:20] == 0)
+    assert torch.all(env.obs_builder.select(obs, "presence") == 0)
+    assert torch.all(env.obs_builder.select_history(obs, "opponents") == 0)
 
 
 def test_observation_lists_nearest_present_drones_first(oval2):
     """Order the other drones by distance and drop crashed ones from a 4-drone scene."""
     env = make_env(oval2, worlds=1, drones=4, learners=(0, 1, 2, 3), obs=ObsCfg(history_len=1))
     place(env, [[-1.0, -1.0, 1.0], [-1.0, -0.5, 1.0], [-1.0, -1.0, 1.8], [-1.0, -2.5, 1.0]])
-    obs = env.get_observations()["policy"]
-    assert torch.allclose(obs[0, 14:17], torch.tensor([0.0, 0.5, 0.0]), atol=1e-6)
-    assert torch.allclose(obs[0, 17:20], torch.tensor([0.0, 0.0, 0.8]), atol=1e-6)
+    others = newest(env, env.get_observations()["policy"], "opponents")[0].view(2, 3)
+    assert torch.allclose(others, torch.tensor([[0.0, 0.5, 0.0], [0.0, 0.0, 0.8]]), atol=1e-6)
     env.out[1] = 1  # drone 1 leaves the race
     obs = env.get_observations()["policy"]
-    assert torch.allclose(obs[0, 14:17], torch.tensor([0.0, 0.0, 0.8]), atol=1e-6)
-    assert torch.allclose(obs[0, 17:20], torch.tensor([0.0, -1.5, 0.0]), atol=1e-6)
-    assert obs[0, 12:14].tolist() == [1.0, 1.0]
+    others = newest(env, obs, "opponents")[0].view(2, 3)
+    assert torch.allclose(others, torch.tensor([[0.0, 0.0, 0.8], [0.0, -1.5, 0.0]]), atol=1e-6)
+    assert env.obs_builder.select(obs, "presence")[0].tolist() == [1.0, 1.0]
 
 
 def test_teammate_flags_mark_the_nearest_drones_of_the_own_race_team(oval2):
@@ -86,11 +127,11 @@ def test_teammate_flags_mark_the_nearest_drones_of_the_own_race_team(oval2):
     assert env.obs_dim == 12 + 2 + 6 + 2 + HISTORY_FEATURES
     # Drone 0's nearest are 2 (opponent), then 1 (team mate); drone 3's are 2 (team mate), then 0 (opponent).
     place(env, [[-1.0, -1.0, 1.0], [-1.0, -0.2, 1.0], [-1.0, -1.3, 1.0], [-1.0, -1.9, 1.0]])
-    flags = env._build_observations()[:, 20:22]
+    assert list(env.obs_builder.slices())[-2:] == ["teammates", "history"]
+    flags = term(env, "teammates")
     assert flags.tolist() == [[0.0, 1.0], [1.0, 0.0], [0.0, 1.0], [1.0, 0.0]]
     env.out[1] = 1  # drone 1 leaves the race: drone 0 sees two opponents, drone 1 sees nothing flagged
-    env.get_observations()
-    flags = env._build_observations()[:, 20:22]
+    flags = term(env, "teammates")
     assert flags[0].tolist() == [0.0, 0.0]
     assert flags[2].tolist() == [0.0, 1.0]
 
@@ -101,7 +142,7 @@ def test_teammate_flags_leave_layouts_without_them_unchanged(oval2):
     assert "teammates" not in env.obs_builder.layout()
     env = make_env(oval2, worlds=1, drones=2, learners=(0,), obs=ObsCfg(history_len=1, teammates=True))
     assert env.obs_builder.layout()["teammates"] is True
-    assert torch.all(env.get_observations()["policy"][:, 14:16] == 0)
+    assert torch.all(term(env, "teammates") == 0)
 
 
 def test_priority_inputs_give_the_own_priority_and_how_much_higher_the_nearest_drones_are(oval2):
@@ -115,12 +156,11 @@ def test_priority_inputs_give_the_own_priority_and_how_much_higher_the_nearest_d
     env.priority[:] = torch.tensor([0.5, 0.9, 0.2, 0.6])
     # Drone 0's nearest are 2, then 1; drone 3's are 2, then 0.
     place(env, [[-1.0, -1.0, 1.0], [-1.0, -0.2, 1.0], [-1.0, -1.3, 1.0], [-1.0, -1.9, 1.0]])
-    prio = env._build_observations()[:, 16:19]
+    prio = term(env, "priority")
     torch.testing.assert_close(prio[0], torch.tensor([0.5, -0.3, 0.4]))
     torch.testing.assert_close(prio[3], torch.tensor([0.6, -0.4, -0.1]))
     env.out[2] = 1  # drone 2 leaves the race: drone 0's nearest are 1, then 3
-    env.get_observations()
-    torch.testing.assert_close(env._build_observations()[0, 16:19], torch.tensor([0.5, 0.4, 0.1]))
+    torch.testing.assert_close(term(env, "priority")[0], torch.tensor([0.5, 0.4, 0.1]))
     env.reset()
     assert not torch.equal(env.priority, torch.tensor([0.5, 0.9, 0.2, 0.6]))
 
@@ -133,22 +173,20 @@ def test_closest_approach_inputs_predict_where_and_when_the_nearest_drones_pass(
     assert env.obs_dim == 12 + 2 + 8 + HISTORY_FEATURES
     place(env, [[-1.0, -1.0, 1.0], [-0.6, -0.9, 1.0], [-1.0, -2.0, 1.0]])
     env.vel[:] = torch.tensor([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-    approach = env._build_observations()[:, 14:22].view(3, 2, 4)
+    approach = term(env, "closest_approach").view(3, 2, 4)
     torch.testing.assert_close(approach[0, 0], torch.tensor([0.0, 0.1, 0.0, 0.4]))
     torch.testing.assert_close(approach[1, 0], torch.tensor([0.0, -0.1, 0.0, 0.4]))
     torch.testing.assert_close(approach[0, 1], torch.tensor([0.0, -1.0, 0.0, 0.0]))  # drone 2 flies off
     env.out[1] = env.out[2] = 1
-    env.get_observations()
-    assert not env._build_observations()[0, 14:22].any()
+    assert not term(env, "closest_approach")[0].any()
 
 
 def test_observation_gives_next_two_gates_relative_to_the_drone(oval2):
     """Report gate 0 then gate 1 relative to the drone's position."""
     env = make_env(oval2, worlds=1, obs=ObsCfg(history_len=1))
     place(env, [[-1.0, -1.0, 1.0]])
-    obs = env.get_observations()["policy"]
-    assert torch.allclose(obs[0, 20:23], torch.tensor([1.0, 0.0, 0.0]), atol=1e-6)
-    assert torch.allclose(obs[0, 23:26], torch.tensor([1.0, 2.0, 0.0]), atol=1e-6)
+    gates = newest(env, env.get_observations()["policy"], "gates")[0].view(2, 3)
+    assert torch.allclose(gates, torch.tensor([[1.0, 0.0, 0.0], [1.0, 2.0, 0.0]]), atol=1e-6)
 
 
 def test_history_keeps_the_last_k_entries_oldest_first(oval2):
@@ -157,9 +195,9 @@ def test_history_keeps_the_last_k_entries_oldest_first(oval2):
     actions = [torch.full((1, 4), v) for v in (0.1, 0.2, 0.3)]
     for a in actions:
         obs, *_ = env.step(a)
-    hist = obs["policy"][0, 14:].view(3, HISTORY_FEATURES)
+    actions = env.obs_builder.select_history(obs["policy"], "action")[0]
     expected = torch.tensor([[0.1] * 4, [0.2] * 4, [0.3] * 4])
-    assert torch.allclose(hist[:, 12:], expected)
+    assert torch.allclose(actions, expected)
 
 
 def test_reward_terms_on_a_hand_made_transition():

@@ -42,6 +42,9 @@ def test_checkpoint_round_trip_and_resume_continue_the_iteration_count(oval2, tm
     assert [it for it, _ in list_checkpoints(tmp_path / "ckpt")] == [3, 1]
     data = load_checkpoint(tmp_path / "ckpt" / "model_3.pt")
     assert data["iter"] == 3 and data["spiral"]["stage"] == "tiny"
+    assert data["spiral"]["obs_slices"] == {"ego": [0, 12], "presence": [12, 14], "gate_normals": [14, 20],
+                                            "pid_integral": [20, 23], "history": [23, 39]}
+    assert data["spiral"]["obs_history_fields"] == {"opponents": [0, 6], "gates": [6, 12], "action": [12, 16]}
     trainer = StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(6), tmp_path, seed=2, progress=False)
     assert trainer.start_iteration == 4
     result = trainer.train()

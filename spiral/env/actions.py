@@ -1,0 +1,65 @@
+"""How actions in [−1, 1] become PID targets: the relative or absolute mapping, the separation filter and the
+training shield."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from spiral.config.env import EnvCfg, SeparationCfg
+from spiral.config.track import TrackSpec
+from spiral.env.separation import separation_offsets
+
+__all__ = ["ActionMap"]
+
+
+class ActionMap:
+    """Maps every drone's 4-D action to a position and yaw target.
+
+    ``action.mode`` relative: an offset from the drone (``pos_scale``, ``yaw_scale_deg`` at 1); absolute: a point
+    of the arena's bounds and a yaw in [−π, π]. Then ``action.separation`` shifts the position targets of every
+    drone (part of the flight stack), and in training the shield (``cfg.shield``) shifts them by its filter at a
+    gain that fades over the stage.
+    """
+
+    def __init__(self, cfg: EnvCfg, track: TrackSpec, *, world_count: int, drones_per_world: int, training: bool,
+                 device: torch.device) -> None:
+        self.cfg = cfg.action
+        self.shield = cfg.shield if training else None
+        """The training shield (never in a non-resetting, evaluation env)."""
+        self.world_count, self.drones_per_world = world_count, drones_per_world
+        self.lo = torch.tensor(track.bounds.min, device=device)
+        self.hi = torch.tensor(track.bounds.max, device=device)
+        self.shield_scale = 1.0 if self.shield is not None else 0.0
+        """Gain factor of the training shield."""
+
+    def set_training_progress(self, fraction: float) -> None:
+        """Fade the shield by the stage's progress (fraction of its iterations)."""
+        if self.shield is not None:
+            self.shield_scale = self.shield.scale(fraction)
+
+    def targets(self, actions: torch.Tensor, pos: torch.Tensor, vel: torch.Tensor, yaw: torch.Tensor,
+                racing: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """PID targets (N, 4: position, yaw) of every drone, and the length of the shield's target shift at full
+        gain [m] (None without a shield). ``racing`` (N,) drones push each other apart; the others do not."""
+        a = self.cfg
+        if a.mode == "relative":
+            target = pos + a.pos_scale * actions[:, :3]
+            yaw = yaw + math.radians(a.yaw_scale_deg) * actions[:, 3]
+        else:
+            target = self.lo + (actions[:, :3] + 1.0) * 0.5 * (self.hi - self.lo)
+            yaw = math.pi * actions[:, 3]
+        if a.separation is not None:
+            target = target + self._shift(pos, vel, racing, a.separation)
+        intervention = None
+        if self.shield is not None:
+            shift = self._shift(pos, vel, racing, self.shield.filter)
+            intervention = shift.norm(dim=-1)
+            target = target + self.shield_scale * shift
+        return torch.cat([target, yaw[:, None]], dim=-1), intervention
+
+    def _shift(self, pos: torch.Tensor, vel: torch.Tensor, racing: torch.Tensor, cfg: SeparationCfg) -> torch.Tensor:
+        """Target shift (N, 3) of every drone away from the others by the separation rule ``cfg``."""
+        w, d = self.world_count, self.drones_per_world
+        return separation_offsets(pos.view(w, d, 3), vel.view(w, d, 3), racing.view(w, d), cfg).view(-1, 3)

@@ -1,0 +1,85 @@
+"""Measurements of a race step: progress distance to a gate, heading, the nearest other drone, a race's result."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+
+from spiral.core.outcome import race_winner
+
+__all__ = ["RaceEvents", "gate_distance", "heading", "nearest_distance", "race_result"]
+
+
+@dataclass(frozen=True)
+class RaceEvents:
+    """What happened to every drone (N,) in one control step, as the race bookkeeping saw it."""
+
+    racing: torch.Tensor
+    """Still racing at the start of the step (neither crashed, finished nor absent)."""
+    crashed_now: torch.Tensor
+    """Collided during the step."""
+    finished_now: torch.Tensor
+    """Completed the race during the step, without a collision."""
+    gate: torch.Tensor
+    """The gate each drone targeted at the start of the step."""
+    dist_before: torch.Tensor
+    """Progress distance to that gate before the step [m]."""
+    race_result: torch.Tensor | None
+    """+1 / −1 per drone of the winning / losing race team where a contested race was decided this step (None
+    unless the win reward needs it)."""
+
+
+def heading(quat: torch.Tensor) -> torch.Tensor:
+    """Body x axis in the world frame from (x, y, z, w) quaternions."""
+    x, y, z, w = quat.unbind(-1)
+    return torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)], dim=-1)
+
+
+def gate_distance(pos: torch.Tensor, center: torch.Tensor, forward: torch.Tensor, kappa: float) -> torch.Tensor:
+    """Funnel distance sqrt(a² + κ²·l²) of every drone to its gate (``center``, ``forward`` per drone): a along the
+    gate's normal, l across it.
+
+    With κ > 1 lateral error costs more than distance along the normal, so progress pays for lining up in front of
+    a gate before crossing its plane rather than for a straight line into its frame.
+    """
+    rel = pos - center
+    along = (rel * forward).sum(-1, keepdim=True)
+    lateral = rel - along * forward
+    return (along.squeeze(-1) ** 2 + kappa**2 * (lateral**2).sum(-1)).sqrt()
+
+
+def nearest_distance(pos: torch.Tensor, out: torch.Tensor, *, world_count: int, drones_per_world: int
+                     ) -> torch.Tensor:
+    """Distance of every racing drone to the nearest other drone of its world still racing (else inf)."""
+    w, d = world_count, drones_per_world
+    dist = torch.cdist(pos.view(w, d, 3), pos.view(w, d, 3))
+    gone_w = (out != 0).view(w, d)
+    gone = torch.eye(d, dtype=torch.bool, device=pos.device)[None] | gone_w[:, None, :] | gone_w[:, :, None]
+    return dist.masked_fill(gone, float("inf")).amin(dim=-1).flatten()
+
+
+def race_result(finished_now: torch.Tensor, lap_time: torch.Tensor, racing: torch.Tensor, contested: torch.Tensor,
+                race_team: torch.Tensor, teams: Sequence[Sequence[int]], *,
+                forfeited: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """+1 / −1 per racing drone of the winning / losing race team in the ``contested`` worlds decided this step
+    (N,), and which worlds were decided (W,).
+
+    The winner (:func:`~spiral.core.outcome.race_winner`) is the team of the step's earliest finisher (lap times
+    are interpolated within the step); drones already out (crashed, finished, absent) are not paid, nor anyone when
+    two teams finish at exactly the same time. ``forfeited`` drones (N,; ``reward.forfeit``: those that crashed this
+    step) of still contested worlds get −1 as well: a crash forfeits the race.
+    """
+    w, d = contested.shape[0], race_team.shape[0]
+    fin = finished_now.view(w, d)
+    decided = contested & fin.any(dim=1)
+    result = torch.zeros(w, d, device=contested.device)
+    if forfeited is not None:
+        result = -(contested[:, None] & forfeited.view(w, d)).float()
+    if decided.any():
+        winner = race_winner(fin, lap_time.view(w, d), teams)
+        same_team = race_team[None, :] == winner[:, None]
+        paid = decided[:, None] & (winner >= 0)[:, None] & racing.view(w, d)
+        result = result + torch.where(same_team, 1.0, -1.0) * paid
+    return result.flatten(), decided

@@ -1,0 +1,164 @@
+"""What a race env holds: the simulator with zero-copy views of its state, who drives each slot, each drone's race so
+far and the episode statistics (:class:`~spiral.env.RaceEnv` adds how it steps)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+import warp as wp
+
+from spiral.config.airframe import AirframeCfg
+from spiral.config.env import EnvCfg
+from spiral.config.sim import SimCfg
+from spiral.config.track import TrackSpec
+from spiral.core.outcome import race_winner
+from spiral.core.policy import OpponentPolicy
+from spiral.env.events import RaceEvents, gate_distance, heading, nearest_distance
+from spiral.env.rewards import REWARD_TERMS, StepOutcome
+from spiral.env.slots import slot_map
+from spiral.env.stats import empty_stats, log_episodes, summarize_stats
+from spiral.sim import World
+
+__all__ = ["RaceState"]
+
+
+class RaceState:
+    """``world_count`` worlds of ``drones_per_world`` drones, flat and world-major: drone ``i`` is slot ``i % D`` of
+    world ``i // D``. The learner drives ``learner_slots``; the other slots are opponents (see :attr:`slots`)."""
+
+    def __init__(self, track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, cfg: EnvCfg, *, world_count: int,
+                 drones_per_world: int, learner_slots: Sequence[int] = (0,), device: str = "cpu", seed: int = 0,
+                 auto_reset: bool = True) -> None:
+        if sim.control_mode != "pid":
+            raise ValueError("RaceEnv drives the PID: sim.control_mode must be 'pid'")
+        self.track, self.cfg, self.auto_reset = track, cfg, auto_reset
+        self.world = World(track, airframe, sim, world_count=world_count, drones_per_world=drones_per_world,
+                           device=device)
+        self.device = torch.device(device)
+        self.world_count, self.drones_per_world = world_count, drones_per_world
+        self.drone_count = world_count * drones_per_world
+        self.slots = slot_map(world_count, drones_per_world, learner_slots, device=self.device)
+        """Who drives which slot; its fields are attributes of the env too (``learner_idx``, ``race_team``, ...)."""
+        s = self.slots
+        self.learner_slots, self.opponent_slots, self.learner_idx, self.opponent_idx = (
+            s.learner_slots, s.opponent_slots, s.learner_idx, s.opponent_idx)
+        self.slot_team, self.race_team, self.other_slots = s.slot_team, s.race_team, s.other_slots
+        self.num_envs = self.learner_idx.numel()
+        self.dt = self.world.time_step
+        self.time_limit = cfg.episode.time_limit_s or track.time_limit_s
+        self.max_episode_length = math.ceil(self.time_limit / self.dt)
+        self.passes_needed = len(track.gates) * track.laps + 1
+        self.generator = torch.Generator(device=self.device).manual_seed(seed)
+        self.opponent_policy: OpponentPolicy | None = None
+        self._bind_views()
+        self._alloc_buffers()
+
+    def _bind_views(self) -> None:
+        s, r, t = self.world.state, self.world.race, wp.to_torch
+        self.pos, self.vel, self.quat, self.omega = t(s.pos), t(s.vel), t(s.quat), t(s.omega)
+        self.rpy, self.integral, self.cmd = t(self.world.rpy), t(self.world.integral), t(self.world.cmd)
+        self.next_gate, self.gates_passed, self.step_passes = t(r.next_gate), t(r.gates_passed), t(r.step_passes)
+        self.pass_time, self.step_collision, self.out = t(r.pass_time), t(r.step_collision), t(r.crashed)
+        self.crash_time = t(r.crash_time)
+        self.world_substeps, self.world_nonfinite = t(r.world_substeps), t(r.world_nonfinite)
+        self.gate_center = torch.tensor(self.track.gate_centers(), dtype=torch.float32, device=self.device)
+        self.gate_forward = torch.tensor(self.track.gate_forward(), dtype=torch.float32, device=self.device)
+
+    def _alloc_buffers(self) -> None:
+        n, w, dev = self.drone_count, self.world_count, self.device
+        self.last_action = torch.zeros(n, 4, device=dev)
+        self.finished = torch.zeros(n, dtype=torch.bool, device=dev)
+        """Lap(s) completed without collision."""
+        self.crashed = torch.zeros(n, dtype=torch.bool, device=dev)
+        """Collided since the reset."""
+        self.absent = torch.zeros(n, dtype=torch.bool, device=dev)
+        """Slot not in the race (an opponent slot with no opponent policy)."""
+        self.lap_time = torch.zeros(n, device=dev)
+        self.priority = torch.zeros(n, device=dev)
+        """Random priority of each drone for the race, drawn at its start (observed with ``obs.priority``)."""
+        self.intervention = torch.zeros(n, device=dev)
+        """Length of the training shield's target shift at full gain in the last step [m]."""
+        self.crash_kind = torch.zeros(n, dtype=torch.int32, device=dev)
+        self.episode_length_buf = torch.zeros(self.num_envs, dtype=torch.long, device=dev)
+        self.term_sums = {name: torch.zeros(n, device=dev) for name in REWARD_TERMS}
+        self.cut_time = torch.full((w,), math.inf, device=dev)
+        """Race time at which each world's episode is cut short (``episode.start_cut_prob``), else inf [s]."""
+        self.contested = torch.zeros(w, dtype=torch.bool, device=dev)
+        """Start-box race against opponents whose winner is not known yet."""
+        self._wp_starts = {name: wp.zeros(size, dtype=dtype, device=self.world.device) for name, size, dtype in (
+            ("mask", w, wp.int32), ("pos", n, wp.vec3), ("vel", n, wp.vec3), ("yaw", n, wp.float32),
+            ("gate", n, wp.int32))}
+        """Warp buffers of the start states a reset hands the simulator."""
+        self.stats = empty_stats()
+
+    def set_opponent_policy(self, policy: OpponentPolicy | None) -> None:
+        """Drive the opponent slots with ``policy`` from the next reset on (``None``: the slots are absent)."""
+        self.opponent_policy = policy
+
+    def _reset_drone_buffers(self, drones: torch.Tensor) -> None:
+        """Start the race afresh for the drones in the bool mask ``drones``; opponent slots without a policy are out."""
+        for buf in (self.last_action, self.lap_time, self.crash_kind, *self.term_sums.values()):
+            buf[drones] = 0
+        self.finished[drones] = False
+        self.crashed[drones] = False
+        absent = torch.zeros_like(drones)
+        if self.opponent_policy is None and self.opponent_idx.numel():
+            absent[self.opponent_idx] = True
+        self.absent[drones] = absent[drones]
+        self.out[drones & absent] = 1
+        self.cmd[drones] = torch.cat([self.pos[drones], self.rpy[drones, 2:3]], dim=-1)
+        self._fresh = drones
+        """Drones whose observation history starts afresh at the next observation."""
+
+    def _gate_distance(self, gate: torch.Tensor) -> torch.Tensor:
+        """Progress distance of every drone to ``gate`` (:func:`~spiral.env.events.gate_distance`)."""
+        kappa = self.cfg.reward.progress_lateral
+        return gate_distance(self.pos, self.gate_center[gate], self.gate_forward[gate], kappa)
+
+    def _step_outcome(self, ev: RaceEvents) -> StepOutcome:
+        """The reward terms' view of the step; frozen drones make no progress."""
+        racing, zero = ev.racing, torch.zeros_like(ev.dist_before)
+        nearest = None
+        if self.cfg.reward.proximity > 0:
+            nearest = nearest_distance(self.pos, self.out, world_count=self.world_count,
+                                       drones_per_world=self.drones_per_world)
+        return StepOutcome(
+            dist_before=torch.where(racing, ev.dist_before, zero),
+            dist_after=torch.where(racing, self._gate_distance(ev.gate), zero),
+            gates_passed=torch.where(racing, self.step_passes, torch.zeros_like(self.step_passes)),
+            crashed_now=ev.crashed_now,
+            heading=heading(self.quat),
+            to_gate=self.gate_center[self.next_gate.long()] - self.pos,
+            lap_time=torch.where(ev.finished_now, self.lap_time, torch.zeros_like(self.lap_time)),
+            nearest=nearest,
+            race_result=ev.race_result,
+            intervention=torch.where(racing, self.intervention, 0.0) if self.cfg.shield is not None else None,
+        )
+
+    def learner_won(self) -> torch.Tensor:
+        """Per world, whether the learner's team won the race against the opponent slots (bool, (W,))."""
+        w, d = self.world_count, self.drones_per_world
+        teams = [self.learner_slots, self.opponent_slots]
+        return race_winner(self.finished.view(w, d), self.lap_time.view(w, d), teams) == 0
+
+    def world_time(self) -> torch.Tensor:
+        """Simulated time of each world since its reset [s]."""
+        return self.world_substeps.float() * self.world.sim.dt
+
+    def _log_episodes(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Count the ended episodes of drones ``idx`` in :attr:`stats`; their means for rsl-rl's log."""
+        return log_episodes(self.stats, finished=self.finished[idx], crashed=self.crashed[idx],
+                            lap_time=self.lap_time[idx], crash_kind=self.crash_kind[idx],
+                            term_sums={name: value[idx] for name, value in self.term_sums.items()})
+
+    def pop_stats(self) -> dict[str, float]:
+        """Means over the learner episodes ended since the last call, then start counting afresh."""
+        return summarize_stats(self.take_stats())
+
+    def take_stats(self) -> dict[str, float]:
+        """Sums over the learner episodes ended since the last call (see :func:`~spiral.env.stats.summarize_stats`);
+        counting starts afresh."""
+        s, self.stats = self.stats, empty_stats()
+        return s
