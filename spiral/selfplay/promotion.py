@@ -103,8 +103,8 @@ class PromotionSelector:
 
     def __call__(self, trainer: StageTrainer, it: int) -> dict[str, float]:
         """Race the learner against the best and in a self-match; promote it when the rule holds."""
-        own, best_own = trainer.evaluate_pair(it, self.best)
-        learner = trainer.candidate_policy()
+        own, best_own = trainer.selection.evaluate_pair(it, self.best)
+        learner = trainer.selection.candidate_policy()
         result = head_to_head(self.env, learner, self.best)
         trainer.runner.alg.train_mode()
         learner_rating, best_rating = elo_update(self.best_rating, self.best_rating, result.score, self.cfg.elo_k)

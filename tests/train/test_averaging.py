@@ -9,7 +9,7 @@ from spiral.config import AIRFRAMES, SimCfg
 from spiral.core.checkpoint import load_checkpoint
 from spiral.train import StageTrainer
 from spiral.train.averaging import PolicyAverage
-from spiral.train.runner import AVERAGE_KEY
+from spiral.train.resume import AVERAGE_KEY
 from tests.train.test_trainer import tiny_stage
 
 
@@ -45,5 +45,5 @@ def test_best_checkpoint_keeps_the_average_and_a_resume_restores_it(oval2, tmp_p
     assert not torch.equal(live, averaged)
     resumed = StageTrainer(oval2, AIRFRAMES["cf2x"], SimCfg(), stage.model_copy(update={"iterations": 6}), tmp_path,
                            seed=2, progress=False)
-    assert resumed.average is not None
-    assert torch.equal(resumed.average.state_dict()["mlp.0.weight"], averaged)
+    assert resumed.selection.average is not None
+    assert torch.equal(resumed.selection.average.state_dict()["mlp.0.weight"], averaged)

@@ -108,7 +108,7 @@ def test_race_critic_starts_from_the_init_critic_and_calibrates_its_new_inputs(l
     shuffled["critic"][:, width:] = 50.0 * torch.randn(obs.batch_size[0], 8)
     with torch.no_grad():
         assert torch.equal(critic(obs), critic(shuffled))
-    trainer._save(tmp_path / "race.pt", 0)
+    trainer.checkpoints.save(tmp_path / "race.pt", 0, trainer.best)
     plain = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 1, **COMMON})
     with pytest.raises(CheckpointError, match="critic"):
         StageTrainer(line2, CF2X, SimCfg(), plain, tmp_path / "plain", init_checkpoint=tmp_path / "race.pt",

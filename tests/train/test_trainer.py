@@ -104,9 +104,9 @@ def test_paired_evaluation_races_both_policies_from_the_same_fresh_placements(ov
         return obs
 
     env.reset = recording_reset
-    own, other = trainer.evaluate_pair(0, trainer.runner.get_inference_policy())
+    own, other = trainer.selection.evaluate_pair(0, trainer.runner.get_inference_policy())
     assert (own.success, own.lap_time) == (other.success, other.lap_time)  # same policy, same placements
-    trainer.evaluate_pair(1, trainer.runner.get_inference_policy())
+    trainer.selection.evaluate_pair(1, trainer.runner.get_inference_policy())
     assert len(starts) == 4
     assert torch.equal(starts[0], starts[1]) and torch.equal(starts[2], starts[3])
     assert not torch.equal(starts[0], starts[2])
