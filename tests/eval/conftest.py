@@ -30,7 +30,7 @@ def tiny_stage(scenario: str = "solo", *, name: str = "tiny", mode: str = "pool"
         "name": name, "scenario": scenario, "worlds": 4, "iterations": 1,
         "env": {"obs": {"history_len": 1, "gate_normals": True, "pid_integral": True}},
         "ppo": {"num_steps_per_env": 8, "actor_hidden_dims": [16, 16], "critic_hidden_dims": [16, 16]},
-        "selection": {"interval": 1, "races": 2}, "selfplay": {"mode": mode}})
+        "selection": {"interval": 1, "races": 2}, **({"selfplay": {"mode": mode}} if scenario != "solo" else {})})
 
 
 @pytest.fixture(scope="session")
