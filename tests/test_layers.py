@@ -1,4 +1,4 @@
-"""The shape of the package: imports go one way and nothing imports in a circle."""
+"""The shape of the package: imports go one way, nothing imports in a circle, no class or function grows too big."""
 
 from __future__ import annotations
 
@@ -31,6 +31,9 @@ included. ``core`` holds the contracts every layer shares and sits below ``confi
 formats from ``core.scenario``. The gymnasium adapter (``adapters``) sits above ``baselines`` because it offers the
 SE-IBR planner as an opponent; ``spiral.env`` registers its gymnasium id by an entry-point string, which gymnasium
 imports only when an env is made."""
+MAX_CLASS_LINES = 200
+MAX_FUNCTION_LINES = 60
+
 
 @dataclass(frozen=True)
 class Import:
@@ -170,6 +173,42 @@ def test_the_bottom_layers_load_without_torch():
             "print(sorted(m for m in ('torch', 'rsl_rl', 'tensordict') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
     assert out.stdout.strip() == "[]"
+
+
+def _is_warp_kernel(node: ast.AST) -> bool:
+    for deco in getattr(node, "decorator_list", []):
+        target = deco.func if isinstance(deco, ast.Call) else deco
+        if isinstance(target, ast.Attribute) and target.attr in ("kernel", "func"):
+            return True
+    return False
+
+
+def _oversized() -> list[str]:
+    """``path:line kind name (lines)`` of every class over 200 lines and function over 60, decorators included."""
+    found = []
+    for module, path in _modules().items():
+        stack: list[tuple[ast.AST, str]] = [(ast.parse(path.read_text(), str(path)), "")]
+        while stack:
+            node, prefix = stack.pop()
+            for child in ast.iter_child_nodes(node):
+                if not isinstance(child, (ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
+                    stack.append((child, prefix))
+                    continue
+                first = min([child.lineno, *(d.lineno for d in child.decorator_list)])
+                lines = child.end_lineno - first + 1
+                is_class = isinstance(child, ast.ClassDef)
+                limit = MAX_CLASS_LINES if is_class else MAX_FUNCTION_LINES
+                if lines > limit and not _is_warp_kernel(child):
+                    found.append(f"{module}:{child.lineno} {'class' if is_class else 'function'} "
+                                 f"{prefix}{child.name} ({lines} lines > {limit})")
+                stack.append((child, f"{prefix}{child.name}."))
+    return sorted(found)
+
+
+def test_no_class_over_200_lines_and_no_function_over_60():
+    """Keep every class to 200 lines and every function to 60 (Warp kernels and funcs excepted)."""
+    oversized = _oversized()
+    assert not oversized, "\n".join(oversized)
 
 
 def test_the_import_walk_sees_imports_inside_functions_and_type_checking_blocks(tmp_path):

@@ -23,7 +23,7 @@ from spiral.config.track import TrackSpec
 from spiral.eval.bound import LapBound, lap_time_bound
 from spiral.eval.evaluate import SE_IBR, check_sides
 from spiral.eval.plots import TradeoffPoint, plot_learning_curves, plot_speed_vs_reliability, plot_track
-from spiral.eval.robustness import filter_rows, measure_robustness, robustness_markdown
+from spiral.eval.robustness import Robustness, filter_rows, measure_robustness, robustness_markdown
 from spiral.eval.runs import (
     MODE_OF,
     Evaluations,
@@ -109,16 +109,27 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
     held = None if held_ev is None else _held_out(held_ev)
     filtered = filter_rows(ev, separation) if separation is not None else {}
     rb = measure_robustness(held_ev or ev, ev, stages, se_ibr=se_ibr) if robustness else None
-    bound = lap_time_bound(track, airframe, steps_per_segment=bound_steps)
-    (out_dir / "bound.json").write_text(json.dumps(bound.to_json(trajectory=True), indent=2) + "\n")
+    bound = _write_bound(out_dir / "bound.json", track, airframe, bound_steps)
     _write_figures(out_dir, track, stages, table, bound)
     _write_csv(out_dir / "results.csv", table, bound)
     text = _markdown(run_root, track, stages, table, matrices, bound, runs=runs, seed=seed, command=command,
                      held=held, sides=sides, filtered=filtered, separation=separation)
-    if rb is not None:
-        text = text.replace(_FIGURES_HEADING, "\n".join(robustness_markdown(rb, sides)) + "\n" + _FIGURES_HEADING)
-    (out_dir / "results.md").write_text(text)
+    (out_dir / "results.md").write_text(_with_robustness(text, rb, sides))
     return out_dir / "results.md"
+
+
+def _write_bound(path: Path, track: TrackSpec, airframe: AirframeCfg, steps: int) -> LapBound:
+    """The lap-time reference, also written to ``path`` with its trajectory."""
+    bound = lap_time_bound(track, airframe, steps_per_segment=steps)
+    path.write_text(json.dumps(bound.to_json(trajectory=True), indent=2) + "\n")
+    return bound
+
+
+def _with_robustness(text: str, rb: Robustness | None, sides: str) -> str:
+    """``results.md`` with the robustness sections (when measured) before the figures."""
+    if rb is None:
+        return text
+    return text.replace(_FIGURES_HEADING, "\n".join(robustness_markdown(rb, sides)) + "\n" + _FIGURES_HEADING)
 
 
 def _held_out(ev: Evaluations) -> dict[str, Any]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -12,7 +13,7 @@ from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
-from spiral.core.checkpoint import CheckpointError, load_checkpoint, load_policy
+from spiral.core.checkpoint import CheckpointError, FrozenPolicy, load_checkpoint, load_policy
 from spiral.core.scenario import SCENARIO_DRONES
 from spiral.selfplay.matchmaking import Matchmaker
 from spiral.selfplay.opponents import PoolOpponents
@@ -55,45 +56,21 @@ def run_stage(
     if opponent_checkpoint is not None and stage.selfplay.mode != "frozen":
         raise ValueError(f"stage {stage.name!r}: an opponent checkpoint is for frozen opponents; pool mode races "
                          "the pool")
-    best_path = run_dir / "best.pt"
-    if not best_path.exists():
-        run_dir.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(init_checkpoint, best_path)
-        shutil.copyfile(init_checkpoint.with_suffix(".json"), best_path.with_suffix(".json"))
+    best_path = _first_best(run_dir, init_checkpoint)
     layout = load_checkpoint(init_checkpoint)["spiral"]["obs_layout"]
     generator = torch.Generator(device=device).manual_seed(seed + 30_000)
     pool = Pool(pool_dir, log=log) if stage.selfplay.mode == "pool" else None
-    if pool is not None and not pool.members:
-        pool.add(init_checkpoint, stage=stage.init_from or "init", iteration=0, evaluation={})
-    if pool is not None:
-        policies = pool.load_policies(layout, device=device)
-        ids = list(policies)
-        latest = ids.index(pool.latest_best) if pool.latest_best in policies else len(ids) - 1
-        best_rating = pool.member(ids[latest]).rating
-    else:
-        frozen = load_policy(opponent_checkpoint or init_checkpoint, device=device)
-        if frozen.obs_layout != layout:
-            raise CheckpointError(f"{opponent_checkpoint}: observation layout {frozen.obs_layout} differs from this "
-                                  "stage's")
-        policies, ids, latest, best_rating = {"frozen": frozen}, ["frozen"], 0, INITIAL_RATING
-    if not policies:
+    members, latest, best_rating = _opponent_policies(stage, pool, layout, init_checkpoint, opponent_checkpoint,
+                                                      device=device)
+    if not members:
         raise ValueError(f"stage {stage.name!r}: no usable policy in the pool {pool_dir}")
-    matchmaker = Matchmaker(len(ids), latest=latest, p_latest=stage.selfplay.p_latest,
+    matchmaker = Matchmaker(len(members), latest=latest, p_latest=stage.selfplay.p_latest,
                             p_first=stage.selfplay.p_first, mode=stage.selfplay.sampling, device=device)
-    members = [policies[i] for i in ids]  # one list, shared by every format's opponents
-    p_self = 0.0 if stage.selfplay.mirror_actions == "learner" else stage.selfplay.p_self  # else: own parts
-    opponents = {
-        part.name: PoolOpponents(members, matchmaker, world_count=part.worlds,
-                                 per_world=SCENARIO_DRONES[part.scenario] - len(part.learner_slots),
-                                 generator=generator, p_self=p_self, offset=stage.selfplay.opponent_offset)
-        for part in stage.world_parts() if part.opponents
-    }
+    opponents = _world_opponents(stage, members, matchmaker, generator)
 
     def add_opponent(path: Path) -> None:
         members.append(load_policy(path, device=device))
-        matchmaker.races = torch.cat([matchmaker.races, matchmaker.races.new_zeros(1)])
-        matchmaker.losses = torch.cat([matchmaker.losses, matchmaker.losses.new_zeros(1)])
-        matchmaker.latest = len(members) - 1
+        matchmaker.add_member()
 
     selector = PromotionSelector(stage, track, airframe, sim, best_path=best_path, pool=pool, best_rating=best_rating,
                                  device=device, seed=seed, on_promote=add_opponent if pool is not None else None,
@@ -102,3 +79,50 @@ def run_stage(
                            init_checkpoint=init_checkpoint, opponent=opponents, selector=selector,
                            selection_interval=selector.interval, log=log, progress=progress)
     return trainer.train()
+
+
+def _world_opponents(stage: StageSpec, members: list[FrozenPolicy], matchmaker: Matchmaker,
+                     generator: torch.Generator) -> dict[str, PoolOpponents]:
+    """The opponents of each part of the stage's training worlds that has opponent slots, drawing from ``members``
+    through one matchmaker and one generator."""
+    p_self = 0.0 if stage.selfplay.mirror_actions == "learner" else stage.selfplay.p_self  # else: own parts
+    return {
+        part.name: PoolOpponents(members, matchmaker, world_count=part.worlds,
+                                 per_world=SCENARIO_DRONES[part.scenario] - len(part.learner_slots),
+                                 generator=generator, p_self=p_self, offset=stage.selfplay.opponent_offset)
+        for part in stage.world_parts() if part.opponents
+    }
+
+
+def _first_best(run_dir: Path, init_checkpoint: Path) -> Path:
+    """``run_dir/best.pt``: the stage's best so far, the initial policy until the learner is promoted."""
+    best_path = run_dir / "best.pt"
+    if not best_path.exists():
+        run_dir.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(init_checkpoint, best_path)
+        shutil.copyfile(init_checkpoint.with_suffix(".json"), best_path.with_suffix(".json"))
+    return best_path
+
+
+def _opponent_policies(stage: StageSpec, pool: Pool | None, layout: dict[str, Any], init_checkpoint: Path,
+                       opponent_checkpoint: Path | None, *, device: str) -> tuple[list[FrozenPolicy], int, float]:
+    """The opponents a multi-drone stage starts with (one list, shared by every format's opponents), which of them
+    is the latest best, and its rating.
+
+    Pool mode: the pool's valid members of this observation layout (a new pool starts with the initial policy).
+    Frozen mode: ``opponent_checkpoint``'s policy, else the initial policy's.
+    """
+    if pool is None:
+        frozen = load_policy(opponent_checkpoint or init_checkpoint, device=device)
+        if frozen.obs_layout != layout:
+            raise CheckpointError(f"{opponent_checkpoint}: observation layout {frozen.obs_layout} differs from this "
+                                  "stage's")
+        return [frozen], 0, INITIAL_RATING
+    if not pool.members:
+        pool.add(init_checkpoint, stage=stage.init_from or "init", iteration=0, evaluation={})
+    policies = pool.load_policies(layout, device=device)
+    ids = list(policies)
+    if not ids:
+        return [], 0, INITIAL_RATING
+    latest = ids.index(pool.latest_best) if pool.latest_best in policies else len(ids) - 1
+    return [policies[i] for i in ids], latest, pool.member(ids[latest]).rating

@@ -38,6 +38,12 @@ class Matchmaker:
         sampled = torch.where(u < self.p_latest + self.p_first, torch.zeros_like(sampled), sampled)
         return torch.where(u < self.p_latest, torch.full_like(sampled, self.latest), sampled)
 
+    def add_member(self) -> None:
+        """Count one more member (appended last), the latest best from now on."""
+        self.races = torch.cat([self.races, self.races.new_zeros(1)])
+        self.losses = torch.cat([self.losses, self.losses.new_zeros(1)])
+        self.latest = len(self.races) - 1
+
     def record(self, members: torch.Tensor, learner_won: torch.Tensor) -> None:
         """Count finished races against ``members``; a race the learner did not win counts as a loss."""
         self.races.index_add_(0, members, torch.ones_like(members, dtype=self.races.dtype))

@@ -145,6 +145,30 @@ def _bench_row(track: TrackSpec, airframe: AirframeCfg, world_count: int, drones
     }
 
 
+def _bench_settings(track: TrackSpec, airframe: AirframeCfg, cfg: SimCfg, *, repeats: int, seed: int
+                    ) -> dict[str, Any]:
+    """What a benchmark run measured and how, for its JSON."""
+    return {
+        "track": track.name,
+        "airframe": airframe.name,
+        "control_mode": cfg.control_mode,
+        "physics_hz": cfg.physics_hz,
+        "ctrl_hz": cfg.ctrl_hz,
+        "substeps": cfg.substeps,
+        "gates": True,
+        "collisions": True,
+        "freeze_crashed": False,
+        "crash_flags_cleared_each_step": True,
+        "target_redraw_steps": TARGET_REDRAW_STEPS,
+        "warmup_steps": WARMUP_STEPS,
+        "repeats": repeats,
+        "seed": seed,
+        "numpy_dtype": "float32",
+        "timing": "wall clock, best of the repeats, Warp and numpy repeats interleaved; *_per_cpu_s use the "
+                  "process CPU time instead (a proxy when other processes share the cores)",
+    }
+
+
 def run_sim_bench(
     worlds: Sequence[int],
     *,
@@ -188,25 +212,7 @@ def run_sim_bench(
     result: dict[str, Any] = {
         "device": str(wp.get_device(device)),
         "machine": machine,
-        "settings": {
-            "track": track.name,
-            "airframe": airframe.name,
-            "control_mode": cfg.control_mode,
-            "physics_hz": cfg.physics_hz,
-            "ctrl_hz": cfg.ctrl_hz,
-            "substeps": cfg.substeps,
-            "gates": True,
-            "collisions": True,
-            "freeze_crashed": False,
-            "crash_flags_cleared_each_step": True,
-            "target_redraw_steps": TARGET_REDRAW_STEPS,
-            "warmup_steps": WARMUP_STEPS,
-            "repeats": repeats,
-            "seed": seed,
-            "numpy_dtype": "float32",
-            "timing": "wall clock, best of the repeats, Warp and numpy repeats interleaved; *_per_cpu_s use the "
-                      "process CPU time instead (a proxy when other processes share the cores)",
-        },
+        "settings": _bench_settings(track, airframe, cfg, repeats=repeats, seed=seed),
         "results": rows,
     }
     result["machine"]["load_avg_1min_end"] = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
