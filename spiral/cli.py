@@ -209,9 +209,10 @@ def evaluate(
     json_out: JsonOut = None,
 ) -> None:
     """Race methods from seeded start placements (identical for every method) and report their metrics."""
+    from spiral.core.scenario import SCENARIO_DRONES
     from spiral.eval.evaluate import FlightOverride, evaluate_methods, format_eval, parse_separation
 
-    if scenario not in ("solo", "1v1", "2v2"):
+    if scenario not in SCENARIO_DRONES:
         raise ValueError(f"--scenario: expected solo, 1v1 or 2v2, got {scenario!r}")
     methods = dict(_parse_method(m) for m in method)
     opponent = _parse_method(against) if against else None

@@ -7,13 +7,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from spiral.config.env import SeparationCfg
+from spiral.core.scenario import SCENARIO_DRONES
 from spiral.eval.evaluate import SE_IBR, FlightOverride
 from spiral.eval.runs import MODE_OF, Evaluations, RowResult, StageRun
 
 __all__ = ["FORMATS", "Robustness", "filter_rows", "final_stages", "measure_robustness", "robustness_markdown"]
 
-FORMATS = ("solo", "1v1", "2v2")
-"""Race formats a final policy is raced in."""
+FORMATS = tuple(SCENARIO_DRONES)
+"""Race formats a final policy is raced in: all of them."""
 
 NAMES = {"spiral": "SPIRAL", "noselfplay": "PPO No Selfplay", "se-ibr": "SE-IBR"}
 """Short method names of these sections."""
