@@ -109,7 +109,8 @@ class RaceEnv(RaceState):
 
     def race_events(self, gate: torch.Tensor, dist_before: torch.Tensor) -> RaceEvents:
         """Race events: collisions end a drone's race, a completed lap finishes it (it leaves the race, frozen, no
-        longer an obstacle); a contested race is decided by its first finisher."""
+        longer an obstacle); a contested race is decided by its first finisher (with ``reward.forfeit`` a crash
+        forfeits it)."""
         racing = ~(self.crashed | self.finished | self.absent)
         crashed_now = racing & (self.step_collision != 0)
         self.crashed |= crashed_now
