@@ -178,6 +178,9 @@ class StageSpec(StrictModel):
             raise ValueError(f"mix.{bad[0]}: a share must lie strictly between 0 and 1")
         if self.world_split()[self.scenario] < 1:
             raise ValueError(f"mix: the shares leave no world for the stage's own format ({self.scenario})")
+        if self.env.critic == "race":
+            raise ValueError("env.critic: a race critic sees every other drone of a world, as many inputs as the "
+                             "format has drones, so it cannot serve the formats of a mixed stage (mix)")
         return self
 
     def world_split(self) -> dict[str, int]:
