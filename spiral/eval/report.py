@@ -30,6 +30,7 @@ from spiral.eval.runs import (
     RowResult,
     StageRun,
     find_stages,
+    prefetch_crosses,
     read_train_log,
     run_protocol,
     run_setup,
@@ -61,7 +62,7 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
                  seed: int | None = None, device: str = "cpu", se_ibr: bool = False, cross_play: bool = True,
                  airframe: AirframeCfg | None = None, bound_steps: int = 24, command: str | None = None,
                  holdout: tuple[int, int] | None = None, sides: str = "both",
-                 separation: SeparationCfg | None = None, robustness: bool = True,
+                 separation: SeparationCfg | None = None, robustness: bool = True, jobs: int = 1,
                  log: Callable[[str], None] = print) -> Path:
     """Write ``results.md``, ``results.csv``, ``bound.json`` and the figures for ``run_root`` into ``out_dir``.
 
@@ -85,6 +86,7 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
             opt-in deployment layer, not part of the methods); None: no such rows.
         robustness: Add the sections of :mod:`spiral.eval.robustness` (final policy in every format, racing
             strangers, downwash), raced from the held-out placements when given, else the protocol's.
+        jobs: Processes that race SE-IBR's head-to-head pairings side by side (with ``se_ibr``).
         log: Progress messages.
 
     Returns:
@@ -102,6 +104,9 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
     ev = Evaluations(run_root, track, out_dir, stages, runs=runs, seed=seed, device=device, se_ibr=se_ibr,
                       airframe=airframe, sim=sim, log=log, sides=sides)
     table = {s: [ev.self_match(s, key) for key in APPROACHES] for s in SCENARIOS}
+    if cross_play and se_ibr:  # the planner's pairings take minutes each: side by side where cores allow
+        prefetch_crosses(ev, [(s, (r.key, r.agent), ("se-ibr", SE_IBR)) for s in SCENARIOS for r in table[s]
+                              if r.key in MODE_OF and r.agent is not None], jobs=jobs)
     matrices = {s: _cross_matrix(ev, s, table[s]) for s in SCENARIOS} if cross_play else {}
     held_ev = None if holdout is None else Evaluations(
         run_root, track, out_dir, stages, runs=holdout[0], seed=holdout[1], device=device, se_ibr=False,
@@ -145,10 +150,13 @@ def _held_out(ev: Evaluations) -> dict[str, Any]:
 
 
 def _cross_matrix(ev: Evaluations, scenario: str, rows: list[RowResult]) -> dict[str, Any]:
-    """Win rate (and draws) of each row team against each column team; None where not run."""
+    """Win rate (and draws) of each row team against each column team; None where not run.
+
+    Pairings are raced with the learned approaches as the row team and SE-IBR as the column (from both sides, the
+    planner's row is their mirror), the same races as the robustness section's."""
     agents = [(r.key, r.agent) for r in rows if r.agent is not None and (r.key != "se-ibr" or ev.se_ibr)]
     cells: dict[str, dict[str, Any]] = {}
-    for ka, a in agents:
+    for ka, a in sorted(agents, key=lambda item: item[1] == SE_IBR):
         cells[ka] = {}
         for kb, b in agents:
             if a == SE_IBR and b == SE_IBR:
@@ -165,7 +173,7 @@ def _cross_matrix(ev: Evaluations, scenario: str, rows: list[RowResult]) -> dict
                 cells[ka][kb] = {"error": str(exc)}
                 continue
             cells[ka][kb] = {"win_rate": entry["win_rate"], "draws": entry["draws"], "loss_rate": entry["loss_rate"]}
-    return {"keys": [k for k, _ in agents], "cells": cells}
+    return {"keys": [k for k, _ in agents], "cells": {k: cells[k] for k, _ in agents}}
 
 
 def _write_figures(out_dir: Path, track: TrackSpec, stages: list[StageRun], table: dict[str, list[RowResult]],

@@ -8,7 +8,10 @@ checksums of the checkpoints they used, so a second report reuses them.
 
 from __future__ import annotations
 
+import concurrent.futures
+import copy
 import json
+import multiprocessing
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,8 +23,19 @@ from spiral.config.track import TrackSpec
 from spiral.core.files import file_sha256
 from spiral.eval.evaluate import SE_IBR, FlightOverride, evaluate_methods, evaluate_mixed_teams
 
-__all__ = ["MODE_OF", "Evaluations", "RowResult", "StageRun", "find_stages", "load_json", "read_train_log",
-           "run_protocol", "run_setup", "track_of_run"]
+__all__ = [
+    "MODE_OF",
+    "Evaluations",
+    "RowResult",
+    "StageRun",
+    "find_stages",
+    "load_json",
+    "prefetch_crosses",
+    "read_train_log",
+    "run_protocol",
+    "run_setup",
+    "track_of_run",
+]
 
 MODE_OF = {"spiral": "pool", "noselfplay": "frozen"}
 """Self-play mode of the stages of each learned approach."""
@@ -199,6 +213,30 @@ class Evaluations:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(data, indent=2) + "\n")
         return data, path
+
+
+def prefetch_crosses(ev: Evaluations, pairings: list[tuple[str, tuple[str, str], tuple[str, str]]], *,
+                     jobs: int) -> None:
+    """Race the head-to-head ``pairings`` (scenario, team a, team b) missing from ``ev``'s cache in up to ``jobs``
+    processes (one torch thread each), so that the report's own calls find them cached. Used for the planner's
+    pairings, which take minutes each; with ``jobs`` ≤ 1 or a single pairing nothing happens here."""
+    if jobs <= 1 or len(pairings) <= 1:
+        return
+    quiet = copy.copy(ev)
+    quiet.log = print
+    context = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
+        for scenario, a, b in pairings:
+            ev.log(f"report: running {ev.prefix}cross-{scenario}-{a[0]}-vs-{b[0]} in a worker process")
+        list(pool.map(_cross_in_worker, [(quiet, pairing) for pairing in pairings]))
+
+
+def _cross_in_worker(job: tuple[Evaluations, tuple[str, tuple[str, str], tuple[str, str]]]) -> None:
+    import torch
+
+    torch.set_num_threads(1)
+    ev, (scenario, a, b) = job
+    ev.cross(scenario, a, b)
 
 
 def load_json(path: Path) -> dict[str, Any] | None:

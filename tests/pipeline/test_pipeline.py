@@ -203,3 +203,20 @@ def test_held_out_check_and_head_to_head_sides_are_the_reports_alone(tmp_path):
         assert list(after) == ["train:solo", "eval:solo", "promote:solo", "report"]
         assert [name for name in after if after[name] != before[name]] == ["report"]
         runner = runner_for(path, tmp_path)
+
+
+def test_planner_self_matches_are_a_step_without_inputs_that_the_report_waits_for(tmp_path):
+    """With report.se_ibr the planner's self-matches are one step that needs no trained policy (so --jobs runs it
+    beside the first training step), listed first; the report takes it as an input."""
+    data = yaml.safe_load((ROOT / "pipelines" / "smoke.yaml").read_text())
+    data = json.loads(json.dumps({k: v for k, v in data.items() if not k.startswith("x-")}))
+    data["track"] = str(ROOT / "tracks" / "oval4.yaml")
+    data["report"] = {"se_ibr": True}
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump(data))
+    steps = runner_for(path, tmp_path).steps
+    assert steps[0].name == "eval:se-ibr" and steps[0].inputs == [] and steps[0].dirname == "eval-se-ibr"
+    assert "eval:se-ibr" in steps[-1].inputs and steps[-1].name == "report"
+    data["report"] = {"se_ibr": False}
+    path.write_text(yaml.safe_dump(data))
+    assert "eval:se-ibr" not in [s.name for s in runner_for(path, tmp_path).steps]
