@@ -104,10 +104,7 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
     ev = Evaluations(run_root, track, out_dir, stages, runs=runs, seed=seed, device=device, se_ibr=se_ibr,
                       airframe=airframe, sim=sim, log=log, sides=sides)
     table = {s: [ev.self_match(s, key) for key in APPROACHES] for s in SCENARIOS}
-    if cross_play and se_ibr:  # the planner's pairings take minutes each: side by side where cores allow
-        prefetch_crosses(ev, [(s, (r.key, r.agent), ("se-ibr", SE_IBR)) for s in SCENARIOS for r in table[s]
-                              if r.key in MODE_OF and r.agent is not None], jobs=jobs)
-    matrices = {s: _cross_matrix(ev, s, table[s]) for s in SCENARIOS} if cross_play else {}
+    matrices = _cross_matrices(ev, table, se_ibr=se_ibr, jobs=jobs) if cross_play else {}
     held_ev = None if holdout is None else Evaluations(
         run_root, track, out_dir, stages, runs=holdout[0], seed=holdout[1], device=device, se_ibr=False,
         airframe=airframe, sim=sim, log=log, prefix="holdout-", sides=sides)
@@ -121,6 +118,14 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
                      held=held, sides=sides, filtered=filtered, separation=separation)
     (out_dir / "results.md").write_text(_with_robustness(text, rb, sides))
     return out_dir / "results.md"
+
+
+def _cross_matrices(ev: Evaluations, table: dict, *, se_ibr: bool, jobs: int) -> dict:
+    """Every scenario's cross-play matrix; the planner's pairings (minutes each) raced side by side first."""
+    if se_ibr:
+        prefetch_crosses(ev, [(s, (r.key, r.agent), ("se-ibr", SE_IBR)) for s in SCENARIOS for r in table[s]
+                              if r.key in MODE_OF and r.agent is not None], jobs=jobs)
+    return {s: _cross_matrix(ev, s, table[s]) for s in SCENARIOS}
 
 
 def _write_bound(path: Path, track: TrackSpec, airframe: AirframeCfg, steps: int) -> LapBound:
