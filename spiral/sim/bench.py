@@ -28,7 +28,8 @@ from spiral.config.track import TrackSpec
 from spiral.sim.reference import ReferenceSim
 from spiral.sim.world import World
 
-__all__ = ["format_bench_table", "machine_info", "run_sim_bench", "run_sim_bench_two_process", "two_process_worker"]
+__all__ = ["format_bench_table", "machine_info", "run_sim_bench", "run_sim_bench_two_process", "time_world",
+           "two_process_worker"]
 
 TARGET_REDRAW_STEPS = 10
 """Control steps between two draws of the random targets (about 0.2 s at 48 Hz)."""
@@ -220,6 +221,30 @@ def run_sim_bench(
         result["two_process"] = run_sim_bench_two_process(4096, 4, device=device, steps=steps, seed=seed,
                                                           repeats=repeats)
     return result
+
+
+def time_world(world_count: int, drones: int, *, device: str = "cpu", steps: int = 100, repeats: int = 3,
+               seed: int = 0) -> dict[str, Any]:
+    """Warp alone, timed as a row of :func:`run_sim_bench` times it (same track, settings, starts and targets; no
+    numpy reference): the best of ``repeats`` runs of ``steps`` control steps, wall clock and process CPU time.
+    For peer comparisons (``benchmarks/crazyflow_peer.py``)."""
+    wp.init()
+    track, airframe = load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"]
+    world, targets_wp, *_ = _make_world(track, airframe, world_count, drones, device, seed)
+    _time_warp(world, targets_wp, WARMUP_STEPS, 0)
+    times = [_time_warp(world, targets_wp, steps, WARMUP_STEPS + r * steps) for r in range(repeats)]
+    n = world_count * drones
+    rate = n * steps / min(t[0] for t in times)
+    return {
+        "worlds": world_count,
+        "drones": drones,
+        "steps": steps,
+        "drone_ctrl_steps_per_s": round(rate),
+        "drone_substeps_per_s": round(rate * world.sim.substeps),
+        "drone_ctrl_steps_per_cpu_s": round(n * steps / min(t[1] for t in times)),
+        "mean_speed_m_s": round(float(np.linalg.norm(world.state.vel.numpy(), axis=1).mean()), 3),
+        "settings": _bench_settings(track, airframe, _bench_cfg(), repeats=repeats, seed=seed),
+    }
 
 
 def two_process_worker(world_count: int, drones: int, device: str, steps: int, seed: int, repeats: int) -> None:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from spiral.sim.gates import pass_next_gate
+from spiral.sim.options import MODULE_OPTIONS
 from spiral.sim.state import (
     COLLISION_BOUNDS,
     COLLISION_DRONE,
@@ -13,7 +15,10 @@ from spiral.sim.state import (
     TrackArrays,
 )
 
-__all__ = ["apply_contacts", "detect_collisions", "sphere_box_overlap", "sphere_gate_overlap"]
+__all__ = ["apply_contacts", "collision_bits", "detect_collisions_and_gate_passes", "sphere_box_overlap",
+           "sphere_gate_overlap"]
+
+wp.set_module_options(MODULE_OPTIONS)
 
 
 @wp.func
@@ -51,34 +56,66 @@ def sphere_gate_overlap(p: wp.vec3, radius: wp.float32, g: wp.int32, track: Trac
     )
 
 
-@wp.kernel
-def detect_collisions(
+@wp.func
+def collision_bits(
+    tid: wp.int32,
     pos: wp.array[wp.vec3],
     crashed: wp.array[wp.int32],
     track: TrackArrays,
     params: QuadParams,
     drones_per_world: wp.int32,
+) -> wp.int32:
+    """This substep's collision bits of flying drone ``tid``: ground, arena bounds, gate bars, flying drones."""
+    p = pos[tid]
+    r = params.radius
+    bits = wp.int32(0)
+    if p[2] < r:
+        bits = bits | COLLISION_GROUND
+    lo = track.bounds_min
+    hi = track.bounds_max
+    if p[0] < lo[0] or p[1] < lo[1] or p[2] < lo[2] or p[0] > hi[0] or p[1] > hi[1] or p[2] > hi[2]:
+        bits = bits | COLLISION_BOUNDS
+    for g in range(track.gate_count):
+        if sphere_gate_overlap(p, r, g, track):
+            bits = bits | COLLISION_GATE
+    first = (tid / drones_per_world) * drones_per_world
+    for j in range(first, first + drones_per_world):
+        if j != tid and crashed[j] == 0 and wp.length_sq(pos[j] - p) < 4.0 * r * r:
+            bits = bits | COLLISION_DRONE
+    return bits
+
+
+@wp.kernel
+def detect_collisions_and_gate_passes(
+    prev_pos: wp.array[wp.vec3],
+    pos: wp.array[wp.vec3],
+    crashed: wp.array[wp.int32],
+    track: TrackArrays,
+    params: QuadParams,
+    world_substeps: wp.array[wp.int32],
+    drones_per_world: wp.int32,
+    substep: wp.int32,
+    dt: wp.float32,
     contact: wp.array[wp.int32],
+    next_gate: wp.array[wp.int32],
+    gates_passed: wp.array[wp.int32],
+    step_passes: wp.array[wp.int32],
+    pass_time: wp.array[wp.float32],
 ):
-    """Write this substep's collision bits of each flying drone; crashed drones are out of the race."""
+    """Write this substep's collision bits of each flying drone and advance its next gate when it passed it;
+    crashed drones are out of the race (bits 0, no passes).
+
+    Two concerns in one launch, as one launch per substep is cheaper: both read the substep's positions and the
+    crash flags and neither writes what the other reads (the gate test touches only its own drone's race counters,
+    the contact test writes ``contact`` only). Crash flags change after every drone's contacts are known, in
+    :func:`apply_contacts`.
+    """
     tid = wp.tid()
     bits = wp.int32(0)
     if crashed[tid] == 0:
-        p = pos[tid]
-        r = params.radius
-        if p[2] < r:
-            bits = bits | COLLISION_GROUND
-        lo = track.bounds_min
-        hi = track.bounds_max
-        if p[0] < lo[0] or p[1] < lo[1] or p[2] < lo[2] or p[0] > hi[0] or p[1] > hi[1] or p[2] > hi[2]:
-            bits = bits | COLLISION_BOUNDS
-        for g in range(track.gate_count):
-            if sphere_gate_overlap(p, r, g, track):
-                bits = bits | COLLISION_GATE
-        first = (tid / drones_per_world) * drones_per_world
-        for j in range(first, first + drones_per_world):
-            if j != tid and crashed[j] == 0 and wp.length_sq(pos[j] - p) < 4.0 * r * r:
-                bits = bits | COLLISION_DRONE
+        bits = collision_bits(tid, pos, crashed, track, params, drones_per_world)
+        pass_next_gate(tid, prev_pos, pos, track, world_substeps, drones_per_world, substep, dt, next_gate,
+                       gates_passed, step_passes, pass_time)
     contact[tid] = bits
 
 

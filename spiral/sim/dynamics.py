@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import warp as wp
 
+from spiral.sim.options import MODULE_OPTIONS
 from spiral.sim.pid import pid_position_control, rpm_passthrough
 from spiral.sim.rotations import quat_integrate
 from spiral.sim.state import QuadParams
 
 __all__ = ["body_wrench", "control_and_integrate", "downwash_force", "drone_downwash", "ground_effect_factor"]
+
+wp.set_module_options(MODULE_OPTIONS)
 
 
 @wp.func
@@ -54,6 +57,7 @@ def control_and_integrate(
     omega: wp.array[wp.vec3],
     rpm: wp.array[wp.vec4],
     cmd: wp.array[wp.vec4],
+    heading: wp.array[wp.vec2],
     integral: wp.array[wp.vec3],
     crashed: wp.array[wp.int32],
     ext_force: wp.array[wp.vec3],
@@ -68,7 +72,8 @@ def control_and_integrate(
 
     The controller (``pid.py``) and the rigid body share one launch: both read the same state, and fusing them
     saves about a third of the substep's time on a CPU. Each thread touches only its own drone, so the in-place
-    update is race-free; cross-drone reads (contacts, downwash) happen in separate launches.
+    update is race-free; cross-drone reads (contacts, downwash) happen in separate launches. ``heading`` holds
+    (cos ψ*, sin ψ*) of the commanded yaw (``pid.command_heading``, once per control step; unused in rpm mode).
 
     Newton: m·a = R·(0, 0, T) − K_d·v − m·g·z (+ ground effect, + ``ext_force`` from downwash). Euler:
     I·ω̇ = τ − ω × I·ω. Semi-implicit Euler: v and ω first, then p and q with the new rates. A non-finite
@@ -87,7 +92,7 @@ def control_and_integrate(
     w = omega[tid]
     motor = wp.vec4(0.0)
     if control_mode == 0:
-        motor = pid_position_control(p0, v, rot, w, cmd[tid], integral, tid, params, dt)
+        motor = pid_position_control(p0, v, rot, w, cmd[tid], heading[tid], integral, tid, params, dt)
     else:
         motor = rpm_passthrough(cmd[tid], params)
     if params.motor_lag != 0:

@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import warp as wp
 
+from spiral.sim.options import MODULE_OPTIONS
 from spiral.sim.state import TrackArrays
 
-__all__ = ["detect_gate_crossing", "segment_gate_crossing"]
+__all__ = ["pass_next_gate", "segment_gate_crossing"]
+
+wp.set_module_options(MODULE_OPTIONS)
 
 
 @wp.func
@@ -29,8 +32,9 @@ def segment_gate_crossing(p0: wp.vec3, p1: wp.vec3, g: wp.int32, track: TrackArr
     return -1.0
 
 
-@wp.kernel
-def detect_gate_crossing(
+@wp.func
+def pass_next_gate(
+    tid: wp.int32,
     prev_pos: wp.array[wp.vec3],
     pos: wp.array[wp.vec3],
     track: TrackArrays,
@@ -38,16 +42,13 @@ def detect_gate_crossing(
     drones_per_world: wp.int32,
     substep: wp.int32,
     dt: wp.float32,
-    crashed: wp.array[wp.int32],
     next_gate: wp.array[wp.int32],
     gates_passed: wp.array[wp.int32],
     step_passes: wp.array[wp.int32],
     pass_time: wp.array[wp.float32],
 ):
-    """Advance each flying drone's next gate when it passes it; the crossing time is interpolated in the substep."""
-    tid = wp.tid()
-    if crashed[tid] != 0:
-        return
+    """Advance flying drone ``tid``'s next gate when its substep's path passes it; the crossing time is
+    interpolated in the substep. Called by ``collisions.detect_collisions_and_gate_passes`` for drones not crashed."""
     g = next_gate[tid]
     t = segment_gate_crossing(prev_pos[tid], pos[tid], g, track)
     if t >= 0.0:

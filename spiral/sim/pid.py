@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import warp as wp
 
+from spiral.sim.options import MODULE_OPTIONS
 from spiral.sim.state import QuadParams
 
-__all__ = ["attitude_torque", "desired_acceleration", "mix", "pid_position_control", "rpm_passthrough"]
+__all__ = ["attitude_torque", "command_heading", "desired_acceleration", "mix", "pid_position_control",
+           "rpm_passthrough"]
+
+wp.set_module_options(MODULE_OPTIONS)
 
 
 @wp.func
@@ -51,9 +55,10 @@ def desired_acceleration(err: wp.vec3, integral: wp.vec3, vel: wp.vec3, p: QuadP
 
 
 @wp.func
-def attitude_torque(rot: wp.mat33, z_des: wp.vec3, yaw_des: wp.float32, omega: wp.vec3, p: QuadParams) -> wp.vec3:
-    """Geometric attitude PD on SO(3) (Lee et al. 2010) with the gyroscopic term cancelled."""
-    x_c = wp.vec3(wp.cos(yaw_des), wp.sin(yaw_des), 0.0)
+def attitude_torque(rot: wp.mat33, z_des: wp.vec3, heading: wp.vec2, omega: wp.vec3, p: QuadParams) -> wp.vec3:
+    """Geometric attitude PD on SO(3) (Lee et al. 2010) with the gyroscopic term cancelled; ``heading`` is
+    (cos ψ*, sin ψ*) of the commanded yaw ψ*."""
+    x_c = wp.vec3(heading[0], heading[1], 0.0)
     y_des = wp.normalize(wp.cross(z_des, x_c))
     x_des = wp.cross(y_des, z_des)
     rot_des = wp.matrix_from_cols(x_des, y_des, z_des)
@@ -70,12 +75,14 @@ def pid_position_control(
     rot: wp.mat33,
     omega: wp.vec3,
     cmd: wp.vec4,
+    heading: wp.vec2,
     integral: wp.array[wp.vec3],
     tid: wp.int32,
     params: QuadParams,
     dt: wp.float32,
 ) -> wp.vec4:
-    """Motor speeds that steer towards the target position and yaw ``cmd``; advances the position integral."""
+    """Motor speeds that steer towards the target position of ``cmd`` and the yaw whose ``heading``
+    (cos ψ*, sin ψ*) :func:`command_heading` computed; advances the position integral."""
     err = wp.vec3(cmd[0], cmd[1], cmd[2]) - pos
     lim = wp.vec3(params.pos_i_limit)
     integ = wp.min(wp.max(integral[tid] + err * dt, -lim), lim)
@@ -83,8 +90,17 @@ def pid_position_control(
     acc = desired_acceleration(err, integ, vel, params)
     z_body = wp.vec3(rot[0, 2], rot[1, 2], rot[2, 2])
     thrust = params.mass * wp.max(wp.dot(acc, z_body), 0.0)
-    torque = attitude_torque(rot, wp.normalize(acc), cmd[3], omega, params)
+    torque = attitude_torque(rot, wp.normalize(acc), heading, omega, params)
     return mix(thrust, torque, params)
+
+
+@wp.kernel
+def command_heading(cmd: wp.array[wp.vec4], heading: wp.array[wp.vec2]):
+    """(cos ψ*, sin ψ*) of each drone's commanded yaw, once per control step: the command holds for all its
+    substeps, so the controller need not take the sine and cosine in every one."""
+    tid = wp.tid()
+    yaw = cmd[tid][3]
+    heading[tid] = wp.vec2(wp.cos(yaw), wp.sin(yaw))
 
 
 @wp.func

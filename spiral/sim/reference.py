@@ -162,7 +162,7 @@ def _gate_hits(pos: np.ndarray, gates: GateArrays, radius: float) -> np.ndarray:
 
 def contact_bits(pos: np.ndarray, crashed: np.ndarray, gates: GateArrays, radius: float,
                  drones_per_world: int) -> np.ndarray:
-    """Collision bits ``(n,)`` of each flying drone's sphere (``collisions.detect_collisions``); 0 for crashed."""
+    """Collision bits ``(n,)`` of each flying drone's sphere (``collisions.collision_bits``); 0 for crashed."""
     bits = np.where(pos[:, 2] < radius, COLLISION_KINDS["ground"], 0)
     out = (pos < gates.bounds_min).any(axis=1) | (pos > gates.bounds_max).any(axis=1)
     bits |= np.where(out, COLLISION_KINDS["bounds"], 0)
@@ -347,7 +347,7 @@ class ReferenceSim:
         return ext
 
     def _gate_crossing(self, substep: int) -> None:
-        """Advance the next gate of each flying drone that passed it (``gates.detect_gate_crossing``)."""
+        """Advance the next gate of each flying drone that passed it (``gates.pass_next_gate``)."""
         t = segment_gate_crossing(self.prev_pos, self.pos, self.next_gate, self.gates)
         passed = (t >= 0.0) & (self.crashed == 0)
         self.next_gate[passed] = (self.next_gate[passed] + 1) % len(self.gates.half)

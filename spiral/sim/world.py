@@ -8,15 +8,17 @@ import warp as wp
 from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
-from spiral.sim.collisions import apply_contacts, detect_collisions
+from spiral.sim.collisions import apply_contacts, detect_collisions_and_gate_passes
 from spiral.sim.dynamics import control_and_integrate, drone_downwash
-from spiral.sim.gates import detect_gate_crossing
+from spiral.sim.options import MODULE_OPTIONS
+from spiral.sim.pid import command_heading
 from spiral.sim.rotations import quat_to_rpy, yaw_quat
 from spiral.sim.state import QuadParams, QuadState, RaceState, make_quad_params, make_track_arrays
 
 __all__ = ["World"]
 
 wp.config.log_level = wp.LOG_WARNING  # no greeting or per-module load lines
+wp.set_module_options(MODULE_OPTIONS)
 
 
 @wp.kernel
@@ -108,6 +110,8 @@ class World:
         """Command of the next control step (pid: x, y, z [m], yaw [rad]; rpm: four motor speeds)."""
         self.integral = wp.zeros(n, dtype=wp.vec3, device=self.device)
         self.ext_force = wp.zeros(n, dtype=wp.vec3, device=self.device)
+        self.heading = wp.zeros(n, dtype=wp.vec2, device=self.device)
+        """(cos, sin) of the commanded yaw of the current control step (pid mode)."""
         self.rpy = wp.zeros(n, dtype=wp.vec3, device=self.device)
         """Roll, pitch, yaw [rad] after the last step."""
         self._reset_mask = wp.zeros(world_count, dtype=wp.int32, device=self.device)
@@ -159,16 +163,18 @@ class World:
                 cmd.launch()
                 launches.append(cmd)
 
+        if mode == 0:
+            launch(command_heading, n, [self.cmd], [self.heading])
         for k in range(self.sim.substeps):
             if self.sim.downwash:
                 launch(drone_downwash, n, [s.pos, r.crashed, self.params, d], [self.ext_force])
             launch(control_and_integrate, n,
-                   [s.pos, s.vel, s.quat, s.omega, s.rpm, self.cmd, self.integral, r.crashed, self.ext_force,
-                    self.params, mode, d, dt],
+                   [s.pos, s.vel, s.quat, s.omega, s.rpm, self.cmd, self.heading, self.integral, r.crashed,
+                    self.ext_force, self.params, mode, d, dt],
                    [s.prev_pos, r.world_nonfinite])
-            launch(detect_collisions, n, [s.pos, r.crashed, self.track, self.params, d], [r.contact])
-            launch(detect_gate_crossing, n, [s.prev_pos, s.pos, self.track, r.world_substeps, d, k, dt, r.crashed],
-                   [r.next_gate, r.gates_passed, r.step_passes, r.pass_time])
+            launch(detect_collisions_and_gate_passes, n,
+                   [s.prev_pos, s.pos, r.crashed, self.track, self.params, r.world_substeps, d, k, dt],
+                   [r.contact, r.next_gate, r.gates_passed, r.step_passes, r.pass_time])
             launch(apply_contacts, n, [r.contact, r.world_substeps, d, k, dt],
                    [r.step_collision, r.crashed, r.crash_time])
         launch(advance_clocks, self.world_count, [self.sim.substeps], [r.world_substeps])

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
 from spiral.sim.bench import format_bench_table, run_sim_bench, run_sim_bench_two_process
@@ -30,3 +35,17 @@ def test_two_process_row_sums_both_processes():
     each = two["per_process_drone_ctrl_steps_per_s"]
     assert two["processes"] == 2 and len(each) == 2 and min(each) > 0
     assert 0 < two["aggregate_drone_ctrl_steps_per_s"] <= sum(each) + 1
+
+
+def test_crazyflow_peer_script_runs_spiral_half(tmp_path):
+    """Run spiral's half of benchmarks/crazyflow_peer.py at a tiny size (crazyflow itself is never installed here)."""
+    root = Path(__file__).resolve().parents[2]
+    out = tmp_path / "peer.json"
+    subprocess.run([sys.executable, str(root / "benchmarks" / "crazyflow_peer.py"), "--only", "spiral", "--worlds", "2",
+                    "--drones", "2", "--steps", "3", "--repeats", "1", "--json", str(out)],
+                   check=True, capture_output=True, text=True, cwd=root)
+    result = json.loads(out.read_text())
+    (row,) = result["results"]
+    assert row["sim"] == "spiral" and (row["worlds"], row["drones"], row["steps"]) == (2, 2, 3)
+    assert row["drone_ctrl_steps_per_s"] > 0 and row["drone_substeps_per_s"] > 0
+    assert row["settings"]["physics_hz"] == 240 and row["settings"]["ctrl_hz"] == 48

@@ -7,7 +7,7 @@ import pytest
 import warp as wp
 
 from spiral.config import SimCfg
-from spiral.sim.collisions import detect_collisions
+from spiral.sim.collisions import detect_collisions_and_gate_passes
 from spiral.sim.reference import GateArrays, ReferenceSim, contact_bits, segment_gate_crossing
 
 EPS32 = float(np.finfo(np.float32).eps)
@@ -114,9 +114,14 @@ def test_reference_contacts_match_kernel(kernels, make_world, circuit6):
     crashed = (rng.random(3000) < 0.1).astype(np.int32)
     world = make_world(track=circuit6, drones=3)
     out = wp.zeros(3000, dtype=wp.int32)
-    wp.launch(detect_collisions, 3000, inputs=[wp.array(pos, dtype=wp.vec3), wp.array(crashed, dtype=wp.int32),
-                                               world.track, world.params, 3], outputs=[out])
+    p = wp.array(pos, dtype=wp.vec3)
+    counters = [wp.zeros(3000, dtype=wp.int32) for _ in range(3)]  # next gate, gates passed, step passes
+    wp.launch(detect_collisions_and_gate_passes, 3000,
+              inputs=[p, p, wp.array(crashed, dtype=wp.int32), world.track, world.params,
+                      wp.zeros(1000, dtype=wp.int32), 3, 0, 1.0 / 240.0],
+              outputs=[out, *counters, wp.zeros(3000, dtype=wp.float32)])
     expected = out.numpy()
+    assert not counters[1].numpy().any()  # standing still, nobody passes a gate
     got = contact_bits(pos, crashed, GateArrays(circuit6, np.float32), np.float32(world.airframe.radius), 3)
     np.testing.assert_array_equal(got, expected)
     assert {0, 1, 2, 4, 8} <= set(expected.tolist())  # no contact and each kind alone all occur
