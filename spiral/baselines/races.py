@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -16,7 +17,7 @@ import numpy as np
 import torch
 
 from spiral.baselines.centreline import Centreline
-from spiral.baselines.se_ibr import PlannerPolicy, opponent_policy, se_ibr_policy
+from spiral.baselines.se_ibr import PlannerPolicy, opponent_policy, planning_cost, se_ibr_policy
 from spiral.config import AIRFRAMES, EnvCfg, SimCfg, TrackSpec, load_track
 from spiral.env import RaceEnv, RaceResults, run_races
 
@@ -172,21 +173,23 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     track = load_track(args.track)
-    t0 = time.perf_counter()
+    t0, load0 = time.perf_counter(), os.getloadavg()[0]
     out: dict[str, Any] = {"track": track.name, "scenario": args.scenario, "runs": args.runs, "seed": args.seed,
                            "cfg": args.cfg}
     if args.scenario == "duel":
         res, pol, opp = head_to_head(track, learner=args.cfg, opponent=args.opponent_cfg, runs=args.runs,
                                      seed=args.seed)
         out.update(opponent_cfg=args.opponent_cfg, slot0=_summary(res, [0]), slot1=_summary(res, [1]),
-                   duel=duel_statistics(track, res), timing=pol.planner.timing(), opponent_timing=opp.planner.timing())
+                   duel=duel_statistics(track, res), timing=pol.planner.timing(), opponent_timing=opp.planner.timing(),
+                   planning=planning_cost(pol, opp))
     else:
         drones = {"solo": 1, "1v1": 2, "2v2": 4}[args.scenario]
         res, pol = self_match(track, drones, runs=args.runs, seed=args.seed, **args.cfg)
-        out.update(summary=_summary(res), timing=pol.planner.timing())
+        out.update(summary=_summary(res), timing=pol.planner.timing(), planning=planning_cost(pol))
         if drones == 2:
             out["duel"] = duel_statistics(track, res)
     out["wall_s"] = time.perf_counter() - t0
+    out["load_avg_1min"] = {"start": load0, "end": os.getloadavg()[0]}
     if args.save is not None:
         torch.save(res, args.save)
     text = json.dumps(out, indent=1)

@@ -63,7 +63,7 @@ def target_actions(target: np.ndarray, pos: np.ndarray, along: np.ndarray, actio
     Relative mode: the offset ``o = target − pos`` must fit in the box ``[−pos_scale, pos_scale]³``. When it does
     not, its component along ``along`` (M, 3; the reference velocity) is shortened first, since it only changes how
     fast the drone moves along its path, while the cross-track part, which keeps it on the path (and in the gate
-    openings), is kept; only if that part alone does not fit is it clipped per axis as well. Absolute mode: the
+    openings), is kept; an axis on which the cross-track part alone does not fit is clipped. Absolute mode: the
     target mapped to the arena box ``[arena_lo, arena_hi]`` and clipped.
     """
     if action.mode != "relative":
@@ -73,8 +73,9 @@ def target_actions(target: np.ndarray, pos: np.ndarray, along: np.ndarray, actio
     u = np.where(norm > 1e-6, along / np.maximum(norm, 1e-12), 0.0)
     par = (off * u).sum(1, keepdims=True) * u
     perp = off - par
-    # Largest s ∈ [0, 1] with |perp_i + s·par_i| ≤ 1 on every axis.
+    # Largest s ∈ [0, 1] with |perp_i + s·par_i| ≤ 1 on every axis whose cross-track part fits by itself.
     with np.errstate(divide="ignore", invalid="ignore"):
         room = np.where(par > 0, (1.0 - perp) / par, np.where(par < 0, (-1.0 - perp) / par, np.inf))
+    room = np.where(np.abs(perp) <= 1.0, room, np.inf)
     scale = np.clip(room.min(axis=1, keepdims=True), 0.0, 1.0)
     return np.clip(perp + scale * par, -1.0, 1.0)

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
 
-from spiral.baselines import SEIBRPlanner, opponent_policy, se_ibr_policy
+from spiral.baselines import SEIBRPlanner, opponent_policy, planning_cost, se_ibr_policy
 from spiral.baselines.best_response import BestResponseQP, PlanLimits, RowData
 from spiral.baselines.game import Player, plan_phases, player_rows
 from spiral.baselines.tracking import integrate_plan
@@ -141,6 +143,23 @@ def test_alpha_zero_reproduces_plain_ibr_and_alpha_changes_the_plan(collision_co
     assert np.abs(plans[2] - plans[0]).max() > 1e-3
 
 
+def test_sensitivity_term_is_alpha_times_the_other_players_multipliers_along_the_half_plane(collision_course):
+    """Change a player's linear objective by exactly −α·μ_k·β_k per waypoint, μ the other's duals against it."""
+    planner = SEIBRPlanner(collision_course, alpha=2.5)
+    planner.replan(rounds=2)
+    state = planner._state()
+    players = [Player(slot=s, p0=state["pos"][s], v0=state["vel"][s], next_gate=0, passed_any=False,
+                      plan=planner.plans[0, s].copy(), duals=planner.duals[0, s].copy(), qp=planner._qp(0, s))
+               for s in range(2)]
+    mu = players[1].duals[0]
+    assert mu.max() > 1e-3  # the other player's rows against slot 0 bind somewhere
+    with_term = player_rows(planner.line, planner.gate_table, players[0], players, 2, planner.params)
+    params_ibr = replace(planner.params, alpha=0.0)
+    without = player_rows(planner.line, planner.gate_table, players[0], players, 2, params_ibr)
+    beta = with_term.coll_a[:, 0]  # unit vectors from slot 0 towards slot 1
+    np.testing.assert_allclose(with_term.q - without.q, -2.5 * mu[:, None] * beta, atol=1e-12)
+
+
 def test_infeasible_start_falls_back_to_soft_constraints(line2):
     """Plan two overlapping drones with the soft fallback: finite plans that separate them, no exception."""
     env = make_env(line2, drones=2)
@@ -172,6 +191,11 @@ def test_opponent_policy_drives_the_opponent_slot(oval2):
     res = run_races(env, learner)
     assert bool(res.present.all()) and bool(res.finished.all())
     assert learner(env.get_observations()).shape == (1, 4)
+    pooled = planning_cost(learner, env.opponent_policy, "not a planner")
+    own, other = learner.planner.timing(), env.opponent_policy.planner.timing()
+    assert pooled["plans"] == own["plans"] + other["plans"] > 0
+    assert min(own["plan_ms_median"], other["plan_ms_median"]) <= pooled["plan_ms_median"] <= pooled["plan_ms_p95"]
+    assert planning_cost()["plan_ms_median"] is None
 
 
 @pytest.mark.parametrize(("dz", "inside", "outside"), [(0.25, 1.10, 1.25), (0.60, 1.60, 1.30)])
