@@ -173,7 +173,7 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     track = load_track(args.track)
-    t0, load0 = time.perf_counter(), os.getloadavg()[0]
+    t0, cpu0, load0 = time.perf_counter(), time.process_time(), os.getloadavg()[0]
     out: dict[str, Any] = {"track": track.name, "scenario": args.scenario, "runs": args.runs, "seed": args.seed,
                            "cfg": args.cfg}
     if args.scenario == "duel":
@@ -189,6 +189,7 @@ def main(argv: list[str] | None = None) -> None:
         if drones == 2:
             out["duel"] = duel_statistics(track, res)
     out["wall_s"] = time.perf_counter() - t0
+    out["cpu_s"] = time.process_time() - cpu0
     out["load_avg_1min"] = {"start": load0, "end": os.getloadavg()[0]}
     if args.save is not None:
         torch.save(res, args.save)
