@@ -35,15 +35,16 @@ def _fails(s: dict[str, Any]) -> str:
 
 def _cost(d: dict[str, Any]) -> str:
     p = d["planning"]
-    return (f"{p['plan_ms_median']:.1f} / {p['plan_ms_p95']:.1f} | "
+    return (f"{p['plan_cpu_ms_median']:.1f} / {p['plan_cpu_ms_p95']:.1f} | "
+            f"{p['plan_ms_median']:.1f} / {p['plan_ms_p95']:.1f} | "
             f"{p['world_ms_median']:.1f} / {p['world_ms_p95']:.1f} | {100 * p['soft_fraction']:.1f} % | "
             f"{d['wall_s']:.0f} / {d['cpu_s']:.0f} | {d['load_avg_1min']['start']:.1f}–{d['load_avg_1min']['end']:.1f}")
 
 
 def solo_table(out: Path) -> list[str]:
     lines = ["| track | races (seed) | success [95 % CI] | lap [s] | reference [s] | lap / reference | failures | "
-             "ms/plan/drone median / p95 | ms/world-step median / p95 | fallback share | wall / CPU [s] | load avg |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "CPU ms/plan/drone median / p95 | wall ms/plan/drone median / p95 | wall ms/world-step median / p95 | "
+             "fallback share | wall / CPU [s] | load avg |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     bounds = {t: lap_time_bound(load_track(f"tracks/{t}.yaml"), AIRFRAMES["cf2x"]).lap_time for t in TRACKS}
     names = [("circuit6", "solo_circuit6"), ("circuit6", "solo_circuit6_holdout")]
     names += [(t, f"solo_{t}") for t in TRACKS[1:]]
@@ -57,9 +58,9 @@ def solo_table(out: Path) -> list[str]:
 
 
 def self_table(out: Path) -> list[str]:
-    lines = ["| scenario | α | drones | success [95 % CI] | lap [s] | failures | ms/plan/drone median / p95 | "
-             "ms/world-step median / p95 | fallback share | wall / CPU [s] | load avg |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| scenario | α | drones | success [95 % CI] | lap [s] | failures | CPU ms/plan/drone median / p95 | "
+             "wall ms/plan/drone median / p95 | wall ms/world-step median / p95 | fallback share | wall / CPU [s] | "
+             "load avg |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name in ("self_1v1_a1", "self_1v1_a0", "self_2v2_a1", "self_2v2_a0"):
         d = _load(out, name)
         s = d["summary"]

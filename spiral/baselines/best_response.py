@@ -137,14 +137,19 @@ class _Rows:
         self.v: list[np.ndarray] = []
         self.count = 0
 
-    def add(self, cols: list[np.ndarray], vals: list[np.ndarray | float], rows: int) -> None:
-        """``rows`` rows; entry j of row i is ``vals[j][i]`` at column ``cols[j][i]``."""
+    def add(self, cols: list[np.ndarray], vals: list[np.ndarray | float], rows: int) -> np.ndarray:
+        """Append ``rows`` rows, entry j of row i being ``vals[j][i]`` at column ``cols[j][i]``; returns their ids."""
         ids = self.count + np.arange(rows)
-        for col, val in zip(cols, vals, strict=True):
-            self.r.append(ids)
-            self.c.append(np.asarray(col))
-            self.v.append(np.broadcast_to(np.asarray(val, float), (rows,)).copy())
         self.count += rows
+        self.extend(ids, cols, vals)
+        return ids
+
+    def extend(self, ids: np.ndarray, cols: list[np.ndarray], vals: list[np.ndarray | float]) -> None:
+        """Add entries to the existing rows ``ids``, as :meth:`add`."""
+        for col, val in zip(cols, vals, strict=True):
+            self.r.append(np.asarray(ids))
+            self.c.append(np.asarray(col))
+            self.v.append(np.broadcast_to(np.asarray(val, float), (len(ids),)).copy())
 
     def triplets(self, row0: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return np.concatenate(self.r) + row0, np.concatenate(self.c), np.concatenate(self.v)
@@ -185,18 +190,11 @@ class BestResponseQP:
         the k = 0 terms are constants (:meth:`_motion_b`)."""
         dt, rows = self.dt, _Rows()
         ip, iv, ia = self.ip.ravel(), self.iv.ravel(), self.ia.ravel()
-        prev = np.arange(3 * self.N) >= 3  # entries whose k − 1 term is a variable
-        rows.add([iv, ia], [1.0, -dt / 2.0], 3 * self.N)
-        vrows = np.nonzero(prev)[0]
-        rows.r += [vrows, vrows]
-        rows.c += [iv[vrows - 3], ia[vrows - 3]]
-        rows.v += [np.full(len(vrows), -1.0), np.full(len(vrows), -dt / 2.0)]
-        base = rows.count
-        rows.add([ip, ia], [1.0, -dt**2 / 6.0], 3 * self.N)
-        prows = base + vrows
-        rows.r += [prows, prows, prows]
-        rows.c += [ip[vrows - 3], iv[vrows - 3], ia[vrows - 3]]
-        rows.v += [np.full(len(vrows), -1.0), np.full(len(vrows), -dt), np.full(len(vrows), -dt**2 / 3.0)]
+        later = np.arange(3, 3 * self.N)  # entries of nodes k + 1 ≥ 2, whose node-k terms are variables
+        v_rows = rows.add([iv, ia], [1.0, -dt / 2.0], 3 * self.N)
+        rows.extend(v_rows[later], [iv[later - 3], ia[later - 3]], [-1.0, -dt / 2.0])
+        p_rows = rows.add([ip, ia], [1.0, -dt**2 / 6.0], 3 * self.N)
+        rows.extend(p_rows[later], [ip[later - 3], iv[later - 3], ia[later - 3]], [-1.0, -dt, -dt**2 / 3.0])
         return rows
 
     def _motion_b(self, d: RowData) -> np.ndarray:
@@ -236,8 +234,8 @@ class BestResponseQP:
         blocks = np.zeros((N, 4))
         blocks[:, 0] = lim.thrust
         blocks[:, 3] = lim.gravity
-        for k in range(N):  # thrust cone k: rows 4k + 1 … 4k + 3
-            rows.count += 1
+        for k in range(N):  # thrust cone k: rows 4k … 4k + 3, the first (the bound) without entries
+            rows.add([], [], 1)
             rows.add([ia[k], iv[k]], [-1.0, -lim.drag], 3)
         tilt = np.zeros((N, 3))
         tilt[:, 0] = lim.tan_tilt * lim.gravity
@@ -247,7 +245,7 @@ class BestResponseQP:
         jerk = np.zeros((N, 4))
         jerk[:, 0] = lim.jerk * self.dt if np.isfinite(lim.jerk) else 1e6
         for k in range(N):
-            rows.count += 1
+            rows.add([], [], 1)
             cols, vals = [ia[k]], [-1.0]
             if k > 0:
                 cols, vals = [*cols, ia[k - 1]], [*vals, 1.0]

@@ -84,7 +84,9 @@ class Player:
     owned: bool = True
     """Whether this planner flies the drone (else it is only predicted, e.g. an opponent with its own planner)."""
     solve_ms: float = 0.0
-    """Time spent on this player's best responses in the current planning step [ms]."""
+    """Wall time spent on this player's best responses in the current planning step [ms]."""
+    solve_cpu_ms: float = 0.0
+    """Processor time of the same [ms] (what the wall time would be on a core of its own)."""
     last: Solution | None = None
     """Its most recent best response."""
     soft_count: int = 0
@@ -144,12 +146,12 @@ def _gate_constraints(line: Centreline, table: tuple[np.ndarray, np.ndarray], pl
     """Gate rows (N, 4, 3), (N, 4) of player ``pl``'s next plan, the phase of each waypoint and the straddles.
 
     Per waypoint (linearised at the previous plan): both ends of a segment that crosses a gate plane get that
-    gate's tube; else, within ``exit_reach`` of the gate just passed and past its plane, its
-    exit funnel (tube up to ``tube`` deep); else, within ``reach`` of the next gate and inside its capture cone
-    (lateral offset ≤ half opening + ``capture`` + ``capture_slope``·depth in front), its approach funnel (tube within
-    ``tube`` of the plane); else no gate row. A waypoint far beside the gate for its depth (flying past the gate to
-    come back to it, or beside a gate that shares its plane with the one just passed) gets no row it could not
-    meet.
+    gate's tube; else, within ``exit_reach`` of the gate just passed and past its plane, its exit funnel (tube up to
+    ``tube`` deep); else, within ``reach`` of the next gate, nearer to it than to the gate before, and inside its
+    capture cone (lateral offset ≤ half opening + ``capture`` + ``capture_slope``·depth in front), its approach
+    funnel (tube within ``tube`` of the plane); else no gate row. A waypoint far beside the gate for its depth
+    (flying past the gate to come back to it, or beside a gate that shares its plane with the one just passed) gets
+    no row it could not meet.
     """
     N, G = gp.steps, line.gate_count
     phase, before, after = plan_phases(line, pl.plan, pl.next_gate)
@@ -270,11 +272,12 @@ def iterate_best_responses(line: Centreline, table: tuple[np.ndarray, np.ndarray
                            gp: GameParams, rounds: int) -> None:
     """``rounds`` rounds of iterated best response: each player in turn against the others' latest plans.
 
-    Updates every player's ``plan``, ``duals`` (against each slot) and ``solve_ms`` in place.
+    Updates every player's ``plan``, ``acc``, ``duals`` (against each slot), ``solve_ms`` and ``solve_cpu_ms`` in
+    place.
     """
     for _ in range(rounds):
         for pl in players:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             rows = player_rows(line, table, pl, players, slots, gp)
             sol = pl.qp.solve(rows)
             pl.plan = np.concatenate([pl.p0[None], sol.plan], axis=0)
@@ -286,3 +289,4 @@ def iterate_best_responses(line: Centreline, table: tuple[np.ndarray, np.ndarray
             pl.last = sol
             pl.soft_count += int(sol.soft)
             pl.solve_ms += 1e3 * (time.perf_counter() - t0)
+            pl.solve_cpu_ms += 1e3 * (time.process_time() - c0)

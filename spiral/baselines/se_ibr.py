@@ -164,7 +164,9 @@ class SEIBRPlanner:
         self.plan_time = np.full(self.W, -np.inf)
         self._qps: dict[tuple[int, int], BestResponseQP] = {}
         self.drone_ms: list[float] = []
-        """Time of each drone's best responses in one planning step (all rounds) [ms]."""
+        """Wall time of each drone's best responses in one planning step (all rounds) [ms]."""
+        self.drone_cpu_ms: list[float] = []
+        """Processor time of the same [ms]."""
         self.world_ms: list[float] = []
         """Wall time of each world's planning step [ms]."""
         self.solves = 0
@@ -272,6 +274,7 @@ class SEIBRPlanner:
             self.has_plan[w, pl.slot] = True
             self.fallback[w, pl.slot] = pl.last is not None and pl.last.soft
             self.drone_ms.append(pl.solve_ms)
+            self.drone_cpu_ms.append(pl.solve_cpu_ms)
         self.solves += n_rounds * len(players)
         self.soft_solves += sum(pl.soft_count for pl in players)
         self.plan_time[w] = t
@@ -345,20 +348,25 @@ def opponent_policy(env: RaceEnv, **kw: Any) -> PlannerPolicy:
 def planning_cost(*sources: SEIBRPlanner | PlannerPolicy | Any) -> dict[str, Any]:
     """Planning cost pooled over planners (or policies backed by one; anything else is skipped).
 
-    A plan is one drone's best responses in one planning step (all IBR rounds, building the rows included), so
-    ``plan_ms_median`` and ``plan_ms_p95`` are milliseconds per plan per drone; ``world_ms_*`` time one world's whole
-    game per planning step. Also the number of plans, of best responses (``solves``) and the share of those that
-    needed the soft fallback. Times are wall-clock on whatever else the machine runs; ``None`` without plans.
+    A plan is one drone's best responses in one planning step (all IBR rounds, building the rows included):
+    ``plan_ms_median`` and ``plan_ms_p95`` are its wall-clock milliseconds per plan per drone, ``plan_cpu_ms_*`` the
+    processor time of the same (what the wall time would be on a core of its own; on a loaded machine the wall time
+    also counts the time other processes held the core). ``world_ms_*`` time one world's whole game per planning
+    step. Also the number of plans, of best responses (``solves``) and the share of those that needed the soft
+    fallback. ``None`` without plans.
     """
     planners = [x.planner if isinstance(x, PlannerPolicy) else x for x in sources]
     planners = [p for p in planners if isinstance(p, SEIBRPlanner)]
-    drone = np.concatenate([np.asarray(p.drone_ms, float) for p in planners]) if planners else np.zeros(0)
-    world = np.concatenate([np.asarray(p.world_ms, float) for p in planners]) if planners else np.zeros(0)
-    solves, soft = sum(p.solves for p in planners), sum(p.soft_solves for p in planners)
+
+    def pooled(name: str) -> np.ndarray:
+        return np.concatenate([np.asarray(getattr(p, name), float) for p in planners]) if planners else np.zeros(0)
 
     def stat(x: np.ndarray, q: float) -> float | None:
         return float(np.percentile(x, q)) if x.size else None
 
+    drone, cpu, world = pooled("drone_ms"), pooled("drone_cpu_ms"), pooled("world_ms")
+    solves, soft = sum(p.solves for p in planners), sum(p.soft_solves for p in planners)
     return {"plans": int(drone.size), "plan_ms_median": stat(drone, 50), "plan_ms_p95": stat(drone, 95),
+            "plan_cpu_ms_median": stat(cpu, 50), "plan_cpu_ms_p95": stat(cpu, 95),
             "world_ms_median": stat(world, 50), "world_ms_p95": stat(world, 95), "solves": int(solves),
             "soft_fraction": soft / solves if solves else 0.0}

@@ -181,6 +181,7 @@ def test_self_match_policy_finishes_the_lap(oval2):
     assert float(res.lap_time.max()) < 6.0
     timing = policy.planner.timing()
     assert timing["plans"] > 0 and 0 < timing["plan_ms_median"] <= timing["plan_ms_p95"]
+    assert 0 < timing["plan_cpu_ms_median"] <= timing["plan_cpu_ms_p95"]
 
 
 def test_opponent_policy_drives_the_opponent_slot(oval2):
