@@ -2,10 +2,12 @@
 
 A receding-horizon game-theoretic planner for every drone of a :class:`~spiral.env.RaceEnv`. It reads the race
 state (positions, velocities, next gates), not observations. Every ``replan_every`` control steps each world's
-game is solved: ``rounds`` rounds in which each racing drone in turn computes its best response (a QP, see
+game is solved: ``rounds`` rounds in which each racing drone in turn computes its best response (a QP within
+what the airframe and flight stack allow, see :mod:`spiral.baselines.limits` and
 :mod:`spiral.baselines.best_response`) to the latest plans of the others. The plans are then flown through the
-env's own action interface: the plan's reference position, velocity and acceleration at the next control step are
-turned into a PID target with feed-forward. Formulation, defaults and measurements: ``docs/se_ibr.md``.
+env's own action interface: the planned position and velocity one control step ahead and the planned acceleration
+one attitude lag further become a PID target with feed-forward (:mod:`spiral.baselines.tracking`). Formulation,
+defaults and measurements: ``docs/se_ibr.md``; planning cost: :func:`planning_cost`.
 """
 
 from __future__ import annotations

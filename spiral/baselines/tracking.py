@@ -7,8 +7,8 @@ between; ``A_0`` continues the previous plan) and the waypoints ``p_1 … p_N`` 
 The PID's position law (``spiral.sim.pid``, drag compensated inside it) gives the net acceleration
 ``a = K_p∘(p* − p) + K_i∘I − K_d∘v``. The target ``p* = p_ref + (a_ref + K_d∘v_ref − K_i∘I)/K_p`` therefore
 makes it apply ``a_ref + K_p∘(p_ref − p) + K_d∘(v_ref − v)``: the plan's acceleration as feed-forward plus
-feedback on the tracking error. The law is per axis, so a target beyond the action's reach is clipped per axis,
-which gives each axis the acceleration nearest to the one it asked for.
+feedback on the tracking error. A target beyond the action's reach gives up the along-track part of its offset
+first (see :func:`target_actions`).
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import numpy as np
 from spiral.config.env import ActionCfg
 
 __all__ = ["integrate_plan", "pid_target", "sample_plans", "target_actions"]
+
 
 def integrate_plan(p0: np.ndarray, v0: np.ndarray, acc: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """Node positions and velocities (N + 1, 3 each) of the motion with node accelerations ``acc`` (N + 1, 3), linear
