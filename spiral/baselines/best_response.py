@@ -9,7 +9,6 @@ thrust acceleration is ``f_k = A_k + g·ẑ + c∘v_k`` (c = drag / mass) and th
 ``o_k = (A_k + K_d∘v_k)/K_p``. Constraints (Clarabel form ``A·x + s = b``, ``s`` in a cone), k = 1 … N:
 
 - motion        the equality rows above                             (zero cone)
-
 - arena         ``lo ≤ p_k ≤ hi``                                   (non-negative cone)
 - gate          ``g_{k,j}·p_k ≤ b_{k,j}``, up to four per waypoint  (non-negative cone)
 - frame         up to four more per waypoint: other gates' frames  (non-negative cone)
@@ -47,7 +46,7 @@ _SOLVED = ("Solved", "AlmostSolved")
 _SLACK_WEIGHT = {"geometry": 5.0, "separation": 2.0, "dynamics": 1.0}
 """Fallback penalty per metre of slack, relative to ``soft_penalty``: violating the arena or a gate opening costs
 most (the margin to a crash is a few cm), the drone separation less (its margin is larger), the flight stack's
-reach and thrust floor least (the PID saturates and the next plan starts from where the drone is)."""
+reach, thrust floor and jerk bound least (the PID saturates and the next plan starts from where the drone is)."""
 
 
 @dataclass(frozen=True)
