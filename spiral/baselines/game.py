@@ -10,7 +10,8 @@ import numpy as np
 from spiral.baselines.best_response import BestResponseQP, RowData, Solution
 from spiral.baselines.centreline import Centreline
 
-__all__ = ["GameParams", "Player", "gate_rows", "iterate_best_responses", "plan_phases", "player_rows"]
+__all__ = ["GameParams", "Player", "gate_rows", "iterate_best_responses", "plan_phases", "player_rows",
+           "progress_directions"]
 
 _INF = 1e30
 _SIGNS = np.array([1.0, -1.0, 1.0, -1.0])
@@ -34,12 +35,21 @@ class GameParams:
     """Distance from a gate's centre within which its approach funnel is enforced [m]."""
     exit_reach: float
     """Distance from a passed gate's centre within which its exit funnel is enforced [m]."""
+    capture: float
+    """Lateral distance beyond the usable opening, at the gate's plane, within which a waypoint of the previous
+    iterate gets the next gate's approach rows [m]; it grows by ``capture_slope`` per metre in front of the plane."""
+    capture_slope: float
+    """Growth of ``capture`` per metre in front of the gate's plane."""
     separation: float
     """Minimum centre distance between two drones in a plan: 2·radius + margin [m]."""
     progress_weight: float
     """Weight of the terminal progress along the centreline [1/m]."""
     alpha: float
     """Weight of the sensitivity term; 0 gives plain iterated best response."""
+    running_weight: float = 0.0
+    """Weight of the progress of the first waypoint along the centreline [1/m]."""
+    discount: float = 1.0
+    """Factor of that weight from one waypoint to the next."""
     guard_steps: int = 3
     """Waypoints over which an owned drone also avoids the constant-velocity extrapolation of drones it does not
     fly (their own planner may not do what this game predicts)."""
@@ -67,10 +77,16 @@ class Player:
     duals: np.ndarray
     """Duals of its collision rows against every slot (D, N); zero for itself and absent slots."""
     qp: BestResponseQP
+    a0: np.ndarray | None = None
+    """Acceleration its previous plan commands now, A_0 (3,); None = zero (no previous plan)."""
+    acc: np.ndarray | None = None
+    """Node accelerations A_0 … A_N of ``plan`` (N + 1, 3), once it has a best response."""
     owned: bool = True
     """Whether this planner flies the drone (else it is only predicted, e.g. an opponent with its own planner)."""
     solve_ms: float = 0.0
-    """Time spent on this player's best responses in the current planning step [ms]."""
+    """Wall time spent on this player's best responses in the current planning step [ms]."""
+    solve_cpu_ms: float = 0.0
+    """Processor time of the same [ms] (what the wall time would be on a core of its own)."""
     last: Solution | None = None
     """Its most recent best response."""
     soft_count: int = 0
@@ -130,9 +146,12 @@ def _gate_constraints(line: Centreline, table: tuple[np.ndarray, np.ndarray], pl
     """Gate rows (N, 4, 3), (N, 4) of player ``pl``'s next plan, the phase of each waypoint and the straddles.
 
     Per waypoint (linearised at the previous plan): both ends of a segment that crosses a gate plane get that
-    gate's tube; else, within ``exit_reach`` of the gate just passed and past its plane, its
-    exit funnel (tube up to ``tube`` deep); else, within ``reach`` of the next gate, its approach funnel (tube
-    within ``tube`` of the plane); else no gate row.
+    gate's tube; else, within ``exit_reach`` of the gate just passed and past its plane, its exit funnel (tube up to
+    ``tube`` deep); else, within ``reach`` of the next gate, nearer to it than to the gate before, and inside its
+    capture cone (lateral offset ≤ half opening + ``capture`` + ``capture_slope``·depth in front), its approach
+    funnel (tube within ``tube`` of the plane); else no gate row. A waypoint far beside the gate for its depth
+    (flying past the gate to come back to it, or beside a gate that shares its plane with the one just passed) gets
+    no row it could not meet.
     """
     N, G = gp.steps, line.gate_count
     phase, before, after = plan_phases(line, pl.plan, pl.next_gate)
@@ -145,7 +164,12 @@ def _gate_constraints(line: Centreline, table: tuple[np.ndarray, np.ndarray], pl
     passed_prev = (phase[1:] > 0) | pl.passed_any
     exit_ok = (straddle < 0) & passed_prev & (d_prev >= 0.0) & (
         np.linalg.norm(p - line.center[prev], axis=1) <= gp.exit_reach)
-    approach_ok = (straddle < 0) & ~exit_ok & (np.linalg.norm(p - line.center[target], axis=1) <= gp.reach)
+    rel = p - line.center[target]
+    lateral = np.maximum(np.abs((rel * line.axis_y[target]).sum(-1)), np.abs((rel * line.axis_z[target]).sum(-1)))
+    capture = gp.gate_half[target] + gp.capture + gp.capture_slope * np.maximum(-d_next, 0.0)
+    dist = np.linalg.norm(rel, axis=1)
+    nearer = dist <= np.linalg.norm(p - line.center[prev], axis=1)
+    approach_ok = (straddle < 0) & ~exit_ok & (dist <= gp.reach) & nearer & (lateral <= capture)
     gate = np.where(straddle >= 0, straddle, np.where(exit_ok, prev, target))
     kind = np.where(straddle >= 0, _TUBE, np.where(exit_ok, np.where(d_prev <= gp.tube, _TUBE, _EXIT),
                                                   np.where(-d_next <= gp.tube, _TUBE, _APPROACH)))
@@ -195,6 +219,19 @@ def _unit(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
     return np.where(n > 1e-6, v / np.maximum(n, 1e-12), fallback)
 
 
+def progress_directions(line: Centreline, points: np.ndarray, gates: np.ndarray, gp: GameParams) -> np.ndarray:
+    """Direction of progress (N, 3) at ``points`` (N, 3) whose next gate is ``gates`` (N,): the reference line's tangent
+    at the point's projection, except behind the gate's plane, or at it beside the opening (the drone flew past the
+    gate), where it points back to the gate's approach point, ``tube`` in front of its centre."""
+    tangent = line.tangent[line.project(points, gates)]
+    rel = points - line.center[gates]
+    depth = (rel * line.forward[gates]).sum(-1)
+    lateral = np.maximum(np.abs((rel * line.axis_y[gates]).sum(-1)), np.abs((rel * line.axis_z[gates]).sum(-1)))
+    past = (depth > gp.tube) | ((depth > -gp.tube) & (lateral > gp.gate_half[gates] + gp.capture))
+    back = _unit(line.center[gates] - gp.tube * line.forward[gates] - points, tangent)
+    return np.where(past[:, None], back, tangent)
+
+
 def player_rows(line: Centreline, table: tuple[np.ndarray, np.ndarray], pl: Player, players: list[Player], slots: int,
                 gp: GameParams) -> RowData:
     """The linearised best-response problem of ``pl`` against the latest plans of ``players`` (D = ``slots``)."""
@@ -202,9 +239,9 @@ def player_rows(line: Centreline, table: tuple[np.ndarray, np.ndarray], pl: Play
     ga, gb, phase, before, after = _gate_constraints(line, table, pl, gp)
     fa, fb = _frame_constraints(line, table, pl, gp, before, after)
     q = np.zeros((N, 3))
-    target = np.array([(pl.next_gate + phase[N]) % line.gate_count])
-    tangent = line.tangent[line.project(pl.plan[N:N + 1], target)[0]]
-    q[N - 1] -= gp.progress_weight * tangent
+    tangent = progress_directions(line, pl.plan[1:], (pl.next_gate + phase[1:]) % line.gate_count, gp)
+    q -= gp.running_weight * gp.discount ** np.arange(N)[:, None] * tangent
+    q[N - 1] -= gp.progress_weight * tangent[N - 1]
     others = [s for s in range(slots) if s != pl.slot]
     ca, cb = np.zeros((N, len(others), 3)), np.full((N, len(others)), _INF)
     ga2, gb2 = np.zeros((N, len(others), 3)), np.full((N, len(others)), _INF)
@@ -227,22 +264,24 @@ def player_rows(line: Centreline, table: tuple[np.ndarray, np.ndarray], pl: Play
             g_beta = _unit(cv - pl.plan[1:k + 1], fallback)
             ga2[:k, col] = g_beta
             gb2[:k, col] = (g_beta * cv).sum(-1) - gp.separation
-    return RowData(p0=pl.p0, v0=pl.v0, q=q, gate_a=ga, gate_b=gb, coll_a=ca, coll_b=cb, guard_a=ga2, guard_b=gb2,
-                   frame_a=fa, frame_b=fb)
+    return RowData(p0=pl.p0, v0=pl.v0, a0=pl.a0, q=q, gate_a=ga, gate_b=gb, coll_a=ca, coll_b=cb, guard_a=ga2,
+                   guard_b=gb2, frame_a=fa, frame_b=fb)
 
 
 def iterate_best_responses(line: Centreline, table: tuple[np.ndarray, np.ndarray], players: list[Player], slots: int,
                            gp: GameParams, rounds: int) -> None:
     """``rounds`` rounds of iterated best response: each player in turn against the others' latest plans.
 
-    Updates every player's ``plan``, ``duals`` (against each slot) and ``solve_ms`` in place.
+    Updates every player's ``plan``, ``acc``, ``duals`` (against each slot), ``solve_ms`` and ``solve_cpu_ms`` in
+    place.
     """
     for _ in range(rounds):
         for pl in players:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             rows = player_rows(line, table, pl, players, slots, gp)
             sol = pl.qp.solve(rows)
             pl.plan = np.concatenate([pl.p0[None], sol.plan], axis=0)
+            pl.acc = np.concatenate([np.zeros((1, 3)) if pl.a0 is None else pl.a0[None], sol.acc], axis=0)
             others = [s for s in range(slots) if s != pl.slot]
             pl.duals = np.zeros((slots, gp.steps))
             if not sol.soft:  # a fallback's multipliers price the penalty, not the opponent: no sensitivity
@@ -250,3 +289,4 @@ def iterate_best_responses(line: Centreline, table: tuple[np.ndarray, np.ndarray
             pl.last = sol
             pl.soft_count += int(sol.soft)
             pl.solve_ms += 1e3 * (time.perf_counter() - t0)
+            pl.solve_cpu_ms += 1e3 * (time.process_time() - c0)

@@ -2,10 +2,12 @@
 
 A receding-horizon game-theoretic planner for every drone of a :class:`~spiral.env.RaceEnv`. It reads the race
 state (positions, velocities, next gates), not observations. Every ``replan_every`` control steps each world's
-game is solved: ``rounds`` rounds in which each racing drone in turn computes its best response (a QP, see
+game is solved: ``rounds`` rounds in which each racing drone in turn computes its best response (a QP within
+what the airframe and flight stack allow, see :mod:`spiral.baselines.limits` and
 :mod:`spiral.baselines.best_response`) to the latest plans of the others. The plans are then flown through the
-env's own action interface: the plan's reference position, velocity and acceleration at the next control step are
-turned into a PID target with feed-forward. Formulation, defaults and measurements: ``docs/se_ibr.md``.
+env's own action interface: the planned position and velocity one control step ahead and the planned acceleration
+one attitude lag further become a PID target with feed-forward (:mod:`spiral.baselines.tracking`). Formulation,
+defaults and measurements: ``docs/se_ibr.md``; planning cost: :func:`planning_cost`.
 """
 
 from __future__ import annotations
@@ -20,14 +22,16 @@ import torch
 from pydantic import Field
 from tensordict import TensorDict
 
-from spiral.baselines.best_response import BestResponseQP
+from spiral.baselines.best_response import BestResponseQP, PlanLimits
 from spiral.baselines.centreline import Centreline
 from spiral.baselines.game import GameParams, Player, gate_row_table, iterate_best_responses
+from spiral.baselines.limits import PID_THRUST_FLOOR, flight_limits
+from spiral.baselines.tracking import pid_target, sample_plans, target_actions
 from spiral.config.base import NonNegFloat, PosFloat, PosInt, StrictModel
 from spiral.env.race_env import RaceEnv
 
-__all__ = ["PlannerPolicy", "SEIBRCfg", "SEIBRPlanner", "dynamic_limits", "game_params", "opponent_policy",
-           "se_ibr_policy"]
+__all__ = ["PlannerPolicy", "SEIBRCfg", "SEIBRPlanner", "game_params", "opponent_policy", "plan_limits",
+           "planning_cost", "se_ibr_policy"]
 
 
 class SEIBRCfg(StrictModel):
@@ -35,26 +39,41 @@ class SEIBRCfg(StrictModel):
 
     alpha: NonNegFloat = Field(default=1.0, description="Weight α of the sensitivity term; 0 = plain IBR")
     horizon: PosFloat = Field(default=1.8, description="Planning horizon [s]")
-    dt: PosFloat = Field(default=0.15, description="Time between waypoints Δt [s]")
+    dt: PosFloat = Field(default=0.12, description="Time between waypoints Δt [s]")
     rounds: PosInt = Field(default=2, description="IBR rounds L per planning step")
     first_rounds: PosInt = Field(default=4, description="IBR rounds when a drone has no previous plan")
-    replan_every: PosInt = Field(default=2, description="Control steps between planning steps (plan held between)")
-    speed_frac: float = Field(default=1.0, gt=0, le=1,
-                              description="Speed bound as a share of the largest steady speed whose PID target "
-                                          "(with room for a_max) fits in the action: min((K_p·pos_scale − a_max)/K_d)")
-    accel_frac: float = Field(default=0.35, gt=0, le=1,
-                              description="Acceleration bound as a share of the airframe's level-flight "
-                                          "acceleration g·√(TWR² − 1)")
-    gate_margin: NonNegFloat = Field(default=0.08, description="Margin inside opening/2 − radius [m]")
-    funnel_slope: PosFloat = Field(default=1.5, description="Widening of the gate funnels per metre of depth")
-    funnel_reach: PosFloat = Field(default=1.5, description="Distance from the next gate within which its approach "
+    replan_every: PosInt = Field(default=3, description="Control steps between planning steps (plan held between)")
+    thrust_frac: float = Field(default=0.85, gt=0, le=1,
+                               description="Share of the airframe's thrust acceleration min(TWR·g, max_accel) a plan "
+                                           "may use (the rest is headroom for attitude control)")
+    tilt_frac: float = Field(default=0.9, gt=0, le=1, description="Share of the PID's tilt limit a plan may use")
+    reach_frac: float = Field(default=1.0, gt=0, le=1,
+                              description="Share of the action's reach (relative mode) a plan's PID target may use")
+    jerk_ramp: PosFloat = Field(default=3.0, description="Attitude lags over which a plan may ramp its acceleration "
+                                                         "from zero to the level maximum: jerk bound = level "
+                                                         "acceleration / (jerk_ramp · attitude lag)")
+    accel_lead: NonNegFloat | None = Field(default=None, description="How far ahead of the position reference the "
+                                                                     "acceleration feed-forward is read [s]; None: "
+                                                                     "the attitude loop's lag")
+    gate_margin: NonNegFloat = Field(default=0.1, description="Margin inside opening/2 − radius [m]")
+    funnel_slope: PosFloat = Field(default=1.0, description="Widening of the gate funnels per metre of depth")
+    funnel_reach: PosFloat = Field(default=2.5, description="Distance from the next gate within which its approach "
                                                             "funnel is enforced [m]")
+    capture: NonNegFloat = Field(default=0.3, description="Lateral distance beyond the usable opening, at a gate's "
+                                                          "plane, within which a waypoint gets that gate's approach "
+                                                          "rows [m]")
+    capture_slope: NonNegFloat = Field(default=3.0, description="Growth of that distance per metre in front of the "
+                                                                "plane")
     exit_reach: PosFloat = Field(default=0.6, description="Distance from a passed gate's centre within which its "
                                                           "exit funnel is enforced [m]")
     drone_margin: NonNegFloat = Field(default=0.15, description="Separation between drones beyond 2·radius [m]")
     wall_margin: NonNegFloat = Field(default=0.1, description="Distance kept from the ground and arena walls "
                                                               "beyond the radius [m]")
     progress_weight: PosFloat = Field(default=1.0, description="Weight of the progress at the horizon [1/m]")
+    running_weight: NonNegFloat = Field(default=0.4, description="Weight of the progress of the first waypoint "
+                                                                 "[1/m]: get ahead early, not only by the horizon")
+    running_discount: float = Field(default=0.85, gt=0, le=1, description="Factor of that weight from one waypoint to "
+                                                                         "the next (progress soon counts more)")
     smooth_weight: NonNegFloat = Field(default=1e-3, description="Weight of Σ‖a_k‖²·Δt [s³/m²]")
     soft_penalty: PosFloat = Field(default=1e3, description="Linear penalty per unit of slack in the fallback")
     solver_tol: PosFloat = Field(default=1e-7, description="Clarabel feasibility and gap tolerances")
@@ -66,23 +85,27 @@ class SEIBRCfg(StrictModel):
                                                         "path; with α = 0 both must agree)")
 
 
-def dynamic_limits(env: RaceEnv, cfg: SEIBRCfg) -> tuple[float, float]:
-    """Speed and acceleration bounds (v_max [m/s], a_max [m/s²]) from the airframe, its PID and the action.
+def plan_limits(env: RaceEnv, cfg: SEIBRCfg) -> PlanLimits:
+    """What a plan may ask of ``env``'s drones: the airframe's thrust and tilt, drag, the action's reach and a jerk
+    bound from the attitude loop.
 
-    ``a_max = accel_frac·g·√(TWR² − 1)`` (capped at ``K_p·reach/2``); ``v_max`` is ``speed_frac`` times the fastest
-    steady speed whose PID target, with room for ``a_max`` of feed-forward, fits in the action:
-    ``min_axis (K_p·reach − a_max)/K_d``. ``reach`` is ``pos_scale`` in relative mode, half the arena's smallest
-    extent in absolute mode.
+    Thrust ``thrust_frac·min(TWR·g, max_accel)`` (at least 1.05 g), tilt ``tilt_frac·max_tilt``, the PID's thrust
+    floor, the PID target within ``reach_frac·pos_scale`` of the drone on each axis (relative mode) or inside the
+    arena (absolute mode), and jerk ``level_accel / (jerk_ramp·attitude_lag)``. See
+    :func:`~spiral.baselines.limits.flight_limits` for the closed forms.
     """
-    air, act, track = env.world.airframe, env.cfg.action, env.track
-    kp, kd = np.asarray(air.pid.pos_p, float), np.asarray(air.pid.pos_d, float)
-    reach = act.pos_scale if act.mode == "relative" else 0.5 * float(np.min(np.subtract(track.bounds.max,
-                                                                                      track.bounds.min)))
-    # A short action reach also caps the acceleration: at most half of it goes to acceleration feed-forward.
-    a_max = min(cfg.accel_frac * env.world.sim.gravity * math.sqrt(air.thrust_to_weight**2 - 1.0),
-                0.5 * float(np.min(kp)) * reach)
-    v_max = cfg.speed_frac * float(np.min((kp * reach - a_max) / kd))
-    return v_max, a_max
+    lim = flight_limits(env.world.airframe, env.cfg.action, gravity=env.world.sim.gravity)
+    g = lim.gravity
+    if lim.reach is not None:
+        hi = np.full(3, cfg.reach_frac * lim.reach)
+        lo, absolute = -hi, False
+    else:
+        lo, hi, absolute = np.asarray(env.track.bounds.min, float), np.asarray(env.track.bounds.max, float), True
+    return PlanLimits(thrust=max(cfg.thrust_frac * lim.thrust, 1.05 * g),
+                      tan_tilt=math.tan(math.radians(cfg.tilt_frac * lim.tilt_deg)), floor=PID_THRUST_FLOOR * g,
+                      gravity=g, drag=np.asarray(lim.drag_per_mass), kp=np.asarray(lim.kp), kd=np.asarray(lim.kd),
+                      target_lo=lo, target_hi=hi, absolute=absolute,
+                      jerk=lim.level_accel / (cfg.jerk_ramp * lim.attitude_lag))
 
 
 def game_params(env: RaceEnv, cfg: SEIBRCfg, steps: int) -> GameParams:
@@ -92,8 +115,9 @@ def game_params(env: RaceEnv, cfg: SEIBRCfg, steps: int) -> GameParams:
     return GameParams(
         steps=steps, dt=cfg.dt, gate_half=np.array([track.gate_opening(i) / 2 - r - cfg.gate_margin for i in gates]),
         tube=max(track.gate_bar(i) for i in gates) / 2 + r + cfg.gate_margin, slope=cfg.funnel_slope,
-        reach=cfg.funnel_reach, exit_reach=cfg.exit_reach, separation=2 * r + cfg.drone_margin,
-        progress_weight=cfg.progress_weight, alpha=cfg.alpha, guard_steps=cfg.guard_steps,
+        reach=cfg.funnel_reach, exit_reach=cfg.exit_reach, capture=cfg.capture, capture_slope=cfg.capture_slope,
+        separation=2 * r + cfg.drone_margin, progress_weight=cfg.progress_weight, running_weight=cfg.running_weight,
+        discount=cfg.running_discount, alpha=cfg.alpha, guard_steps=cfg.guard_steps,
         frame_clear=max(track.gate_size(i) for i in gates) / 2 + r + cfg.gate_margin, sensitivity=cfg.sensitivity)
 
 
@@ -119,15 +143,21 @@ class SEIBRPlanner:
         self.ctrl_dt = float(env.dt)
         self.line = Centreline(track)
         self.kp, self.kd, self.ki = (np.asarray(x, float) for x in (air.pid.pos_p, air.pid.pos_d, air.pid.pos_i))
-        self.v_max, self.a_max = dynamic_limits(env, c)
+        self.limits = plan_limits(env, c)
+        self.accel_lead = c.accel_lead if c.accel_lead is not None else flight_limits(
+            air, env.cfg.action, gravity=env.world.sim.gravity).attitude_lag
+        """How far ahead the acceleration feed-forward is read [s]."""
         self.params = game_params(env, c, self.N)
         self.gate_table = gate_row_table(self.line, self.params)
         margin = air.radius + c.wall_margin
+        self.arena_lo, self.arena_hi = np.asarray(track.bounds.min, float), np.asarray(track.bounds.max, float)
         self.lo = np.asarray(track.bounds.min, float) + margin
         self.hi = np.asarray(track.bounds.max, float) - margin
         self.plans = np.zeros((self.W, self.D, self.N + 1, 3))
         """Latest plan p_0 … p_N of each drone (world-time ``plan_time`` at p_0)."""
         self.plan_v0 = np.zeros((self.W, self.D, 3))
+        self.plan_acc = np.zeros((self.W, self.D, self.N + 1, 3))
+        """Node accelerations A_0 … A_N of each plan (linear in between)."""
         self.duals = np.zeros((self.W, self.D, self.D, self.N))
         """``duals[w, i, j, k]``: multiplier of i's collision row against j at waypoint k."""
         self.has_plan = np.zeros((self.W, self.D), dtype=bool)
@@ -136,7 +166,9 @@ class SEIBRPlanner:
         self.plan_time = np.full(self.W, -np.inf)
         self._qps: dict[tuple[int, int], BestResponseQP] = {}
         self.drone_ms: list[float] = []
-        """Time of each drone's best responses in one planning step (all rounds) [ms]."""
+        """Wall time of each drone's best responses in one planning step (all rounds) [ms]."""
+        self.drone_cpu_ms: list[float] = []
+        """Processor time of the same [ms]."""
         self.world_ms: list[float] = []
         """Wall time of each world's planning step [ms]."""
         self.solves = 0
@@ -165,14 +197,9 @@ class SEIBRPlanner:
         self.duals[:] = 0.0
         self.plan_time[:] = -np.inf
 
-    def timing(self) -> dict[str, float]:
-        """Planning cost: ms per plan per drone (median, p95), per world step, and the fallback rate."""
-        d = np.asarray(self.drone_ms) if self.drone_ms else np.zeros(1)
-        w = np.asarray(self.world_ms) if self.world_ms else np.zeros(1)
-        return {"plans": len(self.drone_ms), "drone_ms_median": float(np.median(d)),
-                "drone_ms_p95": float(np.percentile(d, 95)), "world_ms_median": float(np.median(w)),
-                "world_ms_p95": float(np.percentile(w, 95)), "solves": self.solves,
-                "soft_fraction": self.soft_solves / max(self.solves, 1)}
+    def timing(self) -> dict[str, Any]:
+        """Planning cost of this planner so far; see :func:`planning_cost`."""
+        return planning_cost(self)
 
     # Planning
 
@@ -198,8 +225,8 @@ class SEIBRPlanner:
         key = (w, s)
         if key not in self._qps:
             c = self.cfg
-            self._qps[key] = BestResponseQP(steps=self.N, others=self.D - 1, dt=c.dt, v_max=self.v_max,
-                                            a_max=self.a_max, smooth=c.smooth_weight, lo=self.lo, hi=self.hi,
+            self._qps[key] = BestResponseQP(steps=self.N, others=self.D - 1, dt=c.dt, limits=self.limits,
+                                            smooth=c.smooth_weight, lo=self.lo, hi=self.hi,
                                             soft_penalty=c.soft_penalty, tol=c.solver_tol)
         return self._qps[key]
 
@@ -227,13 +254,15 @@ class SEIBRPlanner:
                 self.has_plan[w, s] = False
                 continue
             p0, v0 = state["pos"][i], state["vel"][i]
+            a0 = None
             if self.has_plan[w, s]:
                 plan, duals = self._shifted(w, s, t - self.plan_time[w])
+                a0 = self.reference(np.array([i]), np.array([t - self.plan_time[w]]))[2][0]  # continue smoothly
             else:
                 plan = p0 + v0 * self.cfg.dt * np.arange(self.N + 1)[:, None]
                 duals, fresh = np.zeros((self.D, self.N)), True
             plan[0] = p0
-            players.append(Player(slot=s, p0=p0, v0=v0, next_gate=int(state["gate"][i]),
+            players.append(Player(slot=s, p0=p0, v0=v0, a0=a0, next_gate=int(state["gate"][i]),
                                   passed_any=bool(state["passed"][i]), plan=plan, duals=duals, qp=self._qp(w, s),
                                   owned=s in self.own_slots))
         if not players:
@@ -242,10 +271,12 @@ class SEIBRPlanner:
         iterate_best_responses(self.line, self.gate_table, players, self.D, self.params, n_rounds)
         for pl in players:
             self.plans[w, pl.slot], self.plan_v0[w, pl.slot] = pl.plan, pl.v0
+            self.plan_acc[w, pl.slot] = pl.acc
             self.duals[w, pl.slot] = pl.duals
             self.has_plan[w, pl.slot] = True
             self.fallback[w, pl.slot] = pl.last is not None and pl.last.soft
             self.drone_ms.append(pl.solve_ms)
+            self.drone_cpu_ms.append(pl.solve_cpu_ms)
         self.solves += n_rounds * len(players)
         self.soft_solves += sum(pl.soft_count for pl in players)
         self.plan_time[w] = t
@@ -253,26 +284,16 @@ class SEIBRPlanner:
 
     # Flying the plan
 
-    def _reference(self, idx: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Position, velocity and acceleration of the plans of drones ``idx`` at ``tau`` after planning (cubic
-        Hermite through the waypoints, velocities by central differences, v_0 the measured one)."""
-        w, s, dt, N = idx // self.D, idx % self.D, self.cfg.dt, self.N
-        P = self.plans[w, s]
-        V = np.empty_like(P)
-        V[:, 0] = self.plan_v0[w, s]
-        V[:, 1:N] = (P[:, 2:] - P[:, :-2]) / (2 * dt)
-        V[:, N] = (P[:, N] - P[:, N - 1]) / dt
-        x = np.clip(tau / dt, 0.0, float(N))
-        j = np.minimum(np.floor(x).astype(np.int64), N - 1)
-        u = (x - j)[:, None]
-        rows = np.arange(len(idx))
-        p0, p1, v0, v1 = P[rows, j], P[rows, j + 1], V[rows, j] * dt, V[rows, j + 1] * dt
-        pos = (2 * u**3 - 3 * u**2 + 1) * p0 + (u**3 - 2 * u**2 + u) * v0 + (-2 * u**3 + 3 * u**2) * p1 \
-            + (u**3 - u**2) * v1
-        vel = ((6 * u**2 - 6 * u) * p0 + (3 * u**2 - 4 * u + 1) * v0 + (-6 * u**2 + 6 * u) * p1
-               + (3 * u**2 - 2 * u) * v1) / dt
-        acc = ((12 * u - 6) * p0 + (6 * u - 4) * v0 + (-12 * u + 6) * p1 + (6 * u - 2) * v1) / dt**2
-        return pos, vel, acc
+    def reference(self, idx: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Position, velocity and acceleration of the current plans of flat drones ``idx`` at ``tau`` after their
+        planning time (see :func:`~spiral.baselines.tracking.sample_plans`)."""
+        w, s = idx // self.D, idx % self.D
+        return sample_plans(self.plans[w, s], self.plan_acc[w, s], self.plan_v0[w, s], self.cfg.dt, tau)
+
+    def follow(self, drone_idx: torch.Tensor) -> torch.Tensor:
+        """Actions (n, 4) that fly the current plans of ``drone_idx`` (n,) without replanning."""
+        idx = drone_idx.detach().cpu().numpy().astype(np.int64)
+        return torch.as_tensor(self._track(idx, self._state()), dtype=torch.float32, device=self.env.device)
 
     def _track(self, idx: np.ndarray, state: dict[str, np.ndarray]) -> np.ndarray:
         """Env actions that make the PID follow the plans: target = p_ref + (a_ref + K_d·v_ref − K_i·I)/K_p."""
@@ -283,16 +304,11 @@ class SEIBRPlanner:
             return out
         sel = idx[ok]
         tau = state["time"][sel // self.D] - self.plan_time[sel // self.D] + self.cfg.lookahead * self.ctrl_dt
-        pos, vel, acc = self._reference(sel, tau)
-        target = pos + (acc + self.kd * vel - self.ki * state["integral"][sel]) / self.kp
-        act = self.env.cfg.action
-        if act.mode == "relative":
-            a = (target - state["pos"][sel]) / act.pos_scale
-            a /= np.maximum(1.0, np.abs(a).max(axis=1, keepdims=True))
-        else:
-            lo, hi = np.asarray(self.env.track.bounds.min), np.asarray(self.env.track.bounds.max)
-            a = np.clip(2.0 * (target - lo) / (hi - lo) - 1.0, -1.0, 1.0)
-        out[ok, :3] = a
+        pos, vel, _ = self.reference(sel, tau)
+        acc = self.reference(sel, tau + self.accel_lead)[2]
+        target = pid_target(pos, vel, acc, state["integral"][sel], kp=self.kp, kd=self.kd, ki=self.ki)
+        out[ok, :3] = target_actions(target, state["pos"][sel], vel, self.env.cfg.action, arena_lo=self.arena_lo,
+                                     arena_hi=self.arena_hi)
         return out
 
 
@@ -329,3 +345,30 @@ def opponent_policy(env: RaceEnv, **kw: Any) -> PlannerPolicy:
     n = env.opponent_idx.numel()
     planner = SEIBRPlanner(env, own_slots=env.opponent_slots, **kw)
     return PlannerPolicy(planner, env.opponent_idx, torch.arange(n, device=env.device), n)
+
+
+def planning_cost(*sources: SEIBRPlanner | PlannerPolicy | Any) -> dict[str, Any]:
+    """Planning cost pooled over planners (or policies backed by one; anything else is skipped).
+
+    A plan is one drone's best responses in one planning step (all IBR rounds, building the rows included):
+    ``plan_ms_median`` and ``plan_ms_p95`` are its wall-clock milliseconds per plan per drone, ``plan_cpu_ms_*`` the
+    processor time of the same (what the wall time would be on a core of its own; on a loaded machine the wall time
+    also counts the time other processes held the core). ``world_ms_*`` time one world's whole game per planning
+    step. Also the number of plans, of best responses (``solves``) and the share of those that needed the soft
+    fallback. ``None`` without plans.
+    """
+    planners = [x.planner if isinstance(x, PlannerPolicy) else x for x in sources]
+    planners = [p for p in planners if isinstance(p, SEIBRPlanner)]
+
+    def pooled(name: str) -> np.ndarray:
+        return np.concatenate([np.asarray(getattr(p, name), float) for p in planners]) if planners else np.zeros(0)
+
+    def stat(x: np.ndarray, q: float) -> float | None:
+        return float(np.percentile(x, q)) if x.size else None
+
+    drone, cpu, world = pooled("drone_ms"), pooled("drone_cpu_ms"), pooled("world_ms")
+    solves, soft = sum(p.solves for p in planners), sum(p.soft_solves for p in planners)
+    return {"plans": int(drone.size), "plan_ms_median": stat(drone, 50), "plan_ms_p95": stat(drone, 95),
+            "plan_cpu_ms_median": stat(cpu, 50), "plan_cpu_ms_p95": stat(cpu, 95),
+            "world_ms_median": stat(world, 50), "world_ms_p95": stat(world, 95), "solves": int(solves),
+            "soft_fraction": soft / solves if solves else 0.0}

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -14,6 +15,7 @@ from typing import Any
 import torch
 
 from spiral.baselines.races import duel_statistics, head_to_head, self_match
+from spiral.baselines.se_ibr import planning_cost
 from spiral.config import load_track
 from spiral.core.scenario import SCENARIO_DRONES
 from spiral.eval.metrics import summarize_races
@@ -35,21 +37,24 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     track = load_track(args.track)
-    t0 = time.perf_counter()
+    t0, cpu0, load0 = time.perf_counter(), time.process_time(), os.getloadavg()[0]
     out: dict[str, Any] = {"track": track.name, "scenario": args.scenario, "runs": args.runs, "seed": args.seed,
                            "cfg": args.cfg}
     if args.scenario == "duel":
         res, pol, opp = head_to_head(track, learner=args.cfg, opponent=args.opponent_cfg, runs=args.runs,
                                      seed=args.seed)
         out.update(opponent_cfg=args.opponent_cfg, slot0=summarize_races(res, [0]), slot1=summarize_races(res, [1]),
-                   duel=duel_statistics(track, res), timing=pol.planner.timing(), opponent_timing=opp.planner.timing())
+                   duel=duel_statistics(track, res), timing=pol.planner.timing(), opponent_timing=opp.planner.timing(),
+                   planning=planning_cost(pol, opp))
     else:
         drones = SCENARIO_DRONES[args.scenario]
         res, pol = self_match(track, drones, runs=args.runs, seed=args.seed, **args.cfg)
-        out.update(summary=summarize_races(res), timing=pol.planner.timing())
+        out.update(summary=summarize_races(res), timing=pol.planner.timing(), planning=planning_cost(pol))
         if drones == 2:
             out["duel"] = duel_statistics(track, res)
     out["wall_s"] = time.perf_counter() - t0
+    out["cpu_s"] = time.process_time() - cpu0
+    out["load_avg_1min"] = {"start": load0, "end": os.getloadavg()[0]}
     if args.save is not None:
         torch.save(res, args.save)
     text = json.dumps(out, indent=1)
