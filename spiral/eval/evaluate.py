@@ -16,7 +16,7 @@ from typing import Any
 import torch
 from tensordict import TensorDict
 
-from spiral.baselines import opponent_policy, se_ibr_policy
+from spiral.baselines import PlannerPolicy, opponent_policy, planning_cost, se_ibr_policy
 from spiral.config.airframe import AIRFRAMES, AirframeCfg
 from spiral.config.env import ActionCfg, EnvCfg, ObsCfg, SeparationCfg
 from spiral.config.sim import SimCfg
@@ -196,11 +196,17 @@ def _check_compatible(a: FrozenPolicy, b: FrozenPolicy) -> None:
 
 def race_agents(track: TrackSpec, scenario: str, runs: int, seed: int, agent: Agent, opponent: Agent | None = None,
                 *, device: str = "cpu", layout: EvalLayout | None = None, record: bool = False,
-                flight: FlightOverride | None = None) -> tuple[RaceResults, torch.Tensor | None]:
-    """Race ``agent`` (self-match) or team ``agent`` against team ``opponent``; winners only in cross-play."""
+                flight: FlightOverride | None = None,
+                planners: list | None = None) -> tuple[RaceResults, torch.Tensor | None]:
+    """Race ``agent`` (self-match) or team ``agent`` against team ``opponent``; winners only in cross-play.
+
+    ``planners``, when given, collects the planner policies that flew (for :func:`~spiral.baselines.planning_cost`).
+    """
     env, policy = setup_race(track, scenario, runs, seed, agent, opponent, device=device, layout=layout,
                              flight=flight)
     res = run_races(env, policy, record=record, teams=TEAMS[scenario])
+    if planners is not None:
+        planners.extend(p for p in (policy, env.opponent_policy) if isinstance(p, PlannerPolicy))
     return res, race_winner(res.finished, res.lap_time, TEAMS[scenario]) if opponent is not None else None
 
 
@@ -212,7 +218,7 @@ def evaluate_policy(policy: FrozenPolicy, track: TrackSpec, scenario: str, runs:
 
 def cross_play(a: Agent, b: Agent, track: TrackSpec, scenario: str, runs: int, seed: int, *,
                device: str = "cpu", layout: EvalLayout | None = None, sides: str = "both",
-               flight: FlightOverride | None = None) -> tuple[RaceResults, torch.Tensor]:
+               flight: FlightOverride | None = None, planners: list | None = None) -> tuple[RaceResults, torch.Tensor]:
     """Team ``a`` against team ``b``: per-drone results and each race's winner (0 = ``a``, 1 = ``b``, −1 = none).
 
     ``sides="a"``: ``runs`` races with ``a`` on team A's slots (the first ones). ``sides="both"``: every placement is
@@ -221,11 +227,13 @@ def cross_play(a: Agent, b: Agent, track: TrackSpec, scenario: str, runs: int, s
     ``a``'s are in team A's slots of the results as well.
     """
     check_sides(sides)
-    res, winners = race_agents(track, scenario, runs, seed, a, b, device=device, layout=layout, flight=flight)
+    res, winners = race_agents(track, scenario, runs, seed, a, b, device=device, layout=layout, flight=flight,
+                               planners=planners)
     assert winners is not None
     if sides == "a":
         return res, winners
-    swapped, won = race_agents(track, scenario, runs, seed, b, a, device=device, layout=layout, flight=flight)
+    swapped, won = race_agents(track, scenario, runs, seed, b, a, device=device, layout=layout, flight=flight,
+                               planners=planners)
     assert won is not None
     team_a, team_b = TEAMS[scenario][0], TEAMS[scenario][-1]
     back = swapped.permuted([*team_b, *team_a])
@@ -244,7 +252,8 @@ def evaluate_methods(track: TrackSpec, methods: dict[str, str | Path], *, scenar
     see :func:`cross_play`; ``win_rate_by_side`` splits the win rate by where the method started). Planner-only
     races use the layout
     of the first learned method (or ``airframe``/``sim`` and default env settings when there is none); the
-    entry's ``layout`` says which. ``flight`` changes the flight stack of every drone (JSON ``flight``).
+    entry's ``layout`` says which. ``flight`` changes the flight stack of every drone (JSON ``flight``). Where the
+    planner flew, ``planning`` is its cost (:func:`~spiral.baselines.planning_cost`: ms per plan per drone).
     """
     out: dict[str, Any] = {"track": track.name, "scenario": scenario, "runs": runs, "seed": seed, "methods": {}}
     if flight is not None and flight.to_json():
@@ -262,12 +271,14 @@ def evaluate_methods(track: TrackSpec, methods: dict[str, str | Path], *, scenar
     team_a, team_b = TEAMS[scenario][0], TEAMS[scenario][-1]
     for name, agent in agents.items():
         entry: dict[str, Any] = {"checkpoint": str(methods[name])}
+        planners: list[PlannerPolicy] = []
         if opponent is None:
-            res, _ = race_agents(track, scenario, runs, seed, agent, device=device, layout=fallback, flight=flight)
+            res, _ = race_agents(track, scenario, runs, seed, agent, device=device, layout=fallback, flight=flight,
+                                 planners=planners)
             entry.update(summarize_races(res))
         else:
             res, winners = cross_play(agent, opponent, track, scenario, runs, seed, device=device, layout=fallback,
-                                      sides=sides, flight=flight)
+                                      sides=sides, flight=flight, planners=planners)
             won = (winners == 0).float()
             entry.update({**summarize_races(res, team_a), "win_rate": float(won.mean()),
                           "loss_rate": float((winners == 1).float().mean()),
@@ -276,6 +287,8 @@ def evaluate_methods(track: TrackSpec, methods: dict[str, str | Path], *, scenar
                                                zip(("a", "b"), won.split(runs), strict=False)}})
         if isinstance(agent, str) and (opponent is None or isinstance(opponent, str)):
             entry["layout"] = fallback.source
+        if planners:
+            entry["planning"] = planning_cost(*planners)
         out["methods"][name] = entry
     return out
 

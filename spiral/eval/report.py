@@ -270,7 +270,7 @@ def _markdown(run_root: Path, track: TrackSpec, stages: list[StageRun], table: d
                       f"every drone (targets shifted away from drones predicted within {separation.distance} m in "
                       f"the next {separation.horizon_s} s, by up to {separation.gain} m): an opt-in deployment "
                       "layer, not what the methods learned (docs/training.md)."]
-        lines.append("")
+        lines += [*_planning_note(table[scenario]), ""]
     if matrices:
         lines += _cross_section(matrices)
     if held is not None:
@@ -293,6 +293,16 @@ def _markdown(run_root: Path, track: TrackSpec, stages: list[StageRun], table: d
     if sources:
         lines += ["## Sources", "", *[f"- `{s}`" for s in sources], ""]
     return "\n".join(lines)
+
+
+def _planning_note(rows: list[RowResult]) -> list[str]:
+    """The planner's cost in this table's self-match, when its evaluation recorded one."""
+    cost = next((r.metrics.get("planning") for r in rows if r.key == "se-ibr" and r.metrics), None)
+    if not cost or cost.get("plan_ms_median") is None:
+        return []
+    return ["", f"SE-IBR planning cost: {cost['plan_ms_median']:.1f} ms median, {cost['plan_ms_p95']:.1f} ms p95 per "
+            f"plan per drone (wall clock; processor time {cost['plan_cpu_ms_median']:.1f} / "
+            f"{cost['plan_cpu_ms_p95']:.1f} ms) over {cost['plans']} plans."]
 
 
 def _flight_stack(stages: list[StageRun]) -> str:

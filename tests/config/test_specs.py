@@ -193,3 +193,9 @@ def test_the_shipped_pipeline_flies_the_papers_stack_and_reports_the_filter_as_a
     spec = load_pipeline(ROOT / "pipelines" / "full.yaml")[0]
     assert all(stage.env.action.separation is None for stage in spec.stages)
     assert spec.report.separation is not None
+
+
+def test_the_shipped_pipeline_races_se_ibr_in_its_tables():
+    """full.yaml's report has SE-IBR as a row of both tables (and in the cross-play), not a missing cell."""
+    spec = load_pipeline(ROOT / "pipelines" / "full.yaml")[0]
+    assert spec.report.enabled and spec.report.se_ibr and spec.report.cross_play

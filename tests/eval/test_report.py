@@ -191,3 +191,23 @@ def test_report_races_the_filter_rows_final_policies_strangers_and_downwash(spri
     downwash = json.loads((evals / "holdout-self-2v2-noselfplay-downwash.json").read_text())
     assert downwash["flight"] == {"downwash": True}
     assert md.index("## Downwash (zero-shot)") < md.index("## Lap-time reference")
+
+
+def test_report_races_se_ibr_in_both_tables_and_prints_its_planning_cost(sprint, tiny_checkpoint, tmp_path):
+    """With ``se_ibr`` the planner is a row of both tables, paired with every learned method, with its cost per plan."""
+    root = tmp_path / "runs" / "tiny"
+    fake_run(root, sprint, tiny_checkpoint)
+    logs: list[str] = []
+    md = build_report(root, sprint, tmp_path / "out", bound_steps=8, se_ibr=True, robustness=False, jobs=2,
+                      log=logs.append).read_text()
+    for scenario in ("1v1", "2v2"):
+        table = md[md.index(f"({scenario}) "):md.index("## ", md.index(f"({scenario}) "))]
+        row = next(r for r in table.splitlines() if r.startswith("| SE-IBR (Baseline) |"))
+        assert "missing" not in row and "n/a" not in row
+        assert "SE-IBR planning cost:" in table and " ms median, " in table
+    cross = md[md.index("## Cross-play"):md.index("## Lap-time reference")].splitlines()
+    assert sum(line.startswith("| SE-IBR (Baseline) |") for line in cross) == 2  # a row of each scenario's matrix
+    assert any("cross-1v1-spiral-vs-se-ibr" in line for line in logs)
+    cached = json.loads((tmp_path / "out" / "evals" / "self-2v2-se-ibr.json").read_text())
+    cost = cached["methods"]["se-ibr"]["planning"]
+    assert cost["plans"] > 0 and 0 < cost["plan_ms_median"] <= cost["plan_ms_p95"]
