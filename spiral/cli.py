@@ -293,6 +293,8 @@ def report(
         "extra table rows ('none': no such rows)")] = "none",
     robustness: Annotated[bool, typer.Option(
         "--robustness/--no-robustness", help="Final policies in every format, racing strangers, downwash")] = True,
+    jobs: Annotated[int, typer.Option("--jobs", "-j", min=1, help="Processes racing SE-IBR's head-to-head "
+                                      "pairings side by side (with --se-ibr)")] = 1,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
 ) -> None:
     """Write results.md (the paper's tables, cross-play, lap-time reference), results.csv and figures."""
@@ -314,7 +316,7 @@ def report(
         command += " --no-robustness"
     path = build_report(run_dir, spec, out or run_dir / "report", runs=runs, device=device, se_ibr=se_ibr,
                         command=command, holdout=(holdout_runs, holdout_seed) if holdout_runs else None, sides=sides,
-                        separation=filter_row, robustness=robustness)  # type: ignore[arg-type]
+                        separation=filter_row, robustness=robustness, jobs=jobs)  # type: ignore[arg-type]
     typer.echo(f"wrote {path}")
 
 

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-
-import torch
 
 from spiral.config.airframe import resolve_airframe
 from spiral.config.pipeline import PipelineSpec
@@ -23,6 +22,9 @@ __all__ = ["PLANNER_STEP", "PipelinePlan", "select_steps"]
 
 PLANNER_STEP = "eval:se-ibr"
 """The step that races SE-IBR's self-matches (with ``report.se_ibr``)."""
+REPORT_JOBS = os.cpu_count() or 1
+"""Processes in which the report races the planner's head-to-head pairings: one per core (the report is the
+pipeline's last step; only instant promotion steps may run beside it)."""
 
 PLANNER_SCENARIOS = ("1v1", "2v2")
 
@@ -146,7 +148,7 @@ class PipelinePlan:
                                    device=self.spec.device, se_ibr=cfg.se_ibr, cross_play=cfg.cross_play,
                                    holdout=(ev.holdout_runs, ev.holdout_seed) if ev.holdout_runs else None,
                                    sides=ev.sides, separation=cfg.separation, robustness=cfg.robustness,
-                                   airframe=resolve_airframe(self.spec.airframe), jobs=torch.get_num_threads(),
+                                   airframe=resolve_airframe(self.spec.airframe), jobs=REPORT_JOBS,
                                    command=f"spiral run {self.source}", log=ctx.log)
             ctx.log(f"report: {results}")
             return {"results": results, "csv": results.with_name("results.csv")}, {}
