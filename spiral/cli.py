@@ -362,6 +362,40 @@ def bench_train(
     _write_json(json_out, result)
 
 
+
+@bench_app.command("ppo")
+@handles_errors
+def bench_ppo(
+    pipeline: Annotated[Path, typer.Argument(help="Pipeline YAML")] = Path("pipelines/full.yaml"),
+    stage: Annotated[str, typer.Option("--stage", help="Stage name in the pipeline")] = "solo",
+    worlds: Annotated[int | None, typer.Option("--worlds", min=1, help="Worlds (default: the stage's)")] = None,
+    iterations: Annotated[int, typer.Option("--iterations", min=1, help="Profiled PPO iterations")] = 3,
+    device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
+    json_out: JsonOut = None,
+) -> None:
+    """Profile PPO iterations of one stage: the rollout by env hook, the update by part, against the matmul limit."""
+    from spiral.config.airframe import resolve_airframe
+    from spiral.config.load import load_pipeline
+    from spiral.train.profile import profile_iteration
+
+    spec, track = load_pipeline(pipeline)
+    found = [s for s in spec.stages if s.name == stage]
+    if not found:
+        raise typer.BadParameter(f"{pipeline}: no stage named {stage!r}", param_hint="--stage")
+    spec_stage = found[0] if worlds is None else found[0].model_copy(update={"worlds": worlds})
+    r = profile_iteration(track, resolve_airframe(spec.airframe, source=str(pipeline)), spec.sim, spec_stage,
+                          iterations=iterations, device=device, seed=spec.seed)
+    rollout = ", ".join(f"{k} {1e3 * v:.0f}" for k, v in r["rollout_parts_s"].items())
+    parts = ", ".join(f"{k} {100 * v:.0f}%" for k, v in r["update_parts_share"].items())
+    typer.echo(f"{r['samples_per_iteration']} samples per iteration ({r['worlds']} worlds, {r['obs_dim']} inputs, "
+               f"{r['torch_threads']} torch threads)\n"
+               f"rollout {r['rollout_s']:.3f} s: {rollout} [ms]\n"
+               f"update {r['update_s']:.3f} s ({r['update_cpu_s']:.3f} CPU-s): {parts}\n"
+               f"update {r['update_samples_per_s']:.0f} samples/s; matmul limit {r['matmul_limit_samples_per_s']:.0f}"
+               f" samples/s at {r['matmul_gflops']:.1f} GFLOP/s; update / limit {r['update_over_matmul_limit']:.2f}"
+               f" (CPU time {r['update_over_matmul_limit_cpu']:.2f})")
+    _write_json(json_out, r)
+
 def main() -> None:
     """Console-script entry point."""
     app()

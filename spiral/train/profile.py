@@ -1,0 +1,200 @@
+"""Where one PPO iteration's time goes, and how far the update is from the CPU's matmul rate.
+
+The rollout is split by the environment's hooks (apply action, simulate, race events, rewards, dones, reset,
+observe) and the policy's part (acting, storing the transition, returns). The update is split from a
+``torch.profiler`` trace of rsl-rl's ``PPO.update`` into forward (losses included), backward, gradient clipping,
+optimizer step and the observation normaliser. Its samples per second are set against the *matmul limit*: the
+rate at which the same update would run if it did nothing but the plain matrix products of its linear layers
+(forward, gradient of the input, gradient of the weights) at the speed this CPU reaches on them, timed here.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import tempfile
+import time
+from collections import defaultdict
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from spiral.config.airframe import AirframeCfg
+from spiral.config.sim import SimCfg
+from spiral.config.stage import StageSpec
+from spiral.config.track import TrackSpec
+from spiral.train.runner import StageTrainer
+
+__all__ = ["ENV_HOOKS", "linear_layers", "matmul_seconds", "profile_iteration", "timed_methods",
+           "update_flops_per_sample"]
+
+ENV_HOOKS = ("apply_actions", "simulate", "race_events", "rewards", "dones", "reset_ended", "get_observations")
+"""RaceEnv's step hooks, in the order ``RaceEnv.step`` calls them."""
+
+
+def linear_layers(*modules: nn.Module) -> list[tuple[int, int]]:
+    """(inputs, outputs) of every ``nn.Linear`` in ``modules``, in order."""
+    return [(m.in_features, m.out_features) for mod in modules for m in mod.modules() if isinstance(m, nn.Linear)]
+
+
+def _first_layers(*modules: nn.Module) -> set[int]:
+    """Indices (into :func:`linear_layers`) of each module's first linear layer, whose input needs no gradient."""
+    first, i = set(), 0
+    for mod in modules:
+        first.add(i)
+        i += sum(isinstance(m, nn.Linear) for m in mod.modules())
+    return first
+
+
+def update_flops_per_sample(layers: list[tuple[int, int]], first: set[int]) -> int:
+    """Multiply-add FLOPs (2 per multiply-add) one sample costs in one epoch of the update: forward, gradient of
+    the weights and, except for a network's first layer, gradient of the input."""
+    return sum(2 * n_in * n_out * (2 if i in first else 3) for i, (n_in, n_out) in enumerate(layers))
+
+
+def matmul_seconds(layers: list[tuple[int, int]], first: set[int], batch: int, *,
+                   repeats: int = 20) -> tuple[float, float]:
+    """Wall and processor seconds (best of ``repeats`` each) one mini-batch of ``batch`` samples spends in plain
+    matrix products of ``layers``: x·Wᵀ forward, gᵀ·x for the weights and g·W for the input where it is needed."""
+    mats = []
+    for i, (n_in, n_out) in enumerate(layers):
+        x, w, g = torch.randn(batch, n_in), torch.randn(n_out, n_in), torch.randn(batch, n_out)
+        mats.append((x, w, g, i not in first))
+
+    def once() -> None:
+        for x, w, g, grad_input in mats:
+            torch.mm(x, w.t())
+            torch.mm(g.t(), x)
+            if grad_input:
+                torch.mm(g, w)
+
+    once()
+    wall = cpu = float("inf")
+    for _ in range(repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        once()
+        wall, cpu = min(wall, time.perf_counter() - t0), min(cpu, time.process_time() - c0)
+    return wall, cpu
+
+
+@contextlib.contextmanager
+def timed_methods(obj: Any, names: tuple[str, ...], totals: dict[str, float]) -> Iterator[None]:
+    """Accumulate the wall time of ``obj``'s methods ``names`` into ``totals`` while the context is open."""
+    def wrap(name: str, fn: Callable[..., Any]) -> Callable[..., Any]:
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                totals[name] += time.perf_counter() - t0
+        return timed
+
+    for name in names:
+        setattr(obj, name, wrap(name, getattr(obj, name)))
+    try:
+        yield
+    finally:
+        for name in names:
+            delattr(obj, name)
+
+
+def _rollout(trainer: StageTrainer, obs: Any, totals: dict[str, float]) -> Any:
+    """One rollout as ``StageTrainer`` collects it, with the policy's and the env's parts timed."""
+    alg, vec_env = trainer.runner.alg, trainer.vec_env
+    with timed_methods(alg, ("act", "process_env_step", "compute_returns"), totals), \
+            timed_methods(trainer.env, ENV_HOOKS, totals), torch.inference_mode():
+        for _ in range(trainer.runner.cfg["num_steps_per_env"]):
+            obs, rewards, dones, extras = vec_env.step(alg.act(obs))
+            alg.process_env_step(obs, rewards, dones, extras)
+        alg.compute_returns(obs)
+    return obs
+
+
+def _update_parts(trace: torch.profiler.profile) -> dict[str, float]:
+    """Seconds of the update's top-level profiler events by part."""
+    parts: dict[str, float] = defaultdict(float)
+    for ev in trace.events():
+        if ev.cpu_parent is not None:
+            continue
+        name = ev.name
+        if name.startswith("autograd::engine"):
+            part = "backward"
+        elif name.startswith("Optimizer.step"):
+            part = "optimizer"
+        elif name.startswith("Optimizer.zero_grad"):
+            part = "zero_grad"
+        elif name in ("clip_grad_norm", "update_normalization"):
+            part = name
+        else:
+            part = "forward"
+        parts[part] += ev.cpu_time_total * 1e-6
+    return dict(parts)
+
+
+def _traced_update(alg: Any) -> torch.profiler.profile:
+    """rsl-rl's update under the profiler, with gradient clipping and the normaliser labelled."""
+    record = torch.profiler.record_function
+    clip, actor_norm, critic_norm = nn.utils.clip_grad_norm_, alg.actor.update_normalization, \
+        alg.critic.update_normalization
+
+    def labelled(label: str, fn: Callable[..., Any]) -> Callable[..., Any]:
+        def call(*args: Any, **kwargs: Any) -> Any:
+            with record(label):
+                return fn(*args, **kwargs)
+        return call
+
+    nn.utils.clip_grad_norm_ = labelled("clip_grad_norm", clip)
+    alg.actor.update_normalization = labelled("update_normalization", actor_norm)
+    alg.critic.update_normalization = labelled("update_normalization", critic_norm)
+    try:
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as trace:
+            alg.update()
+    finally:
+        nn.utils.clip_grad_norm_ = clip
+        del alg.actor.update_normalization, alg.critic.update_normalization
+    return trace
+
+
+def profile_iteration(track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, stage: StageSpec, *,
+                      iterations: int = 3, device: str = "cpu", seed: int = 0) -> dict[str, Any]:
+    """Profile ``iterations`` PPO iterations of ``stage`` after one warm-up iteration (times are per iteration)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        trainer = StageTrainer(track, airframe, sim, stage, Path(tmp), device=device, seed=seed, progress=False,
+                               selector=lambda trainer, it: {})
+        alg = trainer.runner.alg
+        alg.train_mode()
+        obs = trainer.vec_env.get_observations().to(device)
+        obs = _rollout(trainer, obs, defaultdict(float))
+        alg.update()
+        rollout: dict[str, float] = defaultdict(float)
+        rollout_s = update_s = update_cpu_s = 0.0
+        for _ in range(iterations):
+            t0 = time.perf_counter()
+            obs = _rollout(trainer, obs, rollout)
+            rollout_s += time.perf_counter() - t0
+            t0, c0 = time.perf_counter(), time.process_time()
+            alg.update()
+            update_s, update_cpu_s = update_s + time.perf_counter() - t0, update_cpu_s + time.process_time() - c0
+        obs = _rollout(trainer, obs, defaultdict(float))
+        parts = _update_parts(_traced_update(alg))
+    ppo, samples = stage.ppo, stage.ppo.num_steps_per_env * trainer.env.num_envs
+    layers, first = linear_layers(alg.actor, alg.critic), _first_layers(alg.actor, alg.critic)
+    mini_batch, passes = samples // ppo.num_mini_batches, ppo.num_mini_batches * ppo.num_learning_epochs
+    mm_s, mm_cpu_s = (t * passes for t in matmul_seconds(layers, first, mini_batch))
+    flops = update_flops_per_sample(layers, first) * samples * ppo.num_learning_epochs
+    update_s, update_cpu_s = update_s / iterations, update_cpu_s / iterations
+    traced = sum(parts.values())
+    return {
+        "stage": stage.name, "device": device, "torch_threads": torch.get_num_threads(), "worlds": trainer.env.num_envs,
+        "obs_dim": trainer.env.obs_dim, "samples_per_iteration": samples, "mini_batch": mini_batch,
+        "epochs": ppo.num_learning_epochs, "layers": layers, "update_flops": flops,
+        "rollout_s": rollout_s / iterations, "rollout_parts_s": {k: v / iterations for k, v in rollout.items()},
+        "update_s": update_s, "update_cpu_s": update_cpu_s,
+        "update_parts_share": {k: v / traced for k, v in parts.items()},
+        "update_samples_per_s": samples / update_s, "update_samples_per_cpu_s": samples / update_cpu_s,
+        "matmul_s": mm_s, "matmul_cpu_s": mm_cpu_s, "matmul_gflops": flops / mm_s * 1e-9,
+        "matmul_limit_samples_per_s": samples / mm_s,
+        "update_over_matmul_limit": update_s / mm_s, "update_over_matmul_limit_cpu": update_cpu_s / mm_cpu_s,
+    }

@@ -1,0 +1,60 @@
+"""The PPO profile: FLOP counts on a hand-made network and the plumbing of one profiled iteration (its timings are
+reported by `spiral bench ppo`, never asserted here)."""
+
+from __future__ import annotations
+
+import pytest
+from torch import nn
+
+from spiral.config import AIRFRAMES, SimCfg, StageSpec
+from spiral.train.profile import (
+    ENV_HOOKS,
+    linear_layers,
+    matmul_seconds,
+    profile_iteration,
+    timed_methods,
+    update_flops_per_sample,
+)
+
+
+def test_update_flops_count_forward_weight_and_input_gradients_but_no_input_gradient_of_a_first_layer():
+    """3→4→2 actor and 3→1 critic: 2·12·2 + 2·8·3 + 2·3·2 = 108 FLOPs per sample and epoch."""
+    actor = nn.Sequential(nn.Linear(3, 4), nn.ELU(), nn.Linear(4, 2))
+    critic = nn.Sequential(nn.Linear(3, 1))
+    layers = linear_layers(actor, critic)
+    assert layers == [(3, 4), (4, 2), (3, 1)]
+    assert update_flops_per_sample(layers, {0, 2}) == 48 + 48 + 12
+    wall, cpu = matmul_seconds(layers, {0, 2}, 16, repeats=2)
+    assert wall > 0 and cpu >= 0
+
+
+def test_profiled_iteration_splits_rollout_by_hook_and_update_by_part_and_unwraps_the_env(line2):
+    """Every env hook and policy call is timed, the update's parts add up to the whole, clipping is unpatched."""
+    stage = StageSpec.model_validate({
+        "name": "tiny", "worlds": 8, "iterations": 4, "env": {"obs": {"history_len": 1, "gate_normals": True}},
+        "ppo": {"num_steps_per_env": 4, "actor_hidden_dims": [16], "critic_hidden_dims": [16]},
+        "selection": {"races": 2}})
+    r = profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), stage, iterations=1)
+    assert set(r["rollout_parts_s"]) == {*ENV_HOOKS, "act", "process_env_step", "compute_returns"}
+    assert sum(r["rollout_parts_s"].values()) <= r["rollout_s"]
+    parts = set(r["update_parts_share"])
+    assert {"forward", "backward", "optimizer", "clip_grad_norm", "update_normalization"} <= parts
+    assert sum(r["update_parts_share"].values()) == pytest.approx(1.0)
+    assert r["samples_per_iteration"] == 32 and r["mini_batch"] == 32 // stage.ppo.num_mini_batches
+    assert r["layers"] == [(r["obs_dim"], 16), (16, 4), (r["obs_dim"], 16), (16, 1)]
+    assert r["update_samples_per_s"] == pytest.approx(32 / r["update_s"])
+    assert r["update_over_matmul_limit"] == pytest.approx(r["update_s"] / r["matmul_s"])
+    assert nn.utils.clip_grad_norm_.__name__ == "clip_grad_norm_"
+
+
+def test_timed_methods_add_up_calls_and_leave_the_object_as_it_was():
+    """Two calls are both counted, results pass through, and the class's method is back afterwards."""
+    class Thing:
+        def double(self, x):
+            return 2 * x
+
+    thing, totals = Thing(), {"double": 0.0}
+    with timed_methods(thing, ("double",), totals):
+        assert thing.double(2) == 4 and thing.double(3) == 6
+        assert "double" in vars(thing)
+    assert totals["double"] > 0 and "double" not in vars(thing) and thing.double(1) == 2
