@@ -3,6 +3,12 @@ reported by `spiral bench ppo`, never asserted here)."""
 
 from __future__ import annotations
 
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 from torch import nn
 
@@ -58,3 +64,31 @@ def test_timed_methods_add_up_calls_and_leave_the_object_as_it_was():
         assert thing.double(2) == 4 and thing.double(3) == 6
         assert "double" in vars(thing)
     assert totals["double"] > 0 and "double" not in vars(thing) and thing.double(1) == 2
+
+
+def _time_to_solo():
+    root = Path(__file__).resolve().parents[2]
+    spec = importlib.util.spec_from_file_location("time_to_solo", root / "benchmarks" / "time_to_solo.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_time_to_solo_takes_the_first_evaluation_that_meets_both_success_and_lap():
+    """A fast but unsafe evaluation and a safe but slow one do not count; the first meeting both does."""
+    rows = [{"iteration": 0}, {"iteration": 19, "eval/success": 1.0, "eval/lap_time": 6.0},
+            {"iteration": 39, "eval/success": 0.9, "eval/lap_time": 4.0},
+            {"iteration": 59, "eval/success": 0.97, "eval/lap_time": 5.2},
+            {"iteration": 79, "eval/success": 1.0, "eval/lap_time": 4.8}]
+    assert _time_to_solo().first_reaching(rows, 0.95, 5.5)["iteration"] == 59
+    assert _time_to_solo().first_reaching(rows[:3], 0.95, 5.5) is None
+
+
+def test_time_to_solo_script_runs_the_smoke_pipeline(tmp_path):
+    """Train the smoke pipeline's solo stage for one seed and write its row."""
+    root = Path(__file__).resolve().parents[2]
+    out = tmp_path / "tts.json"
+    subprocess.run([sys.executable, str(root / "benchmarks" / "time_to_solo.py"), "pipelines/smoke.yaml",
+                    "--seeds", "3", "--json", str(out)], check=True, capture_output=True, text=True, cwd=root)
+    (row,) = json.loads(out.read_text())["results"]
+    assert row["seed"] == 3 and row["iterations"] == 2 and row["stage_wall_s"] > 0
