@@ -362,7 +362,6 @@ def bench_train(
     _write_json(json_out, result)
 
 
-
 @bench_app.command("ppo")
 @handles_errors
 def bench_ppo(
@@ -395,6 +394,7 @@ def bench_ppo(
                f" samples/s at {r['matmul_gflops']:.1f} GFLOP/s; update / limit {r['update_over_matmul_limit']:.2f}"
                f" (CPU time {r['update_over_matmul_limit_cpu']:.2f})")
     _write_json(json_out, r)
+
 
 def main() -> None:
     """Console-script entry point."""

@@ -94,3 +94,17 @@ def test_track_info_lists_every_gate_of_circuit6():
     assert "6 gates, centreline 14.48 m" in result.stdout
     gate_lines = [line for line in result.stdout.splitlines() if line.startswith("  gate ")]
     assert len(gate_lines) == 6 and all("passing [" in line for line in gate_lines)
+
+
+def test_bench_ppo_profiles_a_smoke_stage_and_names_an_unknown_stage(tmp_path):
+    """Print the rollout and update split and write the JSON; an unknown stage is refused with the file's name."""
+    out = tmp_path / "ppo.json"
+    smoke = str(ROOT / "pipelines" / "smoke.yaml")
+    result = runner.invoke(app, ["bench", "ppo", smoke, "--stage", "solo", "--worlds", "4", "--iterations", "1",
+                                 "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "samples per iteration" in result.output and "matmul limit" in result.output
+    data = json.loads(out.read_text())
+    assert data["worlds"] == 4 and data["samples_per_iteration"] == 4 * 8
+    bad = runner.invoke(app, ["bench", "ppo", smoke, "--stage", "nope"])
+    assert bad.exit_code != 0 and "no stage named 'nope'" in bad.output
