@@ -380,7 +380,8 @@ def bench_ppo(
     spec, track = load_pipeline(pipeline)
     found = [s for s in spec.stages if s.name == stage]
     if not found:
-        raise typer.BadParameter(f"{pipeline}: no stage named {stage!r}", param_hint="--stage")
+        raise ValueError(f"--stage: {pipeline} has no stage named {stage!r} (stages: "
+                         f"{', '.join(s.name for s in spec.stages)})")
     spec_stage = found[0] if worlds is None else found[0].model_copy(update={"worlds": worlds})
     r = profile_iteration(track, resolve_airframe(spec.airframe, source=str(pipeline)), spec.sim, spec_stage,
                           iterations=iterations, device=device, seed=spec.seed)

@@ -107,4 +107,4 @@ def test_bench_ppo_profiles_a_smoke_stage_and_names_an_unknown_stage(tmp_path):
     data = json.loads(out.read_text())
     assert data["worlds"] == 4 and data["samples_per_iteration"] == 4 * 8
     bad = runner.invoke(app, ["bench", "ppo", smoke, "--stage", "nope"])
-    assert bad.exit_code != 0 and "no stage named 'nope'" in bad.output
+    assert bad.exit_code == 1 and "Error: --stage:" in bad.output and "no stage named 'nope'" in bad.output
