@@ -54,14 +54,16 @@ def update_flops_per_sample(layers: list[tuple[int, int]], first: set[int]) -> i
     return sum(2 * n_in * n_out * (2 if i in first else 3) for i, (n_in, n_out) in enumerate(layers))
 
 
-def matmul_seconds(layers: list[tuple[int, int]], first: set[int], batch: int, *,
-                   repeats: int = 20) -> tuple[float, float]:
+def matmul_seconds(layers: list[tuple[int, int]], first: set[int], batch: int, *, repeats: int = 20,
+                   device: str = "cpu") -> tuple[float, float]:
     """Wall and processor seconds (best of ``repeats`` each) one mini-batch of ``batch`` samples spends in plain
-    matrix products of ``layers``: x·Wᵀ forward, gᵀ·x for the weights and g·W for the input where it is needed."""
+    matrix products of ``layers`` on ``device``: x·Wᵀ forward, gᵀ·x for the weights and g·W for the input where it
+    is needed."""
     mats = []
     for i, (n_in, n_out) in enumerate(layers):
-        x, w, g = torch.randn(batch, n_in), torch.randn(n_out, n_in), torch.randn(batch, n_out)
+        x, w, g = (torch.randn(*shape, device=device) for shape in ((batch, n_in), (n_out, n_in), (batch, n_out)))
         mats.append((x, w, g, i not in first))
+    sync = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
 
     def once() -> None:
         for x, w, g, grad_input in mats:
@@ -69,6 +71,7 @@ def matmul_seconds(layers: list[tuple[int, int]], first: set[int], batch: int, *
             torch.mm(g.t(), x)
             if grad_input:
                 torch.mm(g, w)
+        sync()
 
     once()
     wall = cpu = float("inf")
@@ -182,7 +185,7 @@ def profile_iteration(track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, stag
     ppo, samples = stage.ppo, stage.ppo.num_steps_per_env * trainer.env.num_envs
     layers, first = linear_layers(alg.actor, alg.critic), _first_layers(alg.actor, alg.critic)
     mini_batch, passes = samples // ppo.num_mini_batches, ppo.num_mini_batches * ppo.num_learning_epochs
-    mm_s, mm_cpu_s = (t * passes for t in matmul_seconds(layers, first, mini_batch))
+    mm_s, mm_cpu_s = (t * passes for t in matmul_seconds(layers, first, mini_batch, device=device))
     flops = update_flops_per_sample(layers, first) * samples * ppo.num_learning_epochs
     update_s, update_cpu_s = update_s / iterations, update_cpu_s / iterations
     traced = sum(parts.values())
