@@ -104,15 +104,10 @@ def timed_methods(obj: Any, names: tuple[str, ...], totals: dict[str, float]) ->
 
 
 def _rollout(trainer: StageTrainer, obs: Any, totals: dict[str, float]) -> Any:
-    """One rollout as ``StageTrainer`` collects it, with the policy's and the env's parts timed."""
-    alg, vec_env = trainer.runner.alg, trainer.vec_env
-    with timed_methods(alg, ("act", "process_env_step", "compute_returns"), totals), \
-            timed_methods(trainer.env, ENV_HOOKS, totals), torch.inference_mode():
-        for _ in range(trainer.runner.cfg["num_steps_per_env"]):
-            obs, rewards, dones, extras = vec_env.step(alg.act(obs))
-            alg.process_env_step(obs, rewards, dones, extras)
-        alg.compute_returns(obs)
-    return obs
+    """One rollout of :meth:`StageTrainer.collect`, with the policy's and the env's parts timed."""
+    with timed_methods(trainer.runner.alg, ("act", "process_env_step", "compute_returns"), totals), \
+            timed_methods(trainer.env, ENV_HOOKS, totals):
+        return trainer.collect(obs)[0]
 
 
 def _update_parts(trace: torch.profiler.profile) -> dict[str, float]:

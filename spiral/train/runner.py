@@ -203,7 +203,7 @@ class StageTrainer:
             for it in range(self.start_iteration, total):
                 t0 = time.perf_counter()
                 self.env.set_training_progress(it / total)
-                obs, reward_sum = self._collect(obs)  # rollout
+                obs, reward_sum = self.collect(obs)  # rollout
                 t_collect = time.perf_counter() - t0
                 losses = alg.update()  # PPO update
                 self.selection.update_average()
@@ -228,7 +228,7 @@ class StageTrainer:
         return TrainResult(self.run_dir / "best.pt", last_path, self.best, total, time.perf_counter() - t_start,
                            env_steps, history)
 
-    def _collect(self, obs: TensorDict) -> tuple[TensorDict, torch.Tensor]:
+    def collect(self, obs: TensorDict) -> tuple[TensorDict, torch.Tensor]:
         """One rollout of ``num_steps_per_env`` steps into PPO's storage, and its returns; the last observations
         and the rollout's reward sum."""
         alg, env = self.runner.alg, self.vec_env
