@@ -95,13 +95,13 @@ def test_players_on_a_collision_course_keep_the_separation(collision_course):
     assert np.abs(crossing(planner, 0, 0)).max() < 0.3 and np.abs(crossing(planner, 1, 0)).max() < 0.3
 
 
-def test_duals_are_non_negative_and_zero_on_slack_rows():
-    """Price the blocking half-plane ahead (μ > 0 where it is tight) and give zero to slack rows and a far one."""
+def blocked_ahead(*, refine: bool = False) -> tuple[BestResponseQP, RowData]:
+    """A 6-node best response racing along +x towards a player 0.5 m ahead (another one far behind)."""
     n = 6
     limits = PlanLimits(thrust=20.0, tan_tilt=1.0, floor=3.0, gravity=9.81, drag=np.zeros(3), kp=np.full(3, 8.0),
                         kd=np.full(3, 4.0), target_lo=np.full(3, -2.0), target_hi=np.full(3, 2.0), jerk=60.0)
     qp = BestResponseQP(steps=n, others=2, dt=0.15, limits=limits, smooth=1e-3, lo=np.full(3, -10.0),
-                        hi=np.full(3, 10.0))
+                        hi=np.full(3, 10.0), refine=refine)
     q = np.zeros((n, 3))
     q[-1, 0] = -1.0  # progress along +x at the horizon
     coll_a = np.zeros((n, 2, 3))
@@ -110,6 +110,13 @@ def test_duals_are_non_negative_and_zero_on_slack_rows():
     coll_b = np.stack([np.full(n, 0.3), np.full(n, 4.8)], axis=1)
     rows = RowData(p0=np.array([0.0, 0.0, 1.0]), v0=np.array([1.0, 0.0, 0.0]), q=q, gate_a=np.zeros((n, 4, 3)),
                    gate_b=np.full((n, 4), np.inf), coll_a=coll_a, coll_b=coll_b)
+    return qp, rows
+
+
+def test_duals_are_non_negative_and_zero_on_slack_rows():
+    """Price the blocking half-plane ahead (μ > 0 where it is tight) and give zero to slack rows and a far one."""
+    qp, rows = blocked_ahead()
+    coll_a, coll_b = rows.coll_a, rows.coll_b
     sol = qp.solve(rows)
     assert not sol.soft
     slack = coll_b - np.einsum("koc,kc->ko", coll_a, sol.plan)
@@ -119,6 +126,14 @@ def test_duals_are_non_negative_and_zero_on_slack_rows():
     assert np.all(sol.coll_dual[slack[:, 0] > 1e-3, 0] < 1e-6)
     assert sol.coll_dual[-1, 0] == pytest.approx(1.0, abs=0.02)  # it absorbs the progress weight
     assert np.abs(sol.coll_dual * slack).max() < 1e-6
+
+
+def test_iterative_refinement_moves_the_plan_and_its_duals_at_solver_tolerance_only():
+    """The solver setting ``solver_refine`` trades time for digits far below what the planner uses."""
+    plain, refined = (qp.solve(rows) for qp, rows in (blocked_ahead(), blocked_ahead(refine=True)))
+    assert not plain.soft and not refined.soft
+    assert np.abs(plain.plan - refined.plan).max() < 1e-5  # metres
+    assert np.abs(plain.coll_dual - refined.coll_dual).max() < 1e-4
 
 
 def test_game_duals_vanish_when_players_are_far_apart(collision_course):
