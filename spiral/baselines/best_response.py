@@ -24,10 +24,12 @@ The objective is ``½xᵀPx + qᵀx``: P is the smoothness term ``smooth·Σ‖A
 on the waypoints supplied per solve (progress and sensitivity terms).
 
 Fallback: when the hard problem is not solved (infeasible, or the solver stops early), the same problem is solved
-with a non-negative slack on every linear row (arena, gates, collisions, floor, reach) and on the jerk bounds, each
-penalised linearly by ``soft_penalty`` times a weight per kind (an exact penalty: where a feasible point exists the
-soft problem returns it). The thrust and tilt cones stay hard; coasting (thrust = weight, drag slowing the drone)
-satisfies them, so the fallback always has a solution.
+with a non-negative slack on the geometry rows (gates, frames, collisions, guards: the rows laid out from the
+previous iterate and the other drones, which is where the hard problem turns infeasible), each penalised linearly by
+``soft_penalty`` times a weight per kind (an exact penalty: where a feasible point exists the soft problem returns
+it). When that is not solved either, every linear row (arena, floor, reach besides) and the jerk bounds get a slack
+too. The thrust and tilt cones stay hard; coasting (thrust = weight, drag slowing the drone) satisfies them, so the
+last fallback always has a solution.
 """
 
 from __future__ import annotations
@@ -300,27 +302,31 @@ class BestResponseQP:
         iters = int(sol.iterations)
         if str(sol.status) in _SOLVED:
             return self._solution(sol.x, sol.z, c_act, c_rows, str(sol.status), soft=False, iterations=iters)
-        soft = self._solve_soft(q, trip, b, n_eq, m)
+        soft = self._solve_soft(q, trip, b, n_eq, m, np.arange(n_box, n_box + geo.count), jerk=False)
+        iters += int(soft.iterations)
+        if str(soft.status) not in _SOLVED:  # infeasible in the flight stack's rows too: every row gets a slack
+            soft = self._solve_soft(q, trip, b, n_eq, m, np.arange(m), jerk=True)
+            iters += int(soft.iterations)
         x = np.asarray(soft.x)[: self.n]
         if str(soft.status) not in _SOLVED or not np.all(np.isfinite(x)):
             x = self._coast(d)  # never hand NaN to the controller
         return self._solution(x, np.nan_to_num(np.asarray(soft.z)), c_act, c_rows, str(soft.status), soft=True,
-                              iterations=iters + int(soft.iterations))
+                              iterations=iters)
 
-    def _solve_soft(self, q: np.ndarray, trip: list[np.ndarray], b: np.ndarray, n_eq: int, m: int):
-        """Slack σ ≥ 0 on the m non-negative rows (a·x − σ ≤ b) and on the jerk cones' bounds, cost
-        soft_penalty·Σ weight·σ (an exact penalty)."""
+    def _solve_soft(self, q: np.ndarray, trip: list[np.ndarray], b: np.ndarray, n_eq: int, m: int,
+                    lin: np.ndarray, *, jerk: bool):
+        """Slack σ ≥ 0 on the non-negative rows ``lin`` (a·x − σ ≤ b; indices within the m rows), with ``jerk``
+        on the jerk cones' bounds too, cost soft_penalty·Σ weight·σ (an exact penalty)."""
         n, N, rows_hard = self.n, self.N, len(b)
-        lin = n_eq + np.arange(m)
-        heads = n_eq + m + 7 * N + 4 * np.arange(N)
-        ns = m + N
+        heads = n_eq + m + 7 * N + 4 * np.arange(N) if jerk else np.zeros(0, int)
+        weight = np.concatenate([self._weight[lin], np.full(len(heads), _SLACK_WEIGHT["dynamics"])])
+        ns = len(weight)
         slack = n + np.arange(ns)
-        r = np.concatenate([trip[0], lin, heads, rows_hard + np.arange(ns)])
+        r = np.concatenate([trip[0], n_eq + lin, heads, rows_hard + np.arange(ns)])
         c = np.concatenate([trip[1], slack, slack])
         v = np.concatenate([trip[2], -np.ones(2 * ns)])
         A = sp.csc_matrix((v, (r, c)), shape=(rows_hard + ns, n + ns))
         P = sp.block_diag([self.P, sp.csc_matrix((ns, ns))], format="csc")
-        weight = np.concatenate([self._weight, np.full(N, _SLACK_WEIGHT["dynamics"])])
         q_soft = np.concatenate([q, self.soft_penalty * weight])
         cones = [clarabel.ZeroConeT(n_eq), clarabel.NonnegativeConeT(m), *self.cones_soc,
                  clarabel.NonnegativeConeT(ns)]

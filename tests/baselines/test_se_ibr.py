@@ -175,6 +175,33 @@ def test_sensitivity_term_is_alpha_times_the_other_players_multipliers_along_the
     np.testing.assert_allclose(with_term.q - without.q, -2.5 * mu[:, None] * beta, atol=1e-12)
 
 
+def test_fallback_relaxes_only_the_geometry_rows_when_that_suffices():
+    """A collision row the drone cannot meet at once (x_1 ≤ −1 m from x_0 = 0 at 1 m/s): the fallback crosses it and
+    the flight stack's rows (reach, jerk) still hold exactly."""
+    qp, rows = blocked_ahead()
+    rows.coll_b[:2, 0] = -1.0
+    sol = qp.solve(rows)
+    assert sol.soft and sol.status == "Solved"
+    assert sol.plan[0, 0] > -1.0  # the first collision row is crossed, not met
+    lim, dt = qp.limits, qp.dt
+    vel = np.diff(np.concatenate([rows.p0[None], sol.plan]), axis=0) / dt  # mean velocity per interval
+    offset = (sol.acc[1:] + lim.kd * vel[1:]) / lim.kp  # the PID target offset, roughly
+    assert np.all(np.abs(offset) <= lim.target_hi + 0.5)
+    jerk = np.linalg.norm(np.diff(np.concatenate([np.zeros((1, 3)), sol.acc]), axis=0), axis=1)
+    assert np.all(jerk <= lim.jerk * dt + 1e-5)
+
+
+def test_fallback_relaxes_the_flight_stack_rows_when_geometry_alone_cannot():
+    """A commanded acceleration beyond the thrust cone (a0 = 30 m/s², thrust ≤ 20): the jerk bound cannot be met
+    from it, so the last fallback (slack on every row) returns a finite plan within the thrust cone."""
+    qp, rows = blocked_ahead()
+    rows.a0 = np.array([30.0, 0.0, 0.0])
+    sol = qp.solve(rows)
+    assert sol.soft and sol.status == "Solved"
+    thrust = sol.acc + np.array([0.0, 0.0, qp.limits.gravity])
+    assert np.all(np.isfinite(sol.plan)) and np.all(np.linalg.norm(thrust, axis=1) <= qp.limits.thrust + 1e-5)
+
+
 def test_infeasible_start_falls_back_to_soft_constraints(line2):
     """Plan two overlapping drones with the soft fallback: finite plans that separate them, no exception."""
     env = make_env(line2, drones=2)
