@@ -294,18 +294,21 @@ class BestResponseQP:
         q = np.zeros(self.n)
         q[: 3 * self.N] = d.q.ravel()
         w = _SLACK_WEIGHT
-        self._weight = np.concatenate([np.full(n_box + n_gate, w["geometry"]), np.full(n_sep, w["separation"]),
-                                       np.full(self._dyn.count, w["dynamics"])])
+        weight = np.concatenate([np.full(n_box + n_gate, w["geometry"]), np.full(n_sep, w["separation"]),
+                                 np.full(self._dyn.count, w["dynamics"])])  # slack penalty per non-negative row
         c_rows = n_eq + n_box + n_gate + np.arange(len(c_act))
         cones = [clarabel.ZeroConeT(n_eq), clarabel.NonnegativeConeT(m), *self.cones_soc]
         sol = clarabel.DefaultSolver(self.P, q, A, b, cones, self.settings).solve()
         iters = int(sol.iterations)
         if str(sol.status) in _SOLVED:
             return self._solution(sol.x, sol.z, c_act, c_rows, str(sol.status), soft=False, iterations=iters)
-        soft = self._solve_soft(q, trip, b, n_eq, m, np.arange(n_box, n_box + geo.count), jerk=False)
-        iters += int(soft.iterations)
+        soft = sol  # without geometry rows the first fallback is the hard problem again: straight to the last
+        if geo.count:
+            geometry = np.arange(n_box, n_box + geo.count)
+            soft = self._solve_soft(q, trip, b, n_eq, m, geometry, weight[geometry], jerk=False)
+            iters += int(soft.iterations)
         if str(soft.status) not in _SOLVED:  # infeasible in the flight stack's rows too: every row gets a slack
-            soft = self._solve_soft(q, trip, b, n_eq, m, np.arange(m), jerk=True)
+            soft = self._solve_soft(q, trip, b, n_eq, m, np.arange(m), weight, jerk=True)
             iters += int(soft.iterations)
         x = np.asarray(soft.x)[: self.n]
         if str(soft.status) not in _SOLVED or not np.all(np.isfinite(x)):
@@ -314,12 +317,13 @@ class BestResponseQP:
                               iterations=iters)
 
     def _solve_soft(self, q: np.ndarray, trip: list[np.ndarray], b: np.ndarray, n_eq: int, m: int,
-                    lin: np.ndarray, *, jerk: bool):
-        """Slack σ ≥ 0 on the non-negative rows ``lin`` (a·x − σ ≤ b; indices within the m rows), with ``jerk``
-        on the jerk cones' bounds too, cost soft_penalty·Σ weight·σ (an exact penalty)."""
+                    lin: np.ndarray, lin_weight: np.ndarray, *, jerk: bool):
+        """Slack σ ≥ 0 on the non-negative rows ``lin`` (a·x − σ ≤ b; indices within the m rows, penalty weights
+        ``lin_weight``), with ``jerk`` on the jerk cones' bounds too, cost soft_penalty·Σ weight·σ (an exact
+        penalty)."""
         n, N, rows_hard = self.n, self.N, len(b)
         heads = n_eq + m + 7 * N + 4 * np.arange(N) if jerk else np.zeros(0, int)
-        weight = np.concatenate([self._weight[lin], np.full(len(heads), _SLACK_WEIGHT["dynamics"])])
+        weight = np.concatenate([lin_weight, np.full(len(heads), _SLACK_WEIGHT["dynamics"])])
         ns = len(weight)
         slack = n + np.arange(ns)
         r = np.concatenate([trip[0], n_eq + lin, heads, rows_hard + np.arange(ns)])
