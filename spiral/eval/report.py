@@ -23,14 +23,14 @@ from spiral.config.track import TrackSpec
 from spiral.eval.bound import LapBound, lap_time_bound
 from spiral.eval.evaluate import SE_IBR, check_sides
 from spiral.eval.plots import TradeoffPoint, plot_learning_curves, plot_speed_vs_reliability, plot_track
-from spiral.eval.robustness import Robustness, filter_rows, measure_robustness, robustness_markdown
+from spiral.eval.robustness import Robustness, filter_rows, race_learned, race_se_ibr, robustness_markdown
 from spiral.eval.runs import (
     MODE_OF,
     Evaluations,
     RowResult,
     StageRun,
+    crosses_in_workers,
     find_stages,
-    prefetch_crosses,
     read_train_log,
     run_protocol,
     run_setup,
@@ -86,7 +86,8 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
             opt-in deployment layer, not part of the methods); None: no such rows.
         robustness: Add the sections of :mod:`spiral.eval.robustness` (final policy in every format, racing
             strangers, downwash), raced from the held-out placements when given, else the protocol's.
-        jobs: Processes that race SE-IBR's head-to-head pairings side by side (with ``se_ibr``).
+        jobs: Processes that race SE-IBR's head-to-head pairings side by side (with ``se_ibr``), while this one
+            races the learned policies.
         log: Progress messages.
 
     Returns:
@@ -104,14 +105,18 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
     ev = Evaluations(run_root, track, out_dir, stages, runs=runs, seed=seed, device=device, se_ibr=se_ibr,
                       airframe=airframe, sim=sim, log=log, sides=sides)
     table = {s: [ev.self_match(s, key) for key in APPROACHES] for s in SCENARIOS}
-    matrices = _cross_matrices(ev, table, se_ibr=se_ibr, jobs=jobs) if cross_play else {}
     held_ev = None if holdout is None else Evaluations(
         run_root, track, out_dir, stages, runs=holdout[0], seed=holdout[1], device=device, se_ibr=False,
         airframe=airframe, sim=sim, log=log, prefix="holdout-", sides=sides)
-    held = None if held_ev is None else _held_out(held_ev)
-    filtered = filter_rows(ev, separation) if separation is not None else {}
-    rb = measure_robustness(held_ev or ev, ev, stages, se_ibr=se_ibr) if robustness else None
-    bound = _write_bound(out_dir / "bound.json", track, airframe, bound_steps)
+    planner_pairings = _se_ibr_pairings(table) if se_ibr and (cross_play or robustness) else []
+    with crosses_in_workers(ev, planner_pairings, jobs=jobs):  # the learned policies' races meanwhile, here
+        held = None if held_ev is None else _held_out(held_ev)
+        filtered = filter_rows(ev, separation) if separation is not None else {}
+        rb = race_learned(held_ev or ev, stages) if robustness else None
+        bound = _write_bound(out_dir / "bound.json", track, airframe, bound_steps)
+    matrices = {s: _cross_matrix(ev, s, table[s]) for s in SCENARIOS} if cross_play else {}
+    if rb is not None and se_ibr:
+        race_se_ibr(rb, ev)
     _write_figures(out_dir, track, stages, table, bound)
     _write_csv(out_dir / "results.csv", table, bound)
     text = _markdown(run_root, track, stages, table, matrices, bound, runs=runs, seed=seed, command=command,
@@ -120,12 +125,10 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
     return out_dir / "results.md"
 
 
-def _cross_matrices(ev: Evaluations, table: dict, *, se_ibr: bool, jobs: int) -> dict:
-    """Every scenario's cross-play matrix; the planner's pairings (minutes each) raced side by side first."""
-    if se_ibr:
-        prefetch_crosses(ev, [(s, (r.key, r.agent), ("se-ibr", SE_IBR)) for s in SCENARIOS for r in table[s]
-                              if r.key in MODE_OF and r.agent is not None], jobs=jobs)
-    return {s: _cross_matrix(ev, s, table[s]) for s in SCENARIOS}
+def _se_ibr_pairings(table: dict) -> list[tuple[str, tuple[str, str], tuple[str, str]]]:
+    """Each learned method's head-to-head pairing with SE-IBR, in every scenario (minutes of planning each)."""
+    return [(s, (r.key, r.agent), ("se-ibr", SE_IBR)) for s in SCENARIOS for r in table[s]
+            if r.key in MODE_OF and r.agent is not None]
 
 
 def _write_bound(path: Path, track: TrackSpec, airframe: AirframeCfg, steps: int) -> LapBound:

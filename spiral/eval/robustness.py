@@ -11,7 +11,7 @@ from spiral.core.scenario import SCENARIO_DRONES
 from spiral.eval.evaluate import SE_IBR, FlightOverride
 from spiral.eval.runs import MODE_OF, Evaluations, RowResult, StageRun
 
-__all__ = ["FORMATS", "Robustness", "filter_rows", "final_stages", "measure_robustness", "robustness_markdown"]
+__all__ = ["FORMATS", "Robustness", "filter_rows", "final_stages", "race_learned", "race_se_ibr", "robustness_markdown"]
 
 FORMATS = tuple(SCENARIO_DRONES)
 """Race formats a final policy is raced in: all of them."""
@@ -58,10 +58,9 @@ def filter_rows(ev: Evaluations, separation: SeparationCfg) -> dict[str, list[Ro
     return out
 
 
-def measure_robustness(ev: Evaluations, protocol: Evaluations, stages: list[StageRun], *,
-                       se_ibr: bool) -> Robustness:
-    """Race everything the extra sections need: self-matches and pairings with ``ev``'s races and seed; pairings
-    with SE-IBR (when ``se_ibr``) with ``protocol``'s, the races of the cross-play tables."""
+def race_learned(ev: Evaluations, stages: list[StageRun]) -> Robustness:
+    """The extra sections' races among learned policies, with ``ev``'s races and seed: each final policy in every
+    format, downwash, and the learned methods against each other (pairings and mixed teams)."""
     out = Robustness(runs=ev.runs, seed=ev.seed)
     finals = final_stages(stages)
     out.final_names = {key: stage.name for key, stage in finals.items()}
@@ -71,12 +70,20 @@ def measure_robustness(ev: Evaluations, protocol: Evaluations, stages: list[Stag
         agents = {key: a for key in MODE_OF if (a := ev.agent(scenario, key)) is not None}
         out.downwash[scenario] = {key: ev.flown(scenario, key, a, FlightOverride(downwash=True), "downwash")
                                   for key, a in agents.items()}
-        out.strangers[scenario] = _strangers(ev, protocol, scenario, agents, se_ibr)
+        out.strangers[scenario] = _strangers(ev, scenario, agents)
     return out
 
 
-def _strangers(ev: Evaluations, protocol: Evaluations, scenario: str, agents: dict[str, str],
-               se_ibr: bool) -> dict[str, dict[str, Any]]:
+def race_se_ibr(rb: Robustness, protocol: Evaluations) -> None:
+    """Add each learned method's pairing with SE-IBR to ``rb``'s strangers, raced with ``protocol``'s races and
+    seed (the races of the cross-play tables)."""
+    for scenario, rows in rb.strangers.items():
+        for key, row in rows.items():
+            row[f"{NAMES['se-ibr']} ({protocol.runs} races)"] = protocol.cross(
+                scenario, (key, protocol.agent(scenario, key)), ("se-ibr", SE_IBR))
+
+
+def _strangers(ev: Evaluations, scenario: str, agents: dict[str, str]) -> dict[str, dict[str, Any]]:
     """Approach -> opponent label -> metrics of the approach's drones; each pairing is raced once and read from
     both teams."""
     rows: dict[str, dict[str, Any]] = {key: {"itself": ev.self_match(scenario, key).metrics} for key in agents}
@@ -90,10 +97,6 @@ def _strangers(ev: Evaluations, protocol: Evaluations, scenario: str, agents: di
             if scenario == "2v2":
                 mixed = ev.mixed((a, agents[a]), (b, agents[b]))
                 rows[a]["mixed teams"], rows[b]["mixed teams"] = mixed[a], mixed[b]
-    if se_ibr:
-        for key in keys:
-            rows[key][f"{NAMES['se-ibr']} ({protocol.runs} races)"] = protocol.cross(
-                scenario, (key, agents[key]), ("se-ibr", SE_IBR))
     return rows
 
 

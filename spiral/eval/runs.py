@@ -9,10 +9,11 @@ checksums of the checkpoints they used, so a second report reuses them.
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import copy
 import json
 import multiprocessing
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,9 +29,9 @@ __all__ = [
     "Evaluations",
     "RowResult",
     "StageRun",
+    "crosses_in_workers",
     "find_stages",
     "load_json",
-    "prefetch_crosses",
     "read_train_log",
     "run_protocol",
     "run_setup",
@@ -215,20 +216,30 @@ class Evaluations:
         return data, path
 
 
-def prefetch_crosses(ev: Evaluations, pairings: list[tuple[str, tuple[str, str], tuple[str, str]]], *,
-                     jobs: int) -> None:
+@contextlib.contextmanager
+def crosses_in_workers(ev: Evaluations, pairings: list[tuple[str, tuple[str, str], tuple[str, str]]], *,
+                       jobs: int) -> Iterator[None]:
     """Race the head-to-head ``pairings`` (scenario, team a, team b) missing from ``ev``'s cache in up to ``jobs``
-    processes (one torch thread each), so that the report's own calls find them cached. Used for the planner's
-    pairings, which take minutes each; with ``jobs`` ≤ 1 or a single pairing nothing happens here."""
+    processes (one torch thread each) while the body of the ``with`` runs, and wait for them at its end, so that
+    the report's own calls find them cached. Used for the planner's pairings, which take minutes each: the body
+    races what needs no planner meanwhile. With ``jobs`` ≤ 1 or a single pairing nothing runs in a worker."""
     if jobs <= 1 or len(pairings) <= 1:
+        yield
         return
     quiet = copy.copy(ev)
     quiet.log = print
     context = multiprocessing.get_context("spawn")
-    with concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
+    pool = concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=context)
+    try:
+        futures = []
         for scenario, a, b in pairings:
             ev.log(f"report: running {ev.prefix}cross-{scenario}-{a[0]}-vs-{b[0]} in a worker process")
-        list(pool.map(_cross_in_worker, [(quiet, pairing) for pairing in pairings]))
+            futures.append(pool.submit(_cross_in_worker, (quiet, (scenario, a, b))))
+        yield
+        for future in futures:
+            future.result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _cross_in_worker(job: tuple[Evaluations, tuple[str, tuple[str, str], tuple[str, str]]]) -> None:

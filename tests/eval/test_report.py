@@ -5,12 +5,14 @@ from __future__ import annotations
 import csv
 import json
 import shutil
+import time
 from pathlib import Path
 
 import pytest
 
 from spiral.config import AIRFRAMES, SeparationCfg, SimCfg, TrackSpec
 from spiral.eval.report import _flight_stack, build_report, find_stages
+from spiral.eval.runs import Evaluations, crosses_in_workers, run_setup
 from tests.eval.conftest import tiny_stage
 
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -211,3 +213,40 @@ def test_report_races_se_ibr_in_both_tables_and_prints_its_planning_cost(sprint,
     cached = json.loads((tmp_path / "out" / "evals" / "self-2v2-se-ibr.json").read_text())
     cost = cached["methods"]["se-ibr"]["planning"]
     assert cost["plans"] > 0 and 0 < cost["plan_ms_median"] <= cost["plan_ms_p95"]
+
+
+def _evaluations(root: Path, track: TrackSpec, out: Path, logs: list[str]) -> Evaluations:
+    stages = find_stages(root)
+    airframe, sim = run_setup(stages)
+    return Evaluations(root, track, out, stages, runs=2, seed=0, device="cpu", se_ibr=False, airframe=airframe,
+                       sim=sim, log=logs.append)
+
+
+def test_pairings_race_in_workers_while_the_body_of_the_with_runs(sprint, tiny_checkpoint, tmp_path):
+    """The workers' pairings are cached when the ``with`` ends, and the body ran before any of them was done, so
+    the report's own races overlap the planner's."""
+    root = tmp_path / "runs" / "tiny"
+    fake_run(root, sprint, tiny_checkpoint)
+    logs: list[str] = []
+    ev = _evaluations(root, sprint, tmp_path / "out", logs)
+    ckpt = ev.agent("1v1", "spiral")
+    pairings = [("1v1", ("spiral", ckpt), ("noselfplay", ckpt)), ("2v2", ("spiral", ckpt), ("noselfplay", ckpt))]
+    with crosses_in_workers(ev, pairings, jobs=2):
+        body_started = time.time()
+        ev.self_match("1v1", "spiral")
+    cached = [tmp_path / "out" / "evals" / f"cross-{s}-spiral-vs-noselfplay.json" for s in ("1v1", "2v2")]
+    assert all(path.is_file() for path in cached)
+    assert body_started < min(path.stat().st_mtime for path in cached)
+    logs.clear()
+    assert "win_rate" in ev.cross("2v2", ("spiral", ckpt), ("noselfplay", ckpt))
+    assert not any(line.startswith("report: running") for line in logs)  # read from the workers' cache
+
+
+def test_a_pairing_that_fails_in_a_worker_fails_the_with(sprint, tiny_checkpoint, tmp_path):
+    root = tmp_path / "runs" / "tiny"
+    fake_run(root, sprint, tiny_checkpoint)
+    ev = _evaluations(root, sprint, tmp_path / "out", [])
+    missing = str(tmp_path / "absent.pt")
+    pairings = [("1v1", ("spiral", missing), ("noselfplay", missing))] * 2
+    with pytest.raises(Exception, match=r"absent\.pt"), crosses_in_workers(ev, pairings, jobs=2):
+        pass
