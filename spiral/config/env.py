@@ -123,6 +123,12 @@ class RewardCfg(StrictModel):
         "other drone (not in the paper; 0 leaves the paper's reward)",
     )
     proximity_distance: PosFloat = Field(default=0.5, description="Distance where the proximity penalty starts [m]")
+    proximity_leader: float = Field(
+        default=1.0, ge=0, le=1,
+        description="Share of the proximity penalty paid by a drone whose nearest drone is behind it (offset away from "
+        "its next gate): 1 both drones pay, 0 only the one behind, which is to make room (racing's rule for the "
+        "overtaking car)",
+    )
     intervention: NonNegFloat = Field(
         default=0.0,
         description="Weight of the per-step cost of the target shift [m] the training shield at full gain asks for "

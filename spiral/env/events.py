@@ -51,13 +51,17 @@ def gate_distance(pos: torch.Tensor, center: torch.Tensor, forward: torch.Tensor
 
 
 def nearest_distance(pos: torch.Tensor, out: torch.Tensor, *, world_count: int, drones_per_world: int
-                     ) -> torch.Tensor:
-    """Distance of every racing drone to the nearest other drone of its world still racing (else inf)."""
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Distance of every racing drone to the nearest other drone of its world still racing (else inf), and that
+    drone's position relative to it (N, 3; zero where there is none)."""
     w, d = world_count, drones_per_world
-    dist = torch.cdist(pos.view(w, d, 3), pos.view(w, d, 3))
+    p = pos.view(w, d, 3)
+    dist = torch.cdist(p, p)
     gone_w = (out != 0).view(w, d)
     gone = torch.eye(d, dtype=torch.bool, device=pos.device)[None] | gone_w[:, None, :] | gone_w[:, :, None]
-    return dist.masked_fill(gone, float("inf")).amin(dim=-1).flatten()
+    nearest, index = dist.masked_fill(gone, float("inf")).min(dim=-1)
+    rel = torch.gather(p, 1, index[..., None].expand(-1, -1, 3)) - p
+    return nearest.flatten(), torch.where(torch.isinf(nearest)[..., None], 0.0, rel).view(-1, 3)
 
 
 def race_result(finished_now: torch.Tensor, lap_time: torch.Tensor, racing: torch.Tensor, contested: torch.Tensor,

@@ -120,19 +120,21 @@ class RaceState:
     def _step_outcome(self, ev: RaceEvents) -> StepOutcome:
         """The reward terms' view of the step; frozen drones make no progress."""
         racing, zero = ev.racing, torch.zeros_like(ev.dist_before)
-        nearest = None
+        nearest = nearest_rel = None
+        to_gate = self.gate_center[self.next_gate.long()] - self.pos
         if self.cfg.reward.proximity > 0:
-            nearest = nearest_distance(self.pos, self.out, world_count=self.world_count,
-                                       drones_per_world=self.drones_per_world)
+            nearest, nearest_rel = nearest_distance(self.pos, self.out, world_count=self.world_count,
+                                                    drones_per_world=self.drones_per_world)
         return StepOutcome(
             dist_before=torch.where(racing, ev.dist_before, zero),
             dist_after=torch.where(racing, self._gate_distance(ev.gate), zero),
             gates_passed=torch.where(racing, self.step_passes, torch.zeros_like(self.step_passes)),
             crashed_now=ev.crashed_now,
             heading=heading(self.quat),
-            to_gate=self.gate_center[self.next_gate.long()] - self.pos,
+            to_gate=to_gate,
             lap_time=torch.where(ev.finished_now, self.lap_time, torch.zeros_like(self.lap_time)),
             nearest=nearest,
+            nearest_behind=None if nearest_rel is None else (nearest_rel * to_gate).sum(-1) < 0,
             race_result=ev.race_result,
             intervention=torch.where(racing, self.intervention, 0.0) if self.cfg.shield is not None else None,
         )
