@@ -109,16 +109,19 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
         run_root, track, out_dir, stages, runs=holdout[0], seed=holdout[1], device=device, se_ibr=False,
         airframe=airframe, sim=sim, log=log, prefix="holdout-", sides=sides)
     planner_pairings = _se_ibr_pairings(table) if se_ibr and (cross_play or robustness) else []
-    with crosses_in_workers(ev, planner_pairings, jobs=jobs):  # the learned policies' races meanwhile, here
+    with crosses_in_workers(ev, planner_pairings, jobs=jobs):  # everything else meanwhile, in this process
+        if cross_play:  # the matrices' pairings among learned methods, into the cache
+            for s in SCENARIOS:
+                _cross_matrix(ev, s, table[s], planner=False)
         held = None if held_ev is None else _held_out(held_ev)
         filtered = filter_rows(ev, separation) if separation is not None else {}
         rb = race_learned(held_ev or ev, stages) if robustness else None
         bound = _write_bound(out_dir / "bound.json", track, airframe, bound_steps)
+        _write_figures(out_dir, track, stages, table, bound)
+        _write_csv(out_dir / "results.csv", table, bound)
     matrices = {s: _cross_matrix(ev, s, table[s]) for s in SCENARIOS} if cross_play else {}
     if rb is not None and se_ibr:
         race_se_ibr(rb, ev)
-    _write_figures(out_dir, track, stages, table, bound)
-    _write_csv(out_dir / "results.csv", table, bound)
     text = _markdown(run_root, track, stages, table, matrices, bound, runs=runs, seed=seed, command=command,
                      held=held, sides=sides, filtered=filtered, separation=separation)
     (out_dir / "results.md").write_text(_with_robustness(text, rb, sides))
@@ -157,12 +160,14 @@ def _held_out(ev: Evaluations) -> dict[str, Any]:
     return out
 
 
-def _cross_matrix(ev: Evaluations, scenario: str, rows: list[RowResult]) -> dict[str, Any]:
+def _cross_matrix(ev: Evaluations, scenario: str, rows: list[RowResult], *, planner: bool = True) -> dict[str, Any]:
     """Win rate (and draws) of each row team against each column team; None where not run.
 
     Pairings are raced with the learned approaches as the row team and SE-IBR as the column (from both sides, the
-    planner's row is their mirror), the same races as the robustness section's."""
-    agents = [(r.key, r.agent) for r in rows if r.agent is not None and (r.key != "se-ibr" or ev.se_ibr)]
+    planner's row is their mirror), the same races as the robustness section's. ``planner`` False leaves SE-IBR
+    out (the learned methods' pairings only)."""
+    agents = [(r.key, r.agent) for r in rows
+              if r.agent is not None and (r.key != "se-ibr" or (ev.se_ibr and planner))]
     cells: dict[str, dict[str, Any]] = {}
     for ka, a in sorted(agents, key=lambda item: item[1] == SE_IBR):
         cells[ka] = {}

@@ -220,16 +220,21 @@ class Evaluations:
 def crosses_in_workers(ev: Evaluations, pairings: list[tuple[str, tuple[str, str], tuple[str, str]]], *,
                        jobs: int) -> Iterator[None]:
     """Race the head-to-head ``pairings`` (scenario, team a, team b) missing from ``ev``'s cache in up to ``jobs``
-    processes (one torch thread each) while the body of the ``with`` runs, and wait for them at its end, so that
-    the report's own calls find them cached. Used for the planner's pairings, which take minutes each: the body
-    races what needs no planner meanwhile. With ``jobs`` ≤ 1 or a single pairing nothing runs in a worker."""
+    processes (one torch thread each) while the body of the ``with`` runs (on one torch thread), and wait for them
+    at its end, so that the report's own calls find them cached. Used for the planner's pairings, which take minutes
+    each: the body races what needs no planner meanwhile. With ``jobs`` ≤ 1 or a single pairing nothing runs in a
+    worker."""
     if jobs <= 1 or len(pairings) <= 1:
         yield
         return
+    import torch
+
     quiet = copy.copy(ev)
     quiet.log = print
     context = multiprocessing.get_context("spawn")
     pool = concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=context)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the workers take the cores: this process's races must not oversubscribe them
     try:
         futures = []
         for scenario, a, b in pairings:
@@ -240,6 +245,7 @@ def crosses_in_workers(ev: Evaluations, pairings: list[tuple[str, tuple[str, str
             future.result()
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+        torch.set_num_threads(threads)
 
 
 def _cross_in_worker(job: tuple[Evaluations, tuple[str, tuple[str, str], tuple[str, str]]]) -> None:
