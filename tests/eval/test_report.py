@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 
 from spiral.config import AIRFRAMES, SeparationCfg, SimCfg, TrackSpec
 from spiral.eval.report import _flight_stack, build_report, find_stages
@@ -223,17 +224,20 @@ def _evaluations(root: Path, track: TrackSpec, out: Path, logs: list[str]) -> Ev
 
 
 def test_pairings_race_in_workers_while_the_body_of_the_with_runs(sprint, tiny_checkpoint, tmp_path):
-    """The workers' pairings are cached when the ``with`` ends, and the body ran before any of them was done, so
-    the report's own races overlap the planner's."""
+    """The workers' pairings are cached when the ``with`` ends, and the body ran (on one torch thread) before any of
+    them was done, so the report's own races overlap the planner's."""
     root = tmp_path / "runs" / "tiny"
     fake_run(root, sprint, tiny_checkpoint)
     logs: list[str] = []
     ev = _evaluations(root, sprint, tmp_path / "out", logs)
     ckpt = ev.agent("1v1", "spiral")
     pairings = [("1v1", ("spiral", ckpt), ("noselfplay", ckpt)), ("2v2", ("spiral", ckpt), ("noselfplay", ckpt))]
+    threads = torch.get_num_threads()
     with crosses_in_workers(ev, pairings, jobs=2):
         body_started = time.time()
+        assert torch.get_num_threads() == 1  # the workers have the cores
         ev.self_match("1v1", "spiral")
+    assert torch.get_num_threads() == threads
     cached = [tmp_path / "out" / "evals" / f"cross-{s}-spiral-vs-noselfplay.json" for s in ("1v1", "2v2")]
     assert all(path.is_file() for path in cached)
     assert body_started < min(path.stat().st_mtime for path in cached)
