@@ -105,20 +105,12 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
     ev = Evaluations(run_root, track, out_dir, stages, runs=runs, seed=seed, device=device, se_ibr=se_ibr,
                       airframe=airframe, sim=sim, log=log, sides=sides)
     table = {s: [ev.self_match(s, key) for key in APPROACHES] for s in SCENARIOS}
-    held_ev = None if holdout is None else Evaluations(
-        run_root, track, out_dir, stages, runs=holdout[0], seed=holdout[1], device=device, se_ibr=False,
-        airframe=airframe, sim=sim, log=log, prefix="holdout-", sides=sides)
+    held_ev = None if holdout is None else ev.held_out(*holdout)
     planner_pairings = _se_ibr_pairings(table) if se_ibr and (cross_play or robustness) else []
     with crosses_in_workers(ev, planner_pairings, jobs=jobs):  # everything else meanwhile, in this process
-        if cross_play:  # the matrices' pairings among learned methods, into the cache
-            for s in SCENARIOS:
-                _cross_matrix(ev, s, table[s], planner=False)
-        held = None if held_ev is None else _held_out(held_ev)
-        filtered = filter_rows(ev, separation) if separation is not None else {}
-        rb = race_learned(held_ev or ev, stages) if robustness else None
-        bound = _write_bound(out_dir / "bound.json", track, airframe, bound_steps)
-        _write_figures(out_dir, track, stages, table, bound)
-        _write_csv(out_dir / "results.csv", table, bound)
+        held, filtered, rb = _race_learned(ev, held_ev, table, stages, cross_play=cross_play, separation=separation,
+                                           robustness=robustness)
+        bound = _write_files(out_dir, track, airframe, stages, table, bound_steps)
     matrices = {s: _cross_matrix(ev, s, table[s]) for s in SCENARIOS} if cross_play else {}
     if rb is not None and se_ibr:
         race_se_ibr(rb, ev)
@@ -126,6 +118,28 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
                      held=held, sides=sides, filtered=filtered, separation=separation)
     (out_dir / "results.md").write_text(_with_robustness(text, rb, sides))
     return out_dir / "results.md"
+
+
+def _race_learned(ev: Evaluations, held_ev: Evaluations | None, table: dict, stages: list[StageRun], *,
+                  cross_play: bool, separation: SeparationCfg | None, robustness: bool
+                  ) -> tuple[dict[str, Any] | None, dict[str, list[RowResult]], Robustness | None]:
+    """What the report races without the planner: the cross-play pairings among learned methods (into the cache),
+    the held-out races, the filter rows and the robustness races among learned methods."""
+    if cross_play:
+        for s in SCENARIOS:
+            _cross_matrix(ev, s, table[s], planner=False)
+    held = None if held_ev is None else _held_out(held_ev)
+    filtered = filter_rows(ev, separation) if separation is not None else {}
+    return held, filtered, race_learned(held_ev or ev, stages) if robustness else None
+
+
+def _write_files(out_dir: Path, track: TrackSpec, airframe: AirframeCfg, stages: list[StageRun], table: dict,
+                 bound_steps: int) -> LapBound:
+    """``bound.json``, the figures and ``results.csv``; the lap-time reference they use."""
+    bound = _write_bound(out_dir / "bound.json", track, airframe, bound_steps)
+    _write_figures(out_dir, track, stages, table, bound)
+    _write_csv(out_dir / "results.csv", table, bound)
+    return bound
 
 
 def _se_ibr_pairings(table: dict) -> list[tuple[str, tuple[str, str], tuple[str, str]]]:

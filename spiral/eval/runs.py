@@ -116,6 +116,13 @@ class Evaluations:
         self.stages, self.runs, self.seed, self.device = stages, runs, seed, device
         self.se_ibr, self.airframe, self.sim, self.log = se_ibr, airframe, sim, log
 
+    def held_out(self, runs: int, seed: int) -> Evaluations:
+        """The same evaluations from other placements (``runs`` races of ``seed``), cached under ``holdout-`` names;
+        learned policies only."""
+        other = copy.copy(self)
+        other.runs, other.seed, other.prefix, other.se_ibr = runs, seed, "holdout-", False
+        return other
+
     def stage_for(self, scenario: str, key: str) -> StageRun | None:
         """The stage of approach ``key`` in ``scenario``; one named like the scenario wins a tie."""
         found = [s for s in self.stages if s.scenario == scenario and s.mode == MODE_OF[key]]
