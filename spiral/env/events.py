@@ -8,8 +8,9 @@ from dataclasses import dataclass
 import torch
 
 from spiral.core.outcome import race_winner
+from spiral.env.observations import nearest_others
 
-__all__ = ["RaceEvents", "gate_distance", "heading", "nearest_distance", "race_result"]
+__all__ = ["RaceEvents", "gate_distance", "heading", "nearest_distance", "nearest_is_behind", "race_result"]
 
 
 @dataclass(frozen=True)
@@ -51,17 +52,24 @@ def gate_distance(pos: torch.Tensor, center: torch.Tensor, forward: torch.Tensor
 
 
 def nearest_distance(pos: torch.Tensor, out: torch.Tensor, *, world_count: int, drones_per_world: int
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Distance of every racing drone to the nearest other drone of its world still racing (else inf), and that
-    drone's position relative to it (N, 3; zero where there is none)."""
+                     ) -> torch.Tensor:
+    """Distance of every racing drone to the nearest other drone of its world still racing (else inf)."""
     w, d = world_count, drones_per_world
-    p = pos.view(w, d, 3)
-    dist = torch.cdist(p, p)
+    dist = torch.cdist(pos.view(w, d, 3), pos.view(w, d, 3))
     gone_w = (out != 0).view(w, d)
     gone = torch.eye(d, dtype=torch.bool, device=pos.device)[None] | gone_w[:, None, :] | gone_w[:, :, None]
-    nearest, index = dist.masked_fill(gone, float("inf")).min(dim=-1)
-    rel = torch.gather(p, 1, index[..., None].expand(-1, -1, 3)) - p
-    return nearest.flatten(), torch.where(torch.isinf(nearest)[..., None], 0.0, rel).view(-1, 3)
+    return dist.masked_fill(gone, float("inf")).amin(dim=-1).flatten()
+
+
+def nearest_is_behind(pos: torch.Tensor, out: torch.Tensor, to_gate: torch.Tensor, *, world_count: int,
+                      drones_per_world: int) -> torch.Tensor:
+    """Whether each drone's nearest other racing drone is behind it: offset away from its next gate (``to_gate``,
+    (N, 3)); False where there is none."""
+    w, d = world_count, drones_per_world
+    p = pos.view(w, d, 3)
+    index, found = nearest_others(p, (out == 0).view(w, d), count=1)
+    offset = torch.gather(p, 1, index.expand(-1, -1, 3)) - p
+    return (found[..., 0] & ((offset * to_gate.view(w, d, 3)).sum(-1) < 0)).flatten()
 
 
 def race_result(finished_now: torch.Tensor, lap_time: torch.Tensor, racing: torch.Tensor, contested: torch.Tensor,

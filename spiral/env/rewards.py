@@ -33,7 +33,8 @@ class StepOutcome:
     nearest: torch.Tensor | None = None
     """Distance to the nearest other drone still racing after the step, inf when there is none [m]."""
     nearest_behind: torch.Tensor | None = None
-    """Whether that drone is behind this one: its offset points away from this drone's next gate (bool)."""
+    """Whether that drone is behind this one: its offset points away from this drone's next gate (bool); None when
+    leader and follower pay alike (``proximity_leader`` 1)."""
     race_result: torch.Tensor | None = None
     """+1 / −1 for the winning / losing team's drones at the step their race is decided, else 0."""
     intervention: torch.Tensor | None = None
@@ -67,7 +68,7 @@ def _reward_proximity(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
     if o.nearest is None:
         return torch.zeros_like(o.dist_before)
     penalty = -(1.0 - o.nearest / cfg.proximity_distance).clamp(min=0.0)
-    if o.nearest_behind is None or cfg.proximity_leader == 1.0:
+    if o.nearest_behind is None:  # every drone pays in full
         return penalty
     return torch.where(o.nearest_behind, cfg.proximity_leader * penalty, penalty)
 

@@ -15,7 +15,7 @@ from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
 from spiral.core.outcome import race_winner
 from spiral.core.policy import OpponentPolicy
-from spiral.env.events import RaceEvents, gate_distance, heading, nearest_distance
+from spiral.env.events import RaceEvents, gate_distance, heading, nearest_distance, nearest_is_behind
 from spiral.env.rewards import REWARD_TERMS, StepOutcome
 from spiral.env.slots import slot_map
 from spiral.env.stats import empty_stats, log_episodes, summarize_stats
@@ -120,11 +120,13 @@ class RaceState:
     def _step_outcome(self, ev: RaceEvents) -> StepOutcome:
         """The reward terms' view of the step; frozen drones make no progress."""
         racing, zero = ev.racing, torch.zeros_like(ev.dist_before)
-        nearest = nearest_rel = None
+        nearest = behind = None
         to_gate = self.gate_center[self.next_gate.long()] - self.pos
-        if self.cfg.reward.proximity > 0:
-            nearest, nearest_rel = nearest_distance(self.pos, self.out, world_count=self.world_count,
-                                                    drones_per_world=self.drones_per_world)
+        reward, w, d = self.cfg.reward, self.world_count, self.drones_per_world
+        if reward.proximity > 0:
+            nearest = nearest_distance(self.pos, self.out, world_count=w, drones_per_world=d)
+            if reward.proximity_leader < 1:  # who leads matters only when the leader pays less
+                behind = nearest_is_behind(self.pos, self.out, to_gate, world_count=w, drones_per_world=d)
         return StepOutcome(
             dist_before=torch.where(racing, ev.dist_before, zero),
             dist_after=torch.where(racing, self._gate_distance(ev.gate), zero),
@@ -134,7 +136,7 @@ class RaceState:
             to_gate=to_gate,
             lap_time=torch.where(ev.finished_now, self.lap_time, torch.zeros_like(self.lap_time)),
             nearest=nearest,
-            nearest_behind=None if nearest_rel is None else (nearest_rel * to_gate).sum(-1) < 0,
+            nearest_behind=behind,
             race_result=ev.race_result,
             intervention=torch.where(racing, self.intervention, 0.0) if self.cfg.shield is not None else None,
         )
