@@ -9,6 +9,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from pydantic import BaseModel
+
 from spiral.config.airframe import resolve_airframe
 from spiral.config.pipeline import PipelineSpec
 from spiral.config.stage import StageSpec
@@ -72,7 +74,7 @@ class PipelinePlan:
         if self.spec.report.enabled:
             inputs = [s.name for s in steps if not s.name.startswith("promote:")]
             steps.append(Step("report", self._report_fn(), inputs,
-                              {"report": self.spec.report.model_dump(), **self.spec.evaluation.model_dump()}))
+                              {"report": self.spec.report, **self.spec.evaluation.model_dump()}))
         return steps
 
     def _last_pool_stage(self) -> str | None:
@@ -81,15 +83,17 @@ class PipelinePlan:
         return names[-1] if names else None
 
     def _train_section(self, stage: StageSpec) -> dict[str, Any]:
-        return {"stage": stage.model_dump(), "track": self.track.model_dump(),
-                "airframe": resolve_airframe(self.spec.airframe, source=str(self.source)).model_dump(),
-                "sim": self.spec.sim.model_dump(), "device": self.spec.device,
+        """The training step's spec: models, which its fingerprint hashes by the fields that differ from defaults."""
+        return {"stage": stage, "track": self.track,
+                "airframe": resolve_airframe(self.spec.airframe, source=str(self.source)),
+                "sim": self.spec.sim, "device": self.spec.device,
                 "seed": stage.seed if stage.seed is not None else self.spec.seed}
 
     def _train_fn(self, stage: StageSpec, previous: str | None, opponent: str | None):
         def run(ctx: StepContext) -> tuple[dict[str, Path], dict[str, Any]]:
             section = self._train_section(stage)
-            atomic_write_bytes(ctx.step_dir / "spec.json", json.dumps(section, indent=2).encode())
+            resolved = {key: v.model_dump() if isinstance(v, BaseModel) else v for key, v in section.items()}
+            atomic_write_bytes(ctx.step_dir / "spec.json", json.dumps(resolved, indent=2).encode())
             init, frozen = (Path(ctx.inputs[s]["outputs"]["best"]["path"]) if s else None for s in (previous, opponent))
             pool_dir = ctx.step_dir / "pool"
             if init is not None and not pool_dir.exists() and (init.parent / "pool").is_dir():
@@ -118,8 +122,8 @@ class PipelinePlan:
 
     def _planner_section(self) -> dict[str, Any]:
         return {"scenarios": list(PLANNER_SCENARIOS), **self.spec.evaluation.model_dump(include={"runs", "seed"}),
-                "track": self.track.model_dump(), "sim": self.spec.sim.model_dump(),
-                "airframe": resolve_airframe(self.spec.airframe, source=str(self.source)).model_dump()}
+                "track": self.track, "sim": self.spec.sim,
+                "airframe": resolve_airframe(self.spec.airframe, source=str(self.source))}
 
     def _planner_fn(self):
         """SE-IBR's self-matches in 1v1 and 2v2 with the protocol's races, one eval JSON per scenario (the report

@@ -10,6 +10,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from pydantic import BaseModel
+
 import spiral
 from spiral.core.files import atomic_write_bytes, file_sha256
 
@@ -31,22 +33,46 @@ def source_hash() -> str:
 
 @dataclass(frozen=True)
 class Fingerprint:
-    """A step's fingerprint: ``full`` sees the spiral source as well, ``spec`` only the spec and inputs."""
+    """A step's fingerprint: ``full`` sees the spiral source as well, ``spec`` only the spec and inputs.
+
+    ``legacy_spec`` is the spec fingerprint as run folders written before defaults were left out of the hash
+    recorded it (every field of the resolved spec, defaults included); a manifest carrying it still matches.
+    """
 
     full: str
     spec: str
+    legacy_spec: str = ""
+
+    def spec_matches(self, recorded: object) -> bool:
+        """Whether a recorded spec fingerprint is this one's, in the current or the legacy hashing."""
+        return recorded == self.spec or (bool(self.legacy_spec) and recorded == self.legacy_spec)
+
+
+def _digest(blob: dict[str, Any], *, defaults: bool) -> str:
+    """SHA-256 of ``blob`` as sorted JSON; pydantic models in it are dumped with or without their default fields."""
+
+    def encode(value: Any) -> Any:
+        if isinstance(value, BaseModel):
+            return value.model_dump(exclude_defaults=not defaults)
+        return str(value)
+
+    return hashlib.sha256(json.dumps(blob, sort_keys=True, default=encode).encode()).hexdigest()
 
 
 def fingerprint(name: str, section: Any, inputs: list[Fingerprint], *, source: str | None = None) -> Fingerprint:
-    """Hash of the step name, its resolved spec section, its inputs' fingerprints and the spiral version; the
-    ``full`` one also of the package source (:func:`source_hash` when None), so that a code change reruns it."""
+    """Hash of the step name, its spec section, its inputs' fingerprints and the spiral version; the ``full`` one
+    also of the package source (:func:`source_hash` when None), so that a code change reruns it.
 
-    def digest(blob: dict[str, Any]) -> str:
-        return hashlib.sha256(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()
-
+    Pydantic models in ``section`` are hashed by the fields that differ from their defaults: a new option with a
+    default leaves the fingerprint of a step that does not set it unchanged, while a changed default is a change
+    of the source, which the ``full`` fingerprint sees (``--accept-code-changes`` keeps such steps knowingly).
+    """
     base = {"step": name, "spec": section, "version": spiral.__version__}
-    return Fingerprint(full=digest({**base, "inputs": [i.full for i in inputs], "source": source or source_hash()}),
-                       spec=digest({**base, "inputs": [i.spec for i in inputs]}))
+    full = {**base, "inputs": [i.full for i in inputs], "source": source or source_hash()}
+    return Fingerprint(full=_digest(full, defaults=False),
+                       spec=_digest({**base, "inputs": [i.spec for i in inputs]}, defaults=False),
+                       legacy_spec=_digest({**base, "inputs": [i.legacy_spec or i.spec for i in inputs]},
+                                           defaults=True))
 
 
 def write_manifest(step_dir: Path, name: str, fp: Fingerprint, outputs: dict[str, Path],
@@ -89,7 +115,7 @@ def step_state(step_dir: Path, fp: Fingerprint, *, accept_code_changes: bool = F
     if manifest is None:
         return StepState("partial", "started, no manifest") if step_dir.exists() else StepState("missing")
     if manifest.get("fingerprint") != fp.full:
-        if manifest.get("spec_fingerprint") != fp.spec:
+        if not fp.spec_matches(manifest.get("spec_fingerprint")):
             return StepState("stale", "its spec, an input or the spiral version changed")
         if not accept_code_changes:
             return StepState("stale", "the spiral source changed since it ran (--accept-code-changes keeps it)")

@@ -135,7 +135,7 @@ class PipelineRunner:
             started = (step_dir / FINGERPRINT_FILE).read_text().split("\n")
         except OSError:
             return False
-        return started[0] == fp.full or (self.accept_code_changes and started[-1] == fp.spec)
+        return started[0] == fp.full or (self.accept_code_changes and fp.spec_matches(started[-1]))
 
     def _step(self, name: str) -> Step:
         return next(s for s in self.steps if s.name == name)
