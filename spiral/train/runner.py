@@ -34,6 +34,7 @@ from spiral.env.mixed import MixedRaceEnv, training_env
 from spiral.env.race_env import RaceEnv
 from spiral.env.vec_env import RaceVecEnv
 from spiral.train import distributed
+from spiral.train.batches import use_gather_once
 from spiral.train.inputs import take_up_new_inputs, widen_inputs
 from spiral.train.progress import TrainLog
 from spiral.train.resume import AVERAGE_KEY, StageCheckpoints, stage_meta
@@ -102,6 +103,7 @@ class StageTrainer:
         self.vec_env = RaceVecEnv(self.env)
         with contextlib.redirect_stdout(io.StringIO()):  # rsl-rl prints the model architecture
             self.runner = distributed.GroupRunner(self.vec_env, stage.ppo.to_rsl_rl(), log_dir=None, device=device)
+        use_gather_once(self.runner.alg.storage)
         self._mirror_learner(opponents)
         self.start_iteration = 0
         self.best = EvalScore(-1.0, -math.inf)
