@@ -35,6 +35,12 @@ class PPOCfg(StrictModel):
         default=10.0, description="Upper clamp of the action noise, also of the noise a stage takes over from its init"
     )
     obs_normalization: bool = Field(default=True)
+    mixed_precision: bool = Field(
+        default=False,
+        description="bfloat16 autocast in the update's forward pass and losses (rsl-rl's use_mixed_precision); "
+                    "the rollout, the weights and the optimizer stay float32. Fast on CPUs with AVX512-BF16 or AMX "
+                    "and on CUDA GPUs from Ampere on",
+    )
     save_interval: PosInt = Field(default=50, description="Iterations between periodic checkpoints")
 
     @model_validator(mode="after")
@@ -80,5 +86,6 @@ class PPOCfg(StrictModel):
                 "max_grad_norm": self.max_grad_norm,
                 "schedule": self.schedule,
                 "desired_kl": self.desired_kl,
+                "use_mixed_precision": self.mixed_precision,
             },
         }
