@@ -51,7 +51,7 @@ def main() -> None:
     stage = next((s for s in spec.stages if s.name == args.stage), None)
     if stage is None:
         parser.error(f"{args.pipeline} has no stage {args.stage!r}")
-    raw = stage.model_dump()
+    raw = stage.model_dump(exclude_unset=True)  # what the pipeline file set: a solo stage sets no selfplay
     for item in args.sets:
         key, sep, value = item.partition("=")
         if not sep:

@@ -392,7 +392,8 @@ def bench_ppo(
                f"rollout {r['rollout_s']:.3f} s: {rollout} [ms]\n"
                f"update {r['update_s']:.3f} s ({r['update_cpu_s']:.3f} CPU-s): {parts}\n"
                f"update {r['update_samples_per_s']:.0f} samples/s; matmul limit {r['matmul_limit_samples_per_s']:.0f}"
-               f" samples/s at {r['matmul_gflops']:.1f} GFLOP/s; update / limit {r['update_over_matmul_limit']:.2f}"
+               f" samples/s at {r['matmul_gflops']:.1f} GFLOP/s ({r['matmul_dtype'].removeprefix('torch.')});"
+               f" update / limit {r['update_over_matmul_limit']:.2f}"
                f" (CPU time {r['update_over_matmul_limit_cpu']:.2f})")
     _write_json(json_out, r)
 

@@ -55,13 +55,14 @@ def update_flops_per_sample(layers: list[tuple[int, int]], first: set[int]) -> i
 
 
 def matmul_seconds(layers: list[tuple[int, int]], first: set[int], batch: int, *, repeats: int = 20,
-                   device: str = "cpu") -> tuple[float, float]:
+                   device: str = "cpu", dtype: torch.dtype = torch.float32) -> tuple[float, float]:
     """Wall and processor seconds (best of ``repeats`` each) one mini-batch of ``batch`` samples spends in plain
-    matrix products of ``layers`` on ``device``: x·Wᵀ forward, gᵀ·x for the weights and g·W for the input where it
-    is needed."""
+    matrix products of ``layers`` on ``device`` in ``dtype``: x·Wᵀ forward, gᵀ·x for the weights and g·W for the
+    input where it is needed."""
     mats = []
     for i, (n_in, n_out) in enumerate(layers):
-        x, w, g = (torch.randn(*shape, device=device) for shape in ((batch, n_in), (n_out, n_in), (batch, n_out)))
+        x, w, g = (torch.randn(*shape, device=device, dtype=dtype)
+                   for shape in ((batch, n_in), (n_out, n_in), (batch, n_out)))
         mats.append((x, w, g, i not in first))
     sync = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
 
@@ -180,14 +181,15 @@ def profile_iteration(track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, stag
     ppo, samples = stage.ppo, stage.ppo.num_steps_per_env * trainer.env.num_envs
     layers, first = linear_layers(alg.actor, alg.critic), _first_layers(alg.actor, alg.critic)
     mini_batch, passes = samples // ppo.num_mini_batches, ppo.num_mini_batches * ppo.num_learning_epochs
-    mm_s, mm_cpu_s = (t * passes for t in matmul_seconds(layers, first, mini_batch, device=device))
+    dtype = torch.bfloat16 if ppo.mixed_precision else torch.float32  # the precision of the update's products
+    mm_s, mm_cpu_s = (t * passes for t in matmul_seconds(layers, first, mini_batch, device=device, dtype=dtype))
     flops = update_flops_per_sample(layers, first) * samples * ppo.num_learning_epochs
     update_s, update_cpu_s = update_s / iterations, update_cpu_s / iterations
     traced = sum(parts.values())
     return {
         "stage": stage.name, "device": device, "torch_threads": torch.get_num_threads(), "worlds": trainer.env.num_envs,
         "obs_dim": trainer.env.obs_dim, "samples_per_iteration": samples, "mini_batch": mini_batch,
-        "epochs": ppo.num_learning_epochs, "layers": layers, "update_flops": flops,
+        "epochs": ppo.num_learning_epochs, "layers": layers, "update_flops": flops, "matmul_dtype": str(dtype),
         "rollout_s": rollout_s / iterations, "rollout_parts_s": {k: v / iterations for k, v in rollout.items()},
         "update_s": update_s, "update_cpu_s": update_cpu_s,
         "update_parts_share": {k: v / traced for k, v in parts.items()},

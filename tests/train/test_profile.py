@@ -51,6 +51,18 @@ def test_profiled_iteration_splits_rollout_by_hook_and_update_by_part_and_unwrap
     assert r["update_samples_per_s"] == pytest.approx(32 / r["update_s"])
     assert r["update_over_matmul_limit"] == pytest.approx(r["update_s"] / r["matmul_s"])
     assert nn.utils.clip_grad_norm_.__name__ == "clip_grad_norm_"
+    assert r["matmul_dtype"] == "torch.float32"
+
+
+def test_the_matmul_limit_of_a_mixed_precision_update_is_timed_in_bfloat16(line2):
+    """The limit is the rate of the products the update really runs: bfloat16 under ``ppo.mixed_precision``."""
+    stage = StageSpec.model_validate({
+        "name": "tiny", "worlds": 8, "iterations": 4, "env": {"obs": {"history_len": 1}},
+        "ppo": {"num_steps_per_env": 4, "actor_hidden_dims": [16], "critic_hidden_dims": [16],
+                "mixed_precision": True}, "selection": {"races": 2}})
+    r = profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), stage, iterations=1)
+    assert r["matmul_dtype"] == "torch.bfloat16"
+    assert r["update_over_matmul_limit"] == pytest.approx(r["update_s"] / r["matmul_s"])
 
 
 def test_timed_methods_add_up_calls_and_leave_the_object_as_it_was():
