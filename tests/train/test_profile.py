@@ -104,3 +104,15 @@ def test_time_to_solo_script_runs_the_smoke_pipeline(tmp_path):
                     "--seeds", "3", "--json", str(out)], check=True, capture_output=True, text=True, cwd=root)
     (row,) = json.loads(out.read_text())["results"]
     assert row["seed"] == 3 and row["iterations"] == 2 and row["stage_wall_s"] > 0
+
+
+def test_ppo_update_variants_script_times_every_variant_on_the_smoke_pipeline(tmp_path):
+    """Each of the four update variants (precision x mini-batch gather) is timed once per repeat."""
+    root = Path(__file__).resolve().parents[2]
+    out = tmp_path / "variants.json"
+    subprocess.run([sys.executable, str(root / "benchmarks" / "ppo_update_variants.py"), "pipelines/smoke.yaml",
+                    "--stage", "solo", "--repeats", "2", "--worlds", "8", "--json", str(out)],
+                   check=True, capture_output=True, text=True, cwd=root)
+    times = json.loads(out.read_text())["update_s"]
+    assert set(times) == {"float32 rsl_rl", "float32 gather_once", "bfloat16 rsl_rl", "bfloat16 gather_once"}
+    assert all(len(v) == 2 and min(v) > 0 for v in times.values())
