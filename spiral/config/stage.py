@@ -38,6 +38,11 @@ class SelectionCfg(StrictModel):
         description="Decay d of the moving average of the policy's weights (θ̄ ← d·θ̄ + (1 − d)·θ after every PPO "
         "update) that selection and promotion race and best.pt keeps; 0: the current policy",
     )
+    success_tolerance: float = Field(
+        default=0.0, ge=0, le=1,
+        description="Stages kept by their self-match (no promotion): evaluations whose success is within this of "
+        "the highest seen count as equal and the faster lap wins among them; 0: success first, then lap",
+    )
 
 
 class PromotionCfg(StrictModel):
@@ -163,6 +168,13 @@ class StageSpec(StrictModel):
         bad = [name for name, set_ in nonsense.items() if set_]
         if bad:
             raise ValueError(f"{bad[0]}: a solo stage has no other drone for it to act on")
+        return self
+
+    @model_validator(mode="after")
+    def _tolerance_where_self_match_selects(self) -> StageSpec:
+        if self.scenario != "solo" and self.selection.success_tolerance > 0:
+            raise ValueError("selection.success_tolerance: a multi-drone stage keeps its best by promotion "
+                             "(selfplay.promotion), not by its self-match")
         return self
 
     @model_validator(mode="after")

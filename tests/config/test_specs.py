@@ -199,3 +199,13 @@ def test_the_shipped_pipeline_races_se_ibr_in_its_tables():
     """full.yaml's report has SE-IBR as a row of both tables (and in the cross-play), not a missing cell."""
     spec = load_pipeline(ROOT / "pipelines" / "full.yaml")[0]
     assert spec.report.enabled and spec.report.se_ibr and spec.report.cross_play
+
+
+def test_a_multi_drone_stage_refuses_a_success_tolerance_it_would_not_use(tmp_path):
+    """Multi-drone stages keep their best by promotion; the self-match tolerance is refused there, by field."""
+    path = tmp_path / "p.yaml"
+    stage = {"name": "duel", "scenario": "1v1", "iterations": 1, "selection": {"success_tolerance": 0.05}}
+    path.write_text(json.dumps({"kind": "pipeline", "name": "p", "track": str(ROOT / "tracks" / "oval4.yaml"),
+                                "stages": [stage]}))
+    with pytest.raises(SpecError, match=r"stages\.0.*selection\.success_tolerance"):
+        load_pipeline(path)

@@ -1,0 +1,65 @@
+"""Which evaluation a solo stage keeps as its best: success first, or the faster lap within a success tolerance."""
+
+from __future__ import annotations
+
+import math
+
+from spiral.config import AIRFRAMES, SimCfg, StageSpec
+from spiral.core.checkpoint import load_checkpoint
+from spiral.train import StageTrainer
+from spiral.train.selection import EvalScore
+
+# (iteration, success, lap) of a solo stage's evaluations: an early 1.00 at a slow lap, then faster laps at
+# 0.95-0.98 with two collapses (the selection evaluations of a bfloat16 draw, seed 0, from iteration 99 on)
+EVALS = [(99, 1.0, 5.14), (119, 1.0, 4.87), (139, 1.0, 4.57), (159, 1.0, 4.66), (179, 0.969, 4.58),
+         (199, 0.953, 4.39), (219, 0.969, 4.21), (239, 0.984, 4.13), (259, 0.484, 3.96), (279, 0.953, 4.02),
+         (299, 0.969, 3.96)]
+
+
+def kept(evals, tolerance):
+    best = EvalScore(-1.0, -math.inf)
+    for it, success, lap in evals:
+        best = best.keep(EvalScore(success, -lap, it), tolerance)
+    return best
+
+
+def test_without_tolerance_the_highest_success_wins_then_the_shorter_lap():
+    assert kept(EVALS, 0.0).iteration == 139
+
+
+def test_with_tolerance_the_fastest_lap_within_it_of_the_highest_success_wins():
+    best = kept(EVALS, 0.05)
+    assert (best.iteration, best.success, best.lap_time, best.top) == (299, 0.969, 3.96, 1.0)
+    assert kept(EVALS, 0.02).iteration == 239  # 0.984 at 4.13 s is the fastest within 0.02 of 1.00
+
+
+def test_a_best_never_trails_the_highest_success_by_more_than_the_tolerance():
+    """Each step is within 0.05 of the one before, but the 0.88 and 0.84 ones are more than 0.05 below 0.96."""
+    drifting = [(0, 0.96, 5.0), (1, 0.92, 4.8), (2, 0.88, 4.6), (3, 0.84, 4.4)]
+    best = kept(drifting, 0.05)
+    assert (best.iteration, best.top) == (1, 0.96)
+    assert kept([*drifting, (4, 1.0, 6.0)], 0.05).iteration == 4  # a higher success leaves the old best behind
+
+
+def test_the_highest_success_survives_a_checkpoint_round_trip():
+    best = kept(EVALS, 0.05)
+    data = best.to_json()
+    assert data["top_success"] == 1.0
+    assert EvalScore.from_json(data).top == 1.0
+    assert "top_success" not in kept(EVALS, 0.0).to_json()  # without tolerance the best is the top: nothing new
+
+
+def test_a_solo_stage_with_a_tolerance_writes_the_faster_best_pt(oval2, tmp_path):
+    """The trainer's default selector applies the stage's tolerance: best.pt ends as the 299 evaluation's policy."""
+    stage = StageSpec.model_validate({
+        "name": "tiny", "worlds": 4, "iterations": 1, "env": {"obs": {"history_len": 1}},
+        "ppo": {"num_steps_per_env": 4, "actor_hidden_dims": [8], "critic_hidden_dims": [8]},
+        "selection": {"races": 2, "success_tolerance": 0.05}})
+    trainer = StageTrainer(oval2, AIRFRAMES["cf2x"], SimCfg(), stage, tmp_path, progress=False)
+    scores = iter(EvalScore(s, -lap, it) for it, s, lap in EVALS)
+    trainer.selection.evaluate = lambda it: next(scores)
+    for it, _, _ in EVALS:
+        trainer.select_by_solo_eval(it)
+    meta = load_checkpoint(tmp_path / "best.pt")["spiral"]
+    assert meta["eval"]["iteration"] == 299 and meta["best"] == {"success": 0.969, "lap_time": 3.96,
+                                                                 "iteration": 299, "top_success": 1.0}
