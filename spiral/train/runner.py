@@ -179,15 +179,12 @@ class StageTrainer:
         return path
 
     def select_by_solo_eval(self, it: int) -> dict[str, float]:
-        """Default selection: keep the checkpoint with the best self-match success, then lap time."""
+        """Default selection: keep the checkpoint with the best self-match success, then lap time (with
+        ``selection.success_tolerance``: the shortest lap within it of the highest success; :meth:`EvalScore.keep`)."""
         score = self.selection.evaluate(it)
-        kept = self.best.keep(score, self.stage.selection.success_tolerance)
-        taken = kept.iteration == score.iteration
-        if taken or not (self.run_dir / "best.pt").exists():
-            self.best = kept if taken else self.best
+        self.best = self.best.keep(score, self.stage.selection.success_tolerance)
+        if self.best.iteration == score.iteration or not (self.run_dir / "best.pt").exists():
             self.save_best(it, score)
-        else:
-            self.best = kept  # the highest success seen may have risen
         lap = score.lap_time
         return {"eval/success": score.success, "eval/lap_time": lap if lap is not None else float("nan"),
                 "eval/best_success": self.best.success}
