@@ -23,7 +23,6 @@ import torch
 
 from spiral.config import load_pipeline, resolve_airframe
 from spiral.train.batches import use_gather_once
-from spiral.train.profile import _rollout
 from spiral.train.runner import StageTrainer
 
 VARIANTS = [(precision, gather) for precision in ("float32", "bfloat16") for gather in ("rsl_rl", "gather_once")]
@@ -33,7 +32,9 @@ def time_variants(pipeline: Path, stage_name: str, *, repeats: int, worlds: int 
                   device: str = "cpu") -> dict[str, list[float]]:
     """Seconds of ``repeats`` updates per variant (keys ``"<precision> <gather>"``)."""
     spec, track = load_pipeline(pipeline)
-    stage = next(s for s in spec.stages if s.name == stage_name)
+    stage = next((s for s in spec.stages if s.name == stage_name), None)
+    if stage is None:
+        raise SystemExit(f"--stage: {pipeline} has no stage named {stage_name!r}")
     if worlds is not None:
         stage = stage.model_copy(update={"worlds": worlds})
     times: dict[str, list[float]] = defaultdict(list)
@@ -43,7 +44,7 @@ def time_variants(pipeline: Path, stage_name: str, *, repeats: int, worlds: int 
                                selector=lambda trainer, it: {})
         alg, storage = trainer.runner.alg, trainer.runner.alg.storage
         alg.train_mode()
-        obs = _rollout(trainer, trainer.vec_env.get_observations(), defaultdict(float))
+        obs = trainer.collect(trainer.vec_env.get_observations())[0]
         alg.update()  # warm-up
         for _ in range(repeats):
             for precision, gather in VARIANTS:
@@ -52,7 +53,7 @@ def time_variants(pipeline: Path, stage_name: str, *, repeats: int, worlds: int 
                     use_gather_once(storage)
                 else:
                     vars(storage).pop("mini_batch_generator", None)  # back to rsl-rl's own method
-                obs = _rollout(trainer, obs, defaultdict(float))
+                obs = trainer.collect(obs)[0]
                 t0 = time.perf_counter()
                 alg.update()
                 times[f"{precision} {gather}"].append(time.perf_counter() - t0)

@@ -36,7 +36,7 @@ class EvalScore:
     @property
     def top(self) -> float:
         """The highest success seen so far (this score's own unless it trails a better one)."""
-        return self.success if self.top_success is None else max(self.top_success, self.success)
+        return self.success if self.top_success is None else self.top_success
 
     def to_json(self) -> dict[str, float | int | None]:
         """``success``, ``lap_time`` (None without a finished lap) and ``iteration``, as checkpoints store them;
