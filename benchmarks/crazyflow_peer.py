@@ -5,7 +5,8 @@ itself (no affinity or thread limits are set; run it on an idle machine for figu
 
 - spiral: ``spiral.sim.bench.time_world`` in this interpreter (spiral's virtualenv), i.e. exactly what a row of
   ``spiral bench sim`` times for Warp: pid mode, circuit6 with gates and collisions on, crash flags cleared every
-  control step, random targets re-drawn every 10 control steps.
+  control step, random targets re-drawn every 10 control steps; the worlds are stepped on ``--spiral-threads``
+  threads (default: one per core, as XLA spreads crazyflow's step over every core).
 - crazyflow: ``crazyflow.Sim`` with first-principles dynamics, Euler integration and the Mellinger state controller
   (``Control.state``: position, velocity, acceleration, attitude, body-rate setpoints), in its own virtualenv
   (``benchmarks/.venv-crazyflow``, created and filled from the package index on first use; crazyflow is never a
@@ -70,8 +71,9 @@ def spiral_worker(args: argparse.Namespace) -> dict[str, Any]:
 
     if (args.physics_hz, args.ctrl_hz) != (240, 48):
         raise SystemExit("spiral's benchmark world runs at 240 Hz physics and 48 Hz control")
-    row = time_world(args.worlds, args.drones, device="cpu", steps=args.steps, repeats=args.repeats, seed=args.seed)
-    row.update(sim="spiral", version=f"warp {wp.config.version}")
+    row = time_world(args.worlds, args.drones, device="cpu", steps=args.steps, repeats=args.repeats, seed=args.seed,
+                     cpu_threads=args.spiral_threads)
+    row.update(sim="spiral", version=f"warp {wp.config.version}, {args.spiral_threads} threads")
     return row
 
 
@@ -156,7 +158,7 @@ def run_worker(python: str | Path, which: str, args: argparse.Namespace, env: di
     cmd = [str(python), str(Path(__file__).resolve()), "--worker", which, "--worlds", str(args.worlds),
            "--drones", str(args.drones), "--steps", str(args.steps), "--repeats", str(args.repeats),
            "--seed", str(args.seed), "--physics-hz", str(args.physics_hz), "--ctrl-hz", str(args.ctrl_hz),
-           "--lo", *map(str, args.lo), "--hi", *map(str, args.hi)]
+           "--spiral-threads", str(args.spiral_threads), "--lo", *map(str, args.lo), "--hi", *map(str, args.hi)]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=cwd)
     lines = [x for x in proc.stdout.splitlines() if x.startswith(RESULT_TAG)]
     if proc.returncode != 0 or not lines:
@@ -202,6 +204,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--physics-hz", type=int, default=240)
     parser.add_argument("--ctrl-hz", type=int, default=48)
+    parser.add_argument("--spiral-threads", type=int, default=os.cpu_count() or 1,
+                        help="threads stepping spiral's worlds (default: one per core)")
     parser.add_argument("--json", type=Path, help="also write the result here")
     parser.add_argument("--crazyflow-python", type=Path, help="an interpreter with crazyflow 0.4 (skips the venv)")
     parser.add_argument("--only", choices=("spiral", "crazyflow"), help="run one half only")

@@ -28,6 +28,14 @@ Device = Annotated[str | None, typer.Option("--device", help="cpu or cuda:N (def
 JsonOut = Annotated[Path | None, typer.Option("--json", help="Also write the numbers as JSON to this file")]
 RunsDir = Annotated[Path, typer.Option("--runs-dir", help="Folder of run outputs")]
 CkptDir = Annotated[Path, typer.Option("--checkpoints-dir", help="Folder of promoted policies")]
+SimThreads = Annotated[int, typer.Option("--sim-threads", min=1, help="CPU threads stepping the simulator, each a "
+                                         "share of the worlds (a Warp CPU launch uses one core); same results")]
+
+
+def _use_sim_threads(count: int) -> None:
+    from spiral.sim import World
+
+    World.cpu_threads = count
 
 
 def _expected_errors() -> tuple[type[Exception], ...]:
@@ -168,10 +176,12 @@ def train(
     checkpoints_dir: CkptDir = Path("checkpoints"),
     distributed: Annotated[bool, typer.Option("--distributed", help="One process per GPU under torchrun "
                                               "(docs/scaling.md)")] = False,
+    sim_threads: SimThreads = 1,
 ) -> None:
     """Train one stage of a pipeline (its inputs must be complete); resumes from its newest checkpoint."""
     from spiral.pipeline import PipelineRunner
 
+    _use_sim_threads(sim_threads)
     if distributed:
         from spiral.pipeline.distributed import train_stage_distributed
 
@@ -230,13 +240,15 @@ def bench_sim(
     device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
     steps: Annotated[int, typer.Option("--steps", min=1, help="Timed control steps per row")] = 100,
     two_process: Annotated[bool, typer.Option("--two-process", help="Also run 4096x4 in two processes")] = True,
+    threads: Annotated[int, typer.Option("--threads", min=1, help="Also run 4096x4 in one process with the worlds "
+                                         "stepped on this many threads (1: not)")] = 2,
     json_out: JsonOut = None,
 ) -> None:
     """Simulator throughput (pid mode, gates and collisions on) against the numpy reference."""
     from spiral.sim.bench import format_bench_table, run_sim_bench
 
     counts = [int(w) for w in worlds.split(",") if w.strip()]
-    result = run_sim_bench(counts, device=device, steps=steps, two_process=two_process)
+    result = run_sim_bench(counts, device=device, steps=steps, two_process=two_process, threads=threads)
     typer.echo(format_bench_table(result))
     _write_json(json_out, result)
 
@@ -348,12 +360,14 @@ def bench_train(
     worlds: Annotated[int, typer.Option("--worlds", min=1, help="Parallel worlds")] = 1024,
     iterations: Annotated[int, typer.Option("--iterations", min=1, help="Timed PPO iterations")] = 10,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
+    sim_threads: SimThreads = 1,
     json_out: JsonOut = None,
 ) -> None:
     """End-to-end PPO throughput for the compact and the paper's observation layout."""
     from spiral.config import AIRFRAMES, SimCfg
     from spiral.train.bench import run_train_bench
 
+    _use_sim_threads(sim_threads)
     result = run_train_bench(load_track(track), AIRFRAMES["cf2x"], SimCfg(), worlds=worlds, iterations=iterations,
                              device=device)
     for r in result["results"]:
@@ -370,6 +384,7 @@ def bench_ppo(
     worlds: Annotated[int | None, typer.Option("--worlds", min=1, help="Worlds (default: the stage's)")] = None,
     iterations: Annotated[int, typer.Option("--iterations", min=1, help="Profiled PPO iterations")] = 3,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
+    sim_threads: SimThreads = 1,
     json_out: JsonOut = None,
 ) -> None:
     """Profile PPO iterations of one stage: the rollout by env hook, the update by part, against the matmul limit."""
@@ -377,6 +392,7 @@ def bench_ppo(
     from spiral.config.load import load_pipeline
     from spiral.train.profile import profile_iteration
 
+    _use_sim_threads(sim_threads)
     spec, track = load_pipeline(pipeline)
     found = [s for s in spec.stages if s.name == stage]
     if not found:

@@ -105,11 +105,12 @@ def _time_numpy(ref: ReferenceSim, targets: np.ndarray, steps: int, first: int) 
 
 
 def _make_world(track: TrackSpec, airframe: AirframeCfg, world_count: int, drones: int, device: str,
-                seed: int) -> tuple[World, list[wp.array], np.ndarray, np.ndarray, np.ndarray]:
+                seed: int, cpu_threads: int = 1) -> tuple[World, list[wp.array], np.ndarray, np.ndarray, np.ndarray]:
     n = world_count * drones
     draws = 8
     start, yaw, targets = _draw_inputs(track, n, draws, seed)
-    world = World(track, airframe, _bench_cfg(), world_count=world_count, drones_per_world=drones, device=device)
+    world = World(track, airframe, _bench_cfg(), world_count=world_count, drones_per_world=drones, device=device,
+                  cpu_threads=cpu_threads)
     world.reset_all(start, yaw)
     targets_wp = [wp.array(t, dtype=wp.vec4, device=world.device) for t in targets]
     return world, targets_wp, start, yaw, targets
@@ -180,6 +181,7 @@ def run_sim_bench(
     repeats: int = 3,
     numpy_budget_s: float = 2.0,
     two_process: bool = False,
+    threads: int = 1,
     track: TrackSpec | None = None,
 ) -> dict[str, Any]:
     """Measure drone-control-steps per second of Warp and of the numpy reference for each world count and layout.
@@ -194,6 +196,8 @@ def run_sim_bench(
         numpy_budget_s: About how long one numpy repeat may take; large rows time fewer numpy steps
             (``numpy_steps`` in the row), never fewer than 3.
         two_process: Also run the 4096 × 4 row in two processes side by side (``two_process`` entry).
+        threads: Above 1, also time Warp alone at 4096 × 4 with the worlds stepped on this many threads of one
+            process (``threaded`` entry; the rows use one).
         track: Track of the run; the paper's circuit by default.
 
     Returns:
@@ -216,6 +220,9 @@ def run_sim_bench(
         "settings": _bench_settings(track, airframe, cfg, repeats=repeats, seed=seed),
         "results": rows,
     }
+    if threads > 1:
+        result["threaded"] = time_world(4096, 4, device=device, steps=steps, repeats=repeats, seed=seed,
+                                        cpu_threads=threads, track=track)
     result["machine"]["load_avg_1min_end"] = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
     if two_process:
         result["two_process"] = run_sim_bench_two_process(4096, 4, device=device, steps=steps, seed=seed,
@@ -224,13 +231,13 @@ def run_sim_bench(
 
 
 def time_world(world_count: int, drones: int, *, device: str = "cpu", steps: int = 100, repeats: int = 3,
-               seed: int = 0) -> dict[str, Any]:
+               seed: int = 0, cpu_threads: int = 1, track: TrackSpec | None = None) -> dict[str, Any]:
     """Warp alone, timed as a row of :func:`run_sim_bench` times it (same track, settings, starts and targets; no
-    numpy reference): the best of ``repeats`` runs of ``steps`` control steps, wall clock and process CPU time.
-    For peer comparisons (``benchmarks/crazyflow_peer.py``)."""
+    numpy reference): the best of ``repeats`` runs of ``steps`` control steps, wall clock and process CPU time,
+    with the worlds stepped on ``cpu_threads`` threads. For peer comparisons (``benchmarks/crazyflow_peer.py``)."""
     wp.init()
-    track, airframe = load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"]
-    world, targets_wp, *_ = _make_world(track, airframe, world_count, drones, device, seed)
+    track, airframe = track if track is not None else load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"]
+    world, targets_wp, *_ = _make_world(track, airframe, world_count, drones, device, seed, cpu_threads)
     _time_warp(world, targets_wp, WARMUP_STEPS, 0)
     times = [_time_warp(world, targets_wp, steps, WARMUP_STEPS + r * steps) for r in range(repeats)]
     n = world_count * drones
@@ -238,6 +245,7 @@ def time_world(world_count: int, drones: int, *, device: str = "cpu", steps: int
     return {
         "worlds": world_count,
         "drones": drones,
+        "cpu_threads": cpu_threads,
         "steps": steps,
         "drone_ctrl_steps_per_s": round(rate),
         "drone_substeps_per_s": round(rate * world.sim.substeps),
@@ -340,4 +348,9 @@ def format_bench_table(result: dict[str, Any]) -> str:
         each = " + ".join(f"{v:,}" for v in two["per_process_drone_ctrl_steps_per_s"])
         lines += ["", f"Two processes side by side, {two['worlds']} worlds × {two['drones']} drones each: "
                       f"{two['aggregate_drone_ctrl_steps_per_s']:,} drone-ctrl-steps/s in aggregate ({each})."]
+    one = result.get("threaded")
+    if one:
+        lines += ["", f"One process, worlds stepped on {one['cpu_threads']} threads, {one['worlds']} worlds × "
+                      f"{one['drones']} drones: {one['drone_ctrl_steps_per_s']:,} drone-ctrl-steps/s "
+                      f"({one['drone_ctrl_steps_per_cpu_s']:,} per CPU-s)."]
     return "\n".join(lines)

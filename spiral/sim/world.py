@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+from itertools import pairwise
+from types import SimpleNamespace
+
 import numpy as np
 import warp as wp
 
@@ -94,9 +98,12 @@ class World:
         world_count: int,
         drones_per_world: int,
         device: str = "cpu",
+        cpu_threads: int | None = None,
     ) -> None:
         if world_count < 1 or drones_per_world < 1:
             raise ValueError("world_count and drones_per_world must be positive")
+        if cpu_threads is not None and cpu_threads < 1:
+            raise ValueError(f"cpu_threads must be positive, got {cpu_threads}")
         self.track_spec, self.airframe, self.sim = track, airframe, sim
         self.world_count, self.drones_per_world = world_count, drones_per_world
         self.drone_count = world_count * drones_per_world
@@ -117,8 +124,12 @@ class World:
         self._reset_mask = wp.zeros(world_count, dtype=wp.int32, device=self.device)
         self._graph = None
         self.use_graph = wp.get_device(self.device).is_cuda
-        self._launches: list | None = None
-        """The control step's kernel launches with their arguments packed once (CPU: replayed each step)."""
+        threads = 1 if self.use_graph else min(cpu_threads or World.cpu_threads, world_count)
+        self._shards = _world_ranges(world_count, threads)
+        self._pool = ThreadPoolExecutor(threads - 1, thread_name_prefix="spiral-sim") if threads > 1 else None
+        self._launches: list[list] | None = None
+        """Per shard of worlds, the control step's kernel launches with their arguments packed once (CPU: replayed
+        each step)."""
 
     @property
     def time_step(self) -> float:
@@ -136,10 +147,9 @@ class World:
         elif self.replay_launches and self._launches is not None:
             self.race.step_passes.zero_()
             self.race.step_collision.zero_()
-            for cmd in self._launches:
-                cmd.launch()
+            self._replay()
         elif self.replay_launches:
-            self._launches = self._simulate(record=True)
+            self._launches = [self._simulate(self._shard(lo, hi), record=True) for lo, hi in self._shards]
         else:
             self._simulate()
 
@@ -147,10 +157,41 @@ class World:
     """On the CPU, pack the kernels' arguments once and replay the launches (Python's share of a launch is most of
     its cost at small world counts); False launches each kernel afresh, the plain path tests compare it with."""
 
-    def _simulate(self, *, record: bool = False) -> list:
-        """Launch one control step's kernels in order; with ``record``, return the launches (arguments packed) as
-        well, after running them."""
-        s, r, n, d = self.state, self.race, self.drone_count, self.drones_per_world
+    cpu_threads = 1
+    """Default number of CPU threads that step a world's replayed launches, each on a contiguous share of the worlds
+    (worlds never interact, so the result is the same for any count). A Warp CPU launch runs on one core; with 2
+    threads a process steps on two. CUDA ignores it."""
+
+    def _replay(self) -> None:
+        if self._pool is None:
+            _run(self._launches[0])
+            return
+        pending = [self._pool.submit(_run, cmds) for cmds in self._launches[1:]]
+        _run(self._launches[0])
+        for done in pending:
+            done.result()
+
+    def _shard(self, lo: int, hi: int) -> World | SimpleNamespace:
+        """What :meth:`_simulate` reads, for worlds ``lo:hi`` only: per-world arrays sliced to these worlds,
+        per-drone arrays to their drones (views, no copies)."""
+        if (lo, hi) == (0, self.world_count):
+            return self
+        d = self.drones_per_world
+
+        def cut(fields: dict) -> SimpleNamespace:
+            return SimpleNamespace(**{key: (arr[lo:hi] if arr.shape[0] == self.world_count else arr[lo * d:hi * d])
+                                      if isinstance(arr, wp.array) else arr for key, arr in fields.items()})
+
+        own = cut(dict(cmd=self.cmd, heading=self.heading, integral=self.integral, ext_force=self.ext_force,
+                       rpy=self.rpy))
+        return SimpleNamespace(**vars(own), state=cut(vars(self.state)), race=cut(vars(self.race)),
+                               world_count=hi - lo, drone_count=(hi - lo) * d)
+
+    def _simulate(self, v: World | SimpleNamespace | None = None, *, record: bool = False) -> list:
+        """Launch one control step's kernels in order on ``v`` (the world, the default, or a shard of it); with
+        ``record``, return the launches (arguments packed) as well, after running them."""
+        v = self if v is None else v
+        s, r, n, d = v.state, v.race, v.drone_count, self.drones_per_world
         dt = float(self.sim.dt)
         r.step_passes.zero_()
         r.step_collision.zero_()
@@ -164,21 +205,21 @@ class World:
                 launches.append(cmd)
 
         if mode == 0:
-            launch(command_heading, n, [self.cmd], [self.heading])
+            launch(command_heading, n, [v.cmd], [v.heading])
         for k in range(self.sim.substeps):
             if self.sim.downwash:
-                launch(drone_downwash, n, [s.pos, r.crashed, self.params, d], [self.ext_force])
+                launch(drone_downwash, n, [s.pos, r.crashed, self.params, d], [v.ext_force])
             launch(control_and_integrate, n,
-                   [s.pos, s.vel, s.quat, s.omega, s.rpm, self.cmd, self.heading, self.integral, r.crashed,
-                    self.ext_force, self.params, mode, d, dt],
+                   [s.pos, s.vel, s.quat, s.omega, s.rpm, v.cmd, v.heading, v.integral, r.crashed,
+                    v.ext_force, self.params, mode, d, dt],
                    [s.prev_pos, r.world_nonfinite])
             launch(detect_collisions_and_gate_passes, n,
                    [s.prev_pos, s.pos, r.crashed, self.track, self.params, r.world_substeps, d, k, dt],
                    [r.contact, r.next_gate, r.gates_passed, r.step_passes, r.pass_time])
             launch(apply_contacts, n, [r.contact, r.world_substeps, d, k, dt],
                    [r.step_collision, r.crashed, r.crash_time])
-        launch(advance_clocks, self.world_count, [self.sim.substeps], [r.world_substeps])
-        launch(euler_angles, n, [s.quat], [self.rpy])
+        launch(advance_clocks, v.world_count, [self.sim.substeps], [r.world_substeps])
+        launch(euler_angles, n, [s.quat], [v.rpy])
         return launches
 
     def reset(
@@ -213,3 +254,14 @@ class World:
     def world_time(self) -> np.ndarray:
         """Simulated time since each world's reset [s] (numpy copy)."""
         return self.race.world_substeps.numpy() * self.sim.dt
+
+
+def _world_ranges(world_count: int, parts: int) -> list[tuple[int, int]]:
+    """``parts`` contiguous ranges of worlds, as equal as integers allow."""
+    edges = [world_count * k // parts for k in range(parts + 1)]
+    return list(pairwise(edges))
+
+
+def _run(launches: list) -> None:
+    for cmd in launches:
+        cmd.launch()

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from spiral.sim.bench import format_bench_table, run_sim_bench, run_sim_bench_two_process
+from spiral.sim.bench import format_bench_table, run_sim_bench, run_sim_bench_two_process, time_world
 
 
 def test_bench_rows_and_table(kernels, gate_track):
@@ -37,15 +37,26 @@ def test_two_process_row_sums_both_processes():
     assert 0 < two["aggregate_drone_ctrl_steps_per_s"] <= sum(each) + 1
 
 
+def test_threaded_row_steps_the_worlds_on_the_threads_asked_for(kernels, gate_track):
+    """Time Warp alone with the worlds on two threads and print it under the table."""
+    row = time_world(3, 2, steps=3, repeats=1, cpu_threads=2, track=gate_track)
+    assert row["cpu_threads"] == 2 and (row["worlds"], row["drones"]) == (3, 2)
+    assert row["drone_ctrl_steps_per_s"] > 0 and row["mean_speed_m_s"] > 0.1
+    result = run_sim_bench([2], drones=(1,), steps=3, repeats=1, track=gate_track)
+    table = format_bench_table(result | {"threaded": row})
+    assert "on 2 threads, 3 worlds × 2 drones" in table and "threads" not in format_bench_table(result)
+
+
 def test_crazyflow_peer_script_runs_spiral_half(tmp_path):
     """Run spiral's half of benchmarks/crazyflow_peer.py at a tiny size (crazyflow itself is never installed here)."""
     root = Path(__file__).resolve().parents[2]
     out = tmp_path / "peer.json"
     subprocess.run([sys.executable, str(root / "benchmarks" / "crazyflow_peer.py"), "--only", "spiral", "--worlds", "2",
-                    "--drones", "2", "--steps", "3", "--repeats", "1", "--json", str(out)],
+                    "--drones", "2", "--steps", "3", "--repeats", "1", "--spiral-threads", "2", "--json", str(out)],
                    check=True, capture_output=True, text=True, cwd=root)
     result = json.loads(out.read_text())
     (row,) = result["results"]
     assert row["sim"] == "spiral" and (row["worlds"], row["drones"], row["steps"]) == (2, 2, 3)
+    assert row["cpu_threads"] == 2
     assert row["drone_ctrl_steps_per_s"] > 0 and row["drone_substeps_per_s"] > 0
     assert row["settings"]["physics_hz"] == 240 and row["settings"]["ctrl_hz"] == 48

@@ -152,3 +152,40 @@ def test_replayed_launches_give_exactly_the_plain_launch_path(make_world, target
     assert out[True]["crashed"].any() and (out[True]["crashed"] == 0).any() and out[True]["gates_passed"][0] == 1
     for key, value in out[False].items():
         np.testing.assert_array_equal(out[True][key], value, err_msg=key)
+
+
+@pytest.mark.parametrize(("world_count", "drones", "threads"), [(5, 4, 2), (5, 4, 3), (7, 1, 2)],
+                         ids=["4-drones-2-threads", "4-drones-3-threads", "1-drone-2-threads"])
+def test_worlds_stepped_in_threads_give_exactly_the_one_thread_state(make_world, targets, world_count, drones,
+                                                                     threads):
+    """Worlds split into uneven contiguous shares, each stepped on its own thread (downwash on, some drones crash,
+    one passes a gate, one world's drone goes non-finite): every state, race, controller and attitude array is bit
+    for bit that of one thread, and so are the per-world clocks and health flags."""
+    rng = np.random.default_rng(11)
+    n = world_count * drones
+    pos, yaw = starts(rng, n)
+    commands = targets(rng, 60, n)
+    pos[0], yaw[0], commands[:, 0] = (-1.0, 0.0, 1.5), 0.0, (1.5, 0.0, 1.5, 0.0)  # drone 0 flies through gate 0
+    out = {}
+    for count in (1, threads):
+        world = make_world(world_count=world_count, drones=drones, downwash=True, cpu_threads=count)
+        world.reset_all(pos, yaw)
+        for i, cmd in enumerate(commands):
+            wp.copy(world.cmd, wp.array(cmd, dtype=wp.vec4, device=world.device))
+            if i == 30:  # the last world's last drone gets a NaN velocity half-way
+                vel = world.state.vel.numpy().copy()
+                vel[n - 1] = [np.nan, 0.0, 0.0]
+                world.state.vel.assign(vel)
+            world.step()
+        out[count] = snapshot(world) | {"rpy": world.rpy.numpy().copy(),
+                                         "nonfinite": world.race.world_nonfinite.numpy().copy()}
+    assert out[1]["crashed"].any() and (out[1]["crashed"] == 0).any() and out[1]["gates_passed"][0] == 1
+    assert out[1]["nonfinite"].tolist() == [0] * (world_count - 1) + [1]
+    for key, value in out[1].items():
+        np.testing.assert_array_equal(out[threads][key], value, err_msg=key)
+
+
+def test_cpu_threads_must_be_positive(make_world):
+    """A thread count below one is refused by name."""
+    with pytest.raises(ValueError, match="cpu_threads"):
+        make_world(cpu_threads=0)

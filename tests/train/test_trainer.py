@@ -93,6 +93,24 @@ def test_same_seed_gives_the_same_training_on_cpu(oval2, tmp_path):
     assert all(torch.equal(wa[k], wb[k]) for k in wa)
 
 
+def test_simulator_threads_leave_the_training_unchanged(oval2, tmp_path, monkeypatch):
+    """Step the worlds on two threads (rollouts and selection evaluations) and get the weights and the log of one
+    thread, bit for bit."""
+    from spiral.sim import World
+
+    runs = {}
+    for threads in (1, 2):
+        monkeypatch.setattr(World, "cpu_threads", threads)
+        out = tmp_path / str(threads)
+        StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(4), out, seed=5, progress=False).train()
+        runs[threads] = (load_checkpoint(out / "ckpt" / "model_3.pt")["actor_state_dict"],
+                         [json.dumps({k: v for k, v in json.loads(x).items() if not k.endswith("_s") and k != "fps"})
+                          for x in (out / "train_log.jsonl").read_text().splitlines()])  # as text: NaN == NaN
+    (w1, log1), (w2, log2) = runs[1], runs[2]
+    assert all(torch.equal(w1[k], w2[k]) for k in w1)
+    assert log1 == log2 and any("eval/success" in row for row in log1)
+
+
 def test_paired_evaluation_races_both_policies_from_the_same_fresh_placements(oval2, tmp_path):
     """Start the learner's and the other policy's self-match from one draw, and the next pair from a new one."""
     trainer = StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(2), tmp_path, seed=4, progress=False)
