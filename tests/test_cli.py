@@ -108,3 +108,25 @@ def test_bench_ppo_profiles_a_smoke_stage_and_names_an_unknown_stage(tmp_path):
     assert data["worlds"] == 4 and data["samples_per_iteration"] == 4 * 8
     bad = runner.invoke(app, ["bench", "ppo", smoke, "--stage", "nope"])
     assert bad.exit_code == 1 and "Error: --stage:" in bad.output and "no stage named 'nope'" in bad.output
+
+
+def test_sim_threads_option_sets_the_simulators_thread_count_and_refuses_zero(monkeypatch):
+    """--sim-threads 2 reaches World.cpu_threads before the profiled worlds are built; 0 is a usage error."""
+    from spiral.sim import World
+
+    monkeypatch.setattr(World, "cpu_threads", 1)  # restored after the test
+    shares = []
+    init = World.__init__
+
+    def recording_init(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        shares.append(len(self._shards))
+
+    monkeypatch.setattr(World, "__init__", recording_init)
+    smoke = str(ROOT / "pipelines" / "smoke.yaml")
+    result = runner.invoke(app, ["bench", "ppo", smoke, "--stage", "solo", "--worlds", "4", "--iterations", "1",
+                                 "--sim-threads", "2"])
+    assert result.exit_code == 0, result.output
+    assert World.cpu_threads == 2 and shares and set(shares) == {2}
+    bad = runner.invoke(app, ["bench", "ppo", smoke, "--sim-threads", "0"])
+    assert bad.exit_code == 2 and "--sim-threads" in bad.output
