@@ -2,11 +2,10 @@
 
 The parent holds the pipeline lock and schedules: a step starts once every step it depends on has finished, at
 most N at a time, training steps first. Each worker process runs one step exactly as the sequential runner would
-(same folder, fingerprint, resume and manifest), with its torch threads (and the simulator's, ``World.cpu_threads``)
-set to its share of the CPU cores: all of them when it is the only step that can run (nothing else can become ready
-before it ends), ``cores // N`` otherwise, so the workers never oversubscribe the CPU (torch's thread pools slow
-down many times over when they do). Worker output is relayed line by line, prefixed with the step's name, and kept
-in ``<run>/logs/<step>.log``.
+(same folder, fingerprint, resume and manifest), with its torch threads set to its share of the CPU cores: all of
+them when it is the only step that can run (nothing else can become ready before it ends), ``cores // N``
+otherwise, so the workers never oversubscribe the CPU (torch's thread pools slow down many times over when they
+do). Worker output is relayed line by line, prefixed with the step's name, and kept in ``<run>/logs/<step>.log``.
 
 A failed step lets the running ones finish (their work is kept) and starts nothing new; the error names the
 step, its log and the command that resumes. An interrupt stops the workers; training resumes from checkpoints.

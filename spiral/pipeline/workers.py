@@ -11,7 +11,6 @@ import torch
 
 from spiral.pipeline.runner import PipelineRunner
 from spiral.pipeline.step import PipelineError
-from spiral.sim import World
 
 __all__ = ["main"]
 
@@ -29,7 +28,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--accept-code-changes", action="store_true")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    World.cpu_threads = args.threads  # the simulator steps on the same share of the cores (same results)
     runner = PipelineRunner(args.pipeline, runs_dir=args.runs_dir, checkpoints_dir=args.checkpoints_dir,
                             device=args.device, progress=False, log=lambda m: print(m, flush=True),
                             accept_code_changes=args.accept_code_changes)
