@@ -160,7 +160,8 @@ class World:
     cpu_threads = 1
     """Default number of CPU threads that step a world's replayed launches, each on a contiguous share of the worlds
     (worlds never interact, so the result is the same for any count). A Warp CPU launch runs on one core; with 2
-    threads a process steps on two. CUDA ignores it."""
+    threads a process steps on two, which pays when the simulator has the cores to itself (docs/physics.md). CUDA
+    ignores it."""
 
     def _replay(self) -> None:
         if self._pool is None:
