@@ -179,14 +179,15 @@ class World:
             return self
         d = self.drones_per_world
 
-        def cut(fields: dict) -> SimpleNamespace:
-            return SimpleNamespace(**{key: (arr[lo:hi] if arr.shape[0] == self.world_count else arr[lo * d:hi * d])
-                                      if isinstance(arr, wp.array) else arr for key, arr in fields.items()})
+        def cut(fields: dict) -> dict:
+            return {key: (arr[lo:hi] if arr.shape[0] == self.world_count else arr[lo * d:hi * d])
+                    if isinstance(arr, wp.array) else arr for key, arr in fields.items()}
 
         own = cut(dict(cmd=self.cmd, heading=self.heading, integral=self.integral, ext_force=self.ext_force,
                        rpy=self.rpy))
-        return SimpleNamespace(**vars(own), state=cut(vars(self.state)), race=cut(vars(self.race)),
-                               world_count=hi - lo, drone_count=(hi - lo) * d)
+        return SimpleNamespace(**own, state=SimpleNamespace(**cut(vars(self.state))),
+                               race=SimpleNamespace(**cut(vars(self.race))), world_count=hi - lo,
+                               drone_count=(hi - lo) * d)
 
     def _simulate(self, v: World | SimpleNamespace | None = None, *, record: bool = False) -> list:
         """Launch one control step's kernels in order on ``v`` (the world, the default, or a shard of it); with
