@@ -106,3 +106,24 @@ def test_a_stage_without_mix_trains_on_one_plain_race_env(line2):
     stage = StageSpec(name="1v1", scenario="1v1", worlds=3, iterations=1, env={"obs": {"history_len": 1}})
     env = training_env(line2, AIRFRAMES["cf2x"], SimCfg(), stage, device="cpu", seed=0)
     assert type(env) is RaceEnv and env.num_envs == 3
+
+
+def test_a_1v1_stage_with_2v2_worlds_races_a_learner_team_of_two_against_two_opponents(line2):
+    """A format with more drones than the stage's own: in the 2v2 worlds of a 1v1 stage both drones of team A are
+    learner rows (slots 0, 1) and the opponents fly slots 2, 3; the 1v1 worlds come first."""
+    stage = StageSpec(name="1v1", scenario="1v1", worlds=8, iterations=1, mix={"2v2": 0.25},
+                      env={"obs": {"history_len": 1}, "episode": {"track_start_prob": 0.0}})
+    assert stage.world_split() == {"1v1": 6, "2v2": 2}
+    assert stage.iteration_budget() == 1
+    env = training_env(line2, AIRFRAMES["cf2x"], SimCfg(), stage, device="cpu", seed=0)
+    shapes = {f: (p.world_count, p.drones_per_world, p.learner_slots, p.opponent_slots) for f, p in env.parts.items()}
+    assert shapes == {"1v1": (6, 2, [0], [1]), "2v2": (2, 4, [0, 1], [2, 3])}
+    assert env.num_envs == 6 + 2 * 2
+    env.set_opponent_policies({f: (lambda obs: torch.full((obs.batch_size[0], 4), 0.25)) for f in env.parts})
+    env.reset()
+    actions = torch.linspace(-0.9, 0.9, 10)[:, None].expand(10, 4)
+    env.step(actions)
+    rows = iter(actions.split([6, 4]))
+    for part in env.parts.values():
+        torch.testing.assert_close(part.last_action[part.learner_idx], next(rows))
+        assert (part.last_action[part.opponent_idx] == 0.25).all()
