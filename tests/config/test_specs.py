@@ -154,8 +154,8 @@ def test_pipeline_names_evaluation_sides_when_it_is_not_a_head_to_head_protocol(
 
 @pytest.mark.parametrize("name", ["full.yaml", "smoke.yaml"])
 def test_shipped_baseline_stages_match_their_self_play_stage_but_for_the_opponents(name):
-    """PPO without self-play is an ablation: same env (reward, observation, actions), PPO, budget and format mix per
-    format."""
+    """PPO without self-play is an ablation: same env (reward, observation, actions), PPO and budget per format; it
+    races every format mixed into its twin stage that it races at all, with the same share (it may keep fewer)."""
     stages = load_pipeline(ROOT / "pipelines" / name)[0].stages
     frozen = [s for s in stages if s.selfplay.mode == "frozen"]
     assert {s.scenario for s in frozen} == {"1v1", "2v2"}
@@ -166,8 +166,17 @@ def test_shipped_baseline_stages_match_their_self_play_stage_but_for_the_opponen
         assert stage.env == twin.env, stage.name
         assert stage.ppo == twin.ppo, stage.name
         assert (stage.worlds, stage.iteration_budget()) == (twin.worlds, twin.iteration_budget()), stage.name
-        assert stage.mix == twin.mix, stage.name
+        assert stage.mix == {fmt: share for fmt, share in twin.mix.items() if fmt in stage.mix}, stage.name
         assert stage.selfplay.promotion == twin.selfplay.promotion, stage.name
+
+
+def test_the_shipped_pipeline_mixes_2v2_worlds_into_spirals_1v1_stage_but_not_the_baselines():
+    """full.yaml: SPIRAL's 1v1 stage races 30% 2v2 worlds; the baseline's 1v1 stage keeps pure 1v1 worlds (its
+    stronger setting); both 2v2 stages keep solo and 1v1 worlds, so each branch's final policy races every format."""
+    stages = {s.name: s for s in load_pipeline(ROOT / "pipelines" / "full.yaml")[0].stages}
+    assert stages["1v1"].mix == {"2v2": 0.3}
+    assert stages["1v1-noselfplay"].mix == {}
+    assert stages["2v2"].mix == stages["2v2-noselfplay"].mix == {"solo": 0.05, "1v1": 0.15}
 
 
 @pytest.mark.parametrize(("options", "field"), [
