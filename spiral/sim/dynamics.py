@@ -9,9 +9,20 @@ from spiral.sim.pid import pid_position_control, rpm_passthrough
 from spiral.sim.rotations import quat_integrate
 from spiral.sim.state import QuadParams
 
-__all__ = ["body_wrench", "control_and_integrate", "downwash_force", "drone_downwash", "ground_effect_factor"]
+__all__ = ["all_finite", "body_wrench", "control_and_integrate", "downwash_force", "drone_downwash",
+           "ground_effect_factor"]
 
 wp.set_module_options(MODULE_OPTIONS)
+
+FLOAT32_MAX = wp.constant(wp.float32(3.4028234663852886e38))
+
+
+@wp.func
+def all_finite(v: wp.vec3) -> bool:
+    """Whether every component is finite: |x| <= the largest float32 is false for ±inf and for NaN (a comparison
+    with NaN is false). Three comparisons where ``wp.isfinite`` calls out of the kernel once per component (on the
+    CPU, through a function pointer, with a conversion to double)."""
+    return wp.abs(v[0]) <= FLOAT32_MAX and wp.abs(v[1]) <= FLOAT32_MAX and wp.abs(v[2]) <= FLOAT32_MAX
 
 
 @wp.func
@@ -111,7 +122,7 @@ def control_and_integrate(
     p_new = p0 + v_new * dt
     q_new = quat_integrate(q, w_new, dt)
     # a quaternion whose norm overflowed normalises to (0, 0, 0, 0), which is finite: count it as non-finite too
-    ok = wp.isfinite(p_new) and wp.isfinite(v_new) and wp.isfinite(w_new) and wp.length_sq(q_new) > 0.5
+    ok = all_finite(p_new) and all_finite(v_new) and all_finite(w_new) and wp.length_sq(q_new) > 0.5
     if not ok:
         world_nonfinite[tid / drones_per_world] = 1
         return

@@ -15,5 +15,5 @@ divisions, e.g. by a norm, into products with approximate reciprocals). They mov
 renormalised identity quaternion comes out one float32 step below 1, and the kernels stay within the numpy
 reference's rounding bound (``tests/sim/test_reference.py``). Not ``-mreassociate``: it gained nothing measurable
 and took the rotor thrusts past that bound (1.12 of it). Not ``-ffast-math``: its finite-math assumption lets the
-compiler drop the ``isfinite`` health check, so a NaN would go unflagged; these flags keep NaN and infinity
-semantics (``tests/sim/test_world.py`` injects a NaN to check)."""
+compiler drop the finite-value health check (``dynamics.all_finite``), so a NaN would go unflagged; these flags keep
+NaN and infinity semantics (``tests/sim/test_world.py`` injects NaN and ±inf to check)."""

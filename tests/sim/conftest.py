@@ -12,7 +12,7 @@ import warp as wp
 from spiral.config import AIRFRAMES, AirframeCfg, AirframeSel, SimCfg, TrackSpec, resolve_airframe
 from spiral.sim import QuadParams, TrackArrays, World
 from spiral.sim.collisions import sphere_gate_overlap
-from spiral.sim.dynamics import body_wrench
+from spiral.sim.dynamics import all_finite, body_wrench
 from spiral.sim.gates import segment_gate_crossing
 from spiral.sim.pid import mix
 
@@ -50,6 +50,13 @@ def mix_wrench_kernel(wrench: wp.array[wp.vec4], params: QuadParams, rpm: wp.arr
     out[i] = body_wrench(motor, params)
 
 
+@wp.kernel
+def finite_kernel(v: wp.array[wp.vec3], out: wp.array[wp.int32]):
+    """Evaluate ``all_finite`` for each vector."""
+    i = wp.tid()
+    out[i] = wp.where(all_finite(v[i]), 1, 0)
+
+
 class Kernels:
     """Numpy-in, numpy-out wrappers of the ``@wp.func`` helpers under test."""
 
@@ -84,6 +91,13 @@ class Kernels:
         wp.launch(mix_wrench_kernel, n, inputs=[wp.array(np.asarray(wrench, np.float32), dtype=wp.vec4),
                                                 world.params], outputs=[rpm, out])
         return rpm.numpy(), out.numpy()
+
+    @staticmethod
+    def all_finite(v: np.ndarray) -> np.ndarray:
+        """1 where every component of a 3-vector is finite (the dynamics kernel's health check)."""
+        out = wp.zeros(len(v), dtype=wp.int32)
+        wp.launch(finite_kernel, len(v), inputs=[wp.array(np.asarray(v, np.float32), dtype=wp.vec3)], outputs=[out])
+        return out.numpy()
 
 
 @pytest.fixture(scope="session")

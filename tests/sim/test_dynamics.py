@@ -128,3 +128,12 @@ def test_downwash_pushes_lower_drone_down(make_world, cf2x, run):
     force = alpha * math.exp(-0.5 * (dxy / beta) ** 2)
     assert math.isclose(out["vel"][0, 0, 2], -force / cf2x.mass * DT, rel_tol=1e-4)
     assert abs(out["vel"][0, 1, 2]) < 1e-6
+
+
+
+def test_the_finite_check_rejects_nan_and_both_infinities_and_keeps_the_largest_floats(kernels):
+    """``all_finite`` (the kernel's health check) agrees with numpy on finite extremes, ±inf and NaN per component."""
+    big, tiny = np.finfo(np.float32).max, np.finfo(np.float32).smallest_subnormal
+    rows = np.array([[0.0, -0.0, 1.0], [big, -big, tiny], [np.inf, 0.0, 0.0], [0.0, -np.inf, 0.0],
+                     [0.0, 0.0, np.nan], [np.nan, np.inf, -np.inf]], dtype=np.float32)
+    np.testing.assert_array_equal(kernels.all_finite(rows), np.isfinite(rows).all(axis=1))

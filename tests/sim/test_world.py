@@ -94,8 +94,10 @@ def test_reset_of_a_subset_leaves_other_worlds_untouched(make_world, run, target
         np.testing.assert_array_equal(a[k][:, 2:4], b[k])
 
 
-def test_nonfinite_state_is_flagged_and_contained(make_world, run, targets):
-    """Flag only the world whose drone got a NaN velocity, keep its stored pose finite, leave other drones as before."""
+@pytest.mark.parametrize(("field", "bad"), [("vel", np.nan), ("vel", np.inf), ("omega", -np.inf), ("omega", np.nan)])
+def test_nonfinite_state_is_flagged_and_contained(make_world, run, targets, field, bad):
+    """Flag only the world whose drone got a NaN or infinite velocity or body rate, keep its stored pose finite,
+    leave other drones as before."""
     rng = np.random.default_rng(9)
     pos, yaw = starts(rng, 6)
     cmds = targets(rng, 30, 6)
@@ -103,14 +105,15 @@ def test_nonfinite_state_is_flagged_and_contained(make_world, run, targets):
     for w in (clean, hurt):
         w.reset_all(pos, yaw)
         run(w, cmds[:10])
-    vel = hurt.state.vel.numpy().copy()
-    vel[2] = [np.nan, 0.0, 0.0]  # drone 0 of world 1
-    hurt.state.vel.assign(vel)
+    state = getattr(hurt.state, field)
+    values = state.numpy().copy()
+    values[2] = [bad, 0.0, 0.0]  # drone 0 of world 1
+    state.assign(values)
     frozen_pos = hurt.state.pos.numpy()[2].copy()
     a, b = run(clean, cmds[10:]), run(hurt, cmds[10:])
     assert hurt.race.world_nonfinite.numpy().tolist() == [0, 1, 0]
     assert clean.race.world_nonfinite.numpy().tolist() == [0, 0, 0]
-    for k in ("pos", "quat", "omega", "rpm", "rpy"):
+    for k in sorted({"pos", "quat", "omega", "rpm", "rpy"} - {field}):  # the injected value itself is never overwritten
         assert np.isfinite(b[k]).all(), k
     np.testing.assert_array_equal(b["pos"][:, 2], np.broadcast_to(frozen_pos, (20, 3)))
     others = [0, 1, 3, 4, 5]
