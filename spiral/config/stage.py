@@ -103,6 +103,12 @@ class SelfPlayCfg(StrictModel):
         "uniformly in [-x, x] per axis of the position target (action units): opponents fly other lines than "
         "their policy's own (robustness to strangers); 0: off",
     )
+    opponent_pace: float = Field(
+        default=0.0, ge=0, lt=1,
+        description="Largest slow-down of an opponent: its position-target actions are scaled for a whole episode "
+        "by a factor drawn per opponent uniformly in [1 - x, 1] (relative action mode: a nearer target, a slower "
+        "flight), so that the learner meets slower drones ahead of it and learns to pass them; 0: off",
+    )
     p_latest: float = Field(default=0.5, ge=0, le=1, description="Probability of racing the latest best")
     p_first: float = Field(
         default=0.0, ge=0, le=1,
@@ -168,6 +174,13 @@ class StageSpec(StrictModel):
         bad = [name for name, set_ in nonsense.items() if set_]
         if bad:
             raise ValueError(f"{bad[0]}: a solo stage has no other drone for it to act on")
+        return self
+
+    @model_validator(mode="after")
+    def _pace_needs_relative_targets(self) -> StageSpec:
+        if self.selfplay.opponent_pace > 0 and self.env.action.mode != "relative":
+            raise ValueError("selfplay.opponent_pace: scaling an opponent's actions slows it only in the relative "
+                             "action mode (env.action.mode); absolute targets would move towards the arena's centre")
         return self
 
     @model_validator(mode="after")

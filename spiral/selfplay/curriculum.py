@@ -89,7 +89,8 @@ def _world_opponents(stage: StageSpec, members: list[FrozenPolicy], matchmaker: 
     return {
         part.name: PoolOpponents(members, matchmaker, world_count=part.worlds,
                                  per_world=SCENARIO_DRONES[part.scenario] - len(part.learner_slots),
-                                 generator=generator, p_self=p_self, offset=stage.selfplay.opponent_offset)
+                                 generator=generator, p_self=p_self, offset=stage.selfplay.opponent_offset,
+                                 pace=stage.selfplay.opponent_pace)
         for part in stage.world_parts() if part.opponents
     }
 

@@ -22,12 +22,15 @@ class PoolOpponents:
     learner's deterministic policy before the first step (:class:`~spiral.train.StageTrainer` does). Mirror races
     are not counted by the matchmaker. With ``offset > 0`` every opponent adds a constant offset, drawn per world
     at its reset uniformly in [-offset, offset] per axis, to its position-target actions: it flies another line.
+    With ``pace > 0`` every opponent first clips its position-target actions to [-1, 1] and scales them by a factor
+    drawn at its world's reset uniformly in [1 - pace, 1]: in the relative action mode it aims nearer and flies slower.
     """
 
     def __init__(self, policies: list[FrozenPolicy], matchmaker: Matchmaker, *, world_count: int, per_world: int,
-                 generator: torch.Generator, p_self: float = 0.0, offset: float = 0.0) -> None:
+                 generator: torch.Generator, p_self: float = 0.0, offset: float = 0.0, pace: float = 0.0) -> None:
         self.policies, self.matchmaker = policies, matchmaker
         self.per_world, self.generator, self.p_self, self.offset = per_world, generator, p_self, offset
+        self.pace = pace
         self.live: Callable[[TensorDict], torch.Tensor] | None = None
         """The learner's current policy, for mirror worlds."""
         self.assignment = torch.zeros(world_count, dtype=torch.long, device=matchmaker.races.device)
@@ -36,6 +39,8 @@ class PoolOpponents:
         """Worlds whose opponents are the learner's current policy."""
         self.action_offset = torch.zeros(world_count, per_world, 3, device=matchmaker.races.device)
         """Constant offset of each opponent's position-target actions for the episode (its yaw is untouched)."""
+        self.action_scale = torch.ones(world_count, per_world, 1, device=matchmaker.races.device)
+        """Factor on each opponent's position-target actions for the episode (``pace``; its yaw is untouched)."""
         self.reset(torch.ones(world_count, dtype=torch.bool, device=matchmaker.races.device))
 
     @torch.no_grad()
@@ -51,6 +56,8 @@ class PoolOpponents:
         for m in torch.unique(member_of_row[~mirror_row]).tolist():
             rows = (member_of_row == m) & ~mirror_row
             actions[rows] = self.policies[m](obs[rows])
+        if self.pace > 0:  # on the action range the env keeps: a policy's mean may lie beyond it
+            actions[:, :3] = actions[:, :3].clamp(-1.0, 1.0) * self.action_scale.view(-1, 1)
         if self.offset > 0:
             actions[:, :3] += self.action_offset.view(-1, 3)
         return actions
@@ -65,6 +72,9 @@ class PoolOpponents:
             if self.offset > 0:
                 shift = torch.rand(count, self.per_world, 3, generator=self.generator, device=self.mirror.device)
                 self.action_offset[worlds] = (2.0 * shift - 1.0) * self.offset
+            if self.pace > 0:
+                slow = torch.rand(count, self.per_world, 1, generator=self.generator, device=self.mirror.device)
+                self.action_scale[worlds] = 1.0 - slow * self.pace
 
     def record(self, worlds: torch.Tensor, learner_won: torch.Tensor) -> None:
         """Feed race outcomes of ended pool worlds (indices) to the matchmaker."""

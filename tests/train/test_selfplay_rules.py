@@ -8,7 +8,7 @@ import pytest
 import torch
 from pydantic import ValidationError
 
-from spiral.config import PromotionCfg, SelfPlayCfg
+from spiral.config import PromotionCfg, SelfPlayCfg, StageSpec
 from spiral.selfplay import HeadToHead, Matchmaker, Pool, elo_update, should_promote
 
 
@@ -130,3 +130,16 @@ def test_pool_skips_a_member_whose_checksum_fails(tmp_path):
     logs: list[str] = []
     assert Pool(tmp_path, log=logs.append).load_policies({"obs_dim": 1}) == {}
     assert "pool member x skipped" in logs[0]
+
+
+def test_opponent_pace_lies_in_zero_to_one_and_needs_relative_targets():
+    """A pace below 0 or at 1 (an opponent that stops) names the field; absolute action targets refuse a pace."""
+    assert SelfPlayCfg(opponent_pace=0.3).opponent_pace == 0.3
+    assert SelfPlayCfg().opponent_pace == 0.0
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ValidationError, match="opponent_pace"):
+            SelfPlayCfg(opponent_pace=bad)
+    spec = {"name": "1v1", "scenario": "1v1", "iterations": 1, "selfplay": {"opponent_pace": 0.3}}
+    assert StageSpec.model_validate(spec).selfplay.opponent_pace == 0.3
+    with pytest.raises(ValidationError, match="selfplay.opponent_pace"):
+        StageSpec.model_validate({**spec, "env": {"action": {"mode": "absolute"}}})

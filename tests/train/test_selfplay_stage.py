@@ -177,3 +177,30 @@ def test_opponent_offsets_hold_for_an_episode_and_are_redrawn_at_reset(line2, tm
     shifted.reset(torch.arange(20) < 10)
     moved = (shifted(obs) - plain(obs) - delta)[:, :3].abs().sum(-1) > 0
     assert moved[:20].all() and not moved[20:].any()  # only the reset worlds (rows 0-19) draw new offsets
+
+
+def test_opponent_pace_scales_each_opponents_clipped_targets_for_an_episode(line2, tmp_path):
+    """With pace 0.4 each opponent's position-target actions are its policy's, clipped to [-1, 1], times one factor
+    in [0.6, 1] per episode (its own, redrawn at reset); yaw is untouched."""
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
+    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "a", pool_dir=tmp_path / "p", init_checkpoint=None,
+              progress=False)
+    frozen = load_policy(tmp_path / "a" / "best.pt")
+    dim = frozen.obs_layout["obs_dim"]
+    obs = TensorDict({"policy": 5 * torch.randn(40, dim), "critic": torch.randn(40, dim)}, batch_size=[40])
+    plain = PoolOpponents([frozen], Matchmaker(1, latest=0, p_latest=0.5), world_count=20, per_world=2,
+                          generator=torch.Generator().manual_seed(0))
+    slow = PoolOpponents([frozen], Matchmaker(1, latest=0, p_latest=0.5), world_count=20, per_world=2,
+                         generator=torch.Generator().manual_seed(0), pace=0.4)
+    base = plain(obs)
+    clipped = base[:, :3].clamp(-1.0, 1.0)
+    factor = slow(obs)[:, :3] / clipped
+    assert torch.allclose(factor, factor[:, :1].expand(-1, 3), atol=1e-5)  # one factor per opponent
+    factor = factor[:, 0]
+    assert factor.min() >= 0.6 - 1e-6 and factor.max() <= 1.0 + 1e-6 and factor.max() - factor.min() > 0.2
+    assert len(set(factor.tolist())) == 40
+    assert torch.equal(slow(obs)[:, 3], base[:, 3])
+    assert torch.equal(slow(obs), slow(obs))  # held for the episode
+    slow.reset(torch.arange(20) < 10)
+    changed = (slow(obs)[:, 0] / clipped[:, 0] - factor).abs() > 1e-6
+    assert changed[:20].all() and not changed[20:].any()  # only the reset worlds (rows 0-19) draw new factors
