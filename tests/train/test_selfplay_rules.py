@@ -141,5 +141,5 @@ def test_opponent_pace_lies_in_zero_to_one_and_needs_relative_targets():
             SelfPlayCfg(opponent_pace=bad)
     spec = {"name": "1v1", "scenario": "1v1", "iterations": 1, "selfplay": {"opponent_pace": 0.3}}
     assert StageSpec.model_validate(spec).selfplay.opponent_pace == 0.3
-    with pytest.raises(ValidationError, match="selfplay.opponent_pace"):
+    with pytest.raises(ValidationError, match=r"selfplay\.opponent_pace"):
         StageSpec.model_validate({**spec, "env": {"action": {"mode": "absolute"}}})
