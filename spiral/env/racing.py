@@ -11,7 +11,11 @@ from spiral.env.observations import nearest_others
 from spiral.env.race_env import RaceEnv
 from spiral.sim import COLLISION_KINDS
 
-__all__ = ["RaceResults", "concat_results", "run_races"]
+__all__ = ["BEARINGS", "RaceResults", "concat_results", "contact_bearing", "run_races"]
+
+BEARINGS = ("ahead", "beside", "behind")
+"""Where the other drone of a drone–drone contact was, seen along the crashed drone's direction of travel (the codes
+0, 1, 2 of ``RaceResults.contact_bearing``)."""
 
 
 @dataclass
@@ -38,6 +42,9 @@ class RaceResults:
     """Race time of the crash (the simulator's, to the physics substep), 0 when not crashed [s]."""
     crash_partner: torch.Tensor | None = None
     """Slot of the drone touched in a drone–drone contact (the nearest one still racing), else −1."""
+    contact_bearing: torch.Tensor | None = None
+    """Where that drone was one control step before the contact, by :func:`contact_bearing` (index into
+    ``BEARINGS``), else −1."""
     team: torch.Tensor | None = None
     """Team of each slot, shape (D,)."""
     split_time: torch.Tensor | None = None
@@ -67,6 +74,7 @@ class RaceResults:
             crash_time=None if self.crash_time is None else self.crash_time[:, idx],
             crash_partner=partner, team=self.team,
             split_time=None if self.split_time is None else self.split_time[:, idx],
+            contact_bearing=None if self.contact_bearing is None else self.contact_bearing[:, idx],
         )
 
 
@@ -83,11 +91,12 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
     w, d = env.world_count, env.drones_per_world
     distance = torch.zeros(env.drone_count, device=env.device)
     partner = torch.full((env.drone_count,), -1, dtype=torch.long, device=env.device)
+    bearing = torch.full((env.drone_count,), -1, dtype=torch.long, device=env.device)
     splits = torch.zeros(env.drone_count, env.passes_needed, device=env.device)
     passed = env.gates_passed.clone()
     frames = [env.pos.clone()] if record else []
     for _ in range(env.max_episode_length):
-        before = env.pos.clone()
+        before, vel_before = env.pos.clone(), env.vel.clone()
         racing = ~(env.finished | env.crashed | env.absent)
         with torch.no_grad():
             obs, _, _, _ = env.step(policy(obs))
@@ -101,6 +110,9 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
         if contact.any():  # the other drone: the nearest one that was still racing
             near, found = nearest_others(env.pos.view(w, d, 3), racing.view(w, d), count=1)
             partner = torch.where(contact, torch.where(found, near, -1).flatten(), partner)
+            other = (torch.arange(w, device=env.device)[:, None] * d + near.view(w, d)).flatten()
+            rel = before[other] - before
+            bearing = torch.where(contact & found.flatten(), contact_bearing(rel, vel_before), bearing)
         if record:
             frames.append(env.pos.clone())
         if bool((env.finished | env.crashed | env.absent).all()):
@@ -120,6 +132,7 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
         trajectory=torch.stack(frames).view(-1, w, d, 3).cpu() if record else None,
         crash_time=grid(torch.where(env.crashed, env.crash_time, 0.0)),
         crash_partner=grid(partner),
+        contact_bearing=grid(bearing),
         team=env.slot_team.cpu() if teams is None else _team_of_slots(teams, d),
         split_time=splits.view(w, d, -1).cpu(),
     )
@@ -148,8 +161,22 @@ def concat_results(parts: list[RaceResults]) -> RaceResults:
         finished=cat("finished"), crashed=cat("crashed"), crash_kind=cat("crash_kind"), lap_time=cat("lap_time"),
         gates_passed=cat("gates_passed"), distance=cat("distance"), present=cat("present"),
         crash_time=cat_optional("crash_time"), crash_partner=cat_optional("crash_partner"), team=first.team,
-        split_time=cat_optional("split_time"),
+        split_time=cat_optional("split_time"), contact_bearing=cat_optional("contact_bearing"),
     )
+
+
+def contact_bearing(rel: torch.Tensor, vel: torch.Tensor) -> torch.Tensor:
+    """Where another drone at offset ``rel`` (N, 3) lies for a drone flying at ``vel`` (N, 3): 0 ahead (within 45°
+    of the direction of travel), 2 behind (within 45° of the opposite), 1 beside (the rest, and any drone next to
+    one that stands still)."""
+    speed = vel.norm(dim=-1, keepdim=True)
+    heading = vel / speed.clamp(min=1e-9)
+    along = (rel * heading).sum(-1)
+    across = (rel - along[:, None] * heading).norm(dim=-1)
+    moving = speed.squeeze(-1) > 1e-6
+    code = torch.ones_like(along, dtype=torch.long)
+    code = torch.where(moving & (along > across), 0, code)
+    return torch.where(moving & (along < -across), 2, code)
 
 
 def _team_of_slots(teams: list[list[int]], drones: int) -> torch.Tensor:

@@ -8,7 +8,7 @@ from typing import Any
 
 import torch
 
-from spiral.env.racing import RaceResults
+from spiral.env.racing import BEARINGS, RaceResults
 from spiral.sim import COLLISION_KINDS
 
 __all__ = ["clustered_interval", "lap_statistics", "summarize_races", "wilson_interval"]
@@ -112,7 +112,9 @@ def _crash_details(res: RaceResults, mask: torch.Tensor) -> dict[str, Any]:
     """Where and when the ``mask`` drones crashed, and whom they touched (when the results record it).
 
     ``crash_gates`` counts crashes by the gate of the lap the drone was flying to (0 = the first gate after the
-    start, in passing order); ``drone_contacts`` splits drone–drone crashes by the other drone's team.
+    start, in passing order); ``drone_contacts`` splits drone–drone crashes by the other drone's team and
+    ``contact_bearing`` by where the other drone was one control step before (ahead, beside, behind: see
+    :func:`~spiral.env.racing.contact_bearing`).
     """
     crashed = res.crashed & mask
     gates = res.gates_passed[crashed].tolist()
@@ -127,4 +129,7 @@ def _crash_details(res: RaceResults, mask: torch.Tensor) -> dict[str, Any]:
         touched = partner >= 0
         same = res.team[partner.clamp(min=0)] == own
         out["drone_contacts"] = {"teammate": int((touched & same).sum()), "opponent": int((touched & ~same).sum())}
+    if res.contact_bearing is not None:
+        codes = res.contact_bearing[crashed]
+        out["contact_bearing"] = {name: int((codes == i).sum()) for i, name in enumerate(BEARINGS)}
     return out

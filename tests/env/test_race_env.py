@@ -12,6 +12,7 @@ from spiral.config import AIRFRAMES, EnvCfg, ObsCfg, RewardCfg, SimCfg, TrackSpe
 from spiral.core.checkpoint import load_policy
 from spiral.env import HISTORY_FEATURES, RaceEnv, compute_rewards, run_races
 from spiral.env.observations import HISTORY_FIELDS, OBS_TERMS
+from spiral.env.racing import BEARINGS, contact_bearing
 from spiral.env.rewards import StepOutcome
 from spiral.eval.metrics import summarize_races
 
@@ -437,6 +438,19 @@ def test_race_results_name_the_drone_each_crashed_drone_touched(oval2, partner):
     summary = summarize_races(res)
     assert summary["drone_contacts"] == {"teammate": 0, "opponent": 0, kind: 2}
     assert summary["crash_gates"] == {"0": 2}
+    # flying at each other, each had the other ahead of it; drones that did not touch anyone record no bearing
+    assert summary["contact_bearing"] == {"ahead": 2, "beside": 0, "behind": 0}
+    assert (res.contact_bearing[0, others] == -1).all()
+
+
+def test_contact_bearing_splits_ahead_beside_and_behind_at_45_degrees():
+    """Another drone within 45° of the direction of travel is ahead, within 45° of the opposite behind, else beside;
+    next to a drone that stands still it is beside."""
+    vel = torch.tensor([[2.0, 0.0, 0.0]] * 5 + [[0.0, 0.0, 0.0]])
+    rel = torch.tensor([[0.1, 0.05, 0.0], [0.1, 0.0, -0.11], [0.0, 0.1, 0.0], [-0.1, 0.0, 0.09], [-0.1, -0.2, 0.0],
+                        [0.1, 0.0, 0.0]])
+    assert contact_bearing(rel, vel).tolist() == [0, 1, 1, 2, 1, 1]
+    assert [BEARINGS[i] for i in contact_bearing(rel[:1], -vel[:1]).tolist()] == ["behind"]
 
 
 def test_race_critic_sees_every_other_drone_opponents_first(oval2):
