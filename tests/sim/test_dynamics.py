@@ -130,7 +130,6 @@ def test_downwash_pushes_lower_drone_down(make_world, cf2x, run):
     assert abs(out["vel"][0, 1, 2]) < 1e-6
 
 
-
 def test_the_finite_check_rejects_nan_and_both_infinities_and_keeps_the_largest_floats(kernels):
     """``all_finite`` (the kernel's health check) agrees with numpy on finite extremes, ±inf and NaN per component."""
     big, tiny = np.finfo(np.float32).max, np.finfo(np.float32).smallest_subnormal
