@@ -113,10 +113,13 @@ def robustness_markdown(rb: Robustness, sides: str) -> list[str]:
     lines += ["", "## Racing strangers", "",
               f"Each learned method (its stage's best, as in the tables) racing drones it did not train with, from "
               f"{where} ({side}): success of its drones with its 95% interval, races in which all of its drones "
-              "finished, its crashes (gate frames / drone contacts) and, against a team, its win / loss / draw. Mixed "
-              "teams: 2v2 races whose teams each have one drone of each method.", "",
-              "| Scenario | Method | Against | Success | Races all home | Crashes gate / drone | Win / loss / draw |",
-              "|---|---|---|---|---|---|---|"]
+              "finished, its crashes (gate frames / drone contacts), where the other drone was at its drone contacts "
+              "(ahead / beside / behind, along its direction of travel one control step before: docs/evaluation.md) "
+              "and, against a team, its win / loss / draw. Mixed teams: 2v2 races whose teams each have one drone of "
+              "each method.", "",
+              "| Scenario | Method | Against | Success | Races all home | Crashes gate / drone "
+              "| Contacts: other ahead / beside / behind | Win / loss / draw |",
+              "|---|---|---|---|---|---|---|---|"]
     for scenario, by_key in rb.strangers.items():
         for key, rows in by_key.items():
             for label, m in rows.items():
@@ -141,9 +144,12 @@ def _self_cell(m: dict[str, Any] | None) -> str:
 
 def _stranger_cells(m: dict[str, Any] | None) -> str:
     if m is None:
-        return "missing | – | – | –"
+        return "missing | – | – | – | –"
     lo, hi = m["success_ci95"]
     crashes = m["crashes"]
+    where = m.get("contact_bearing")
+    bearing = f"{where['ahead']} / {where['beside']} / {where['behind']}" if where else "–"
     races = f"{m['race_success_ratio']:.3f}" if "race_success_ratio" in m else "–"
     duel = f"{m['win_rate']:.2f} / {m['loss_rate']:.2f} / {m['draws']:.2f}" if "win_rate" in m else "–"
-    return f"{m['success_ratio']:.3f} [{lo:.2f}, {hi:.2f}] | {races} | {crashes['gate']} / {crashes['drone']} | {duel}"
+    return (f"{m['success_ratio']:.3f} [{lo:.2f}, {hi:.2f}] | {races} | {crashes['gate']} / {crashes['drone']} | "
+            f"{bearing} | {duel}")
