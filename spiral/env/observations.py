@@ -32,6 +32,7 @@ __all__ = [
     "nearest_others",
     "neighbours",
     "race_state",
+    "relative_to_others",
 ]
 
 HISTORY_FEATURES = 16
@@ -81,10 +82,17 @@ class Neighbours:
     def relative(self, x: torch.Tensor) -> torch.Tensor:
         """Per-drone vectors ``x`` (N, 3) of the nearest drones minus the drone's own, zero where absent: (W, D, 2,
         3)."""
-        w, d, _ = self.idx.shape
-        x_w = x.view(w, d, 3)
-        near = torch.gather(x_w, 1, self.idx.view(w, -1, 1).expand(-1, -1, 3)).view(w, d, 2, 3)
-        return (near - x_w[:, :, None]) * self.mask[..., None]
+        return relative_to_others(x, self.idx, self.mask)
+
+
+def relative_to_others(x: torch.Tensor, idx: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Per-drone vectors ``x`` (N, 3, world-major) of other drones of the same world minus the drone's own, zero
+    where ``mask`` is False: ``idx`` (W, D, K) are their slots (as :func:`nearest_others` returns them); shape
+    (W, D, K, 3)."""
+    w, d, k = idx.shape
+    x_w = x.view(w, d, 3)
+    other = torch.gather(x_w, 1, idx.view(w, -1, 1).expand(-1, -1, 3)).view(w, d, k, 3)
+    return (other - x_w[:, :, None]) * mask[..., None]
 
 
 def neighbours(pos: torch.Tensor, out: torch.Tensor, next_gate: torch.Tensor, gate_count: int, *, world_count: int,

@@ -9,7 +9,7 @@ import torch
 from tensordict import TensorDict
 
 from spiral.config import AIRFRAMES, SimCfg, StageSpec
-from spiral.core.checkpoint import CheckpointError
+from spiral.core.checkpoint import CheckpointError, FrozenPolicy
 from spiral.selfplay import Matchmaker, Pool, PoolOpponents, run_stage
 from spiral.train import StageTrainer, load_policy
 
@@ -19,6 +19,15 @@ COMMON = {"worlds": 8, "env": {"obs": {"history_len": 1, "gate_normals": True, "
                   "critic_hidden_dims": [16, 16]},
           "selection": {"interval": 2, "races": 2}}
 PERMISSIVE = {"promotion": {"interval": 1, "races": 4, "min_races": 4, "min_win_rate": 0.0, "max_success_drop": 1.0}}
+
+
+@pytest.fixture(scope="module")
+def solo_policy(line2, tmp_path_factory) -> FrozenPolicy:
+    """The best of a one-iteration solo stage on line2: the frozen pool member the opponent tests race."""
+    root = tmp_path_factory.mktemp("solo")
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
+    run_stage(line2, CF2X, SimCfg(), solo, root / "a", pool_dir=root / "p", init_checkpoint=None, progress=False)
+    return load_policy(root / "a" / "best.pt")
 
 
 def test_short_1v1_stage_promotes_into_the_pool_and_resumes(line2, tmp_path):
@@ -106,24 +115,20 @@ def test_batched_opponents_match_one_by_one_inference(line2, tmp_path):
         assert torch.allclose(batched[row], policies[int(member[row])](single)[0], atol=1e-6)
 
 
-def test_mirror_worlds_race_the_live_policy_and_stay_out_of_matchmaking(line2, tmp_path):
+def test_mirror_worlds_race_the_live_policy_and_stay_out_of_matchmaking(solo_policy):
     """Drive about p_self of the worlds with the learner's policy; only pool worlds feed the loss statistics."""
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
-    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "a", pool_dir=tmp_path / "p", init_checkpoint=None,
-              progress=False)
-    frozen = load_policy(tmp_path / "a" / "best.pt")
     gen = torch.Generator().manual_seed(0)
     mm = Matchmaker(1, latest=0, p_latest=0.5)
-    opponents = PoolOpponents([frozen], mm, world_count=4000, per_world=1, generator=gen, p_self=0.3)
+    opponents = PoolOpponents([solo_policy], mm, world_count=4000, per_world=1, generator=gen, p_self=0.3)
     assert opponents.mirror.float().mean().item() == pytest.approx(0.3, abs=0.03)
     opponents.live = lambda obs: torch.full((obs.batch_size[0], 4), 0.5)
-    dim = frozen.obs_layout["obs_dim"]
+    dim = solo_policy.obs_layout["obs_dim"]
     obs = torch.randn(4000, dim)
     actions = opponents(TensorDict({"policy": obs, "critic": obs}, batch_size=[4000]))
     assert (actions[opponents.mirror] == 0.5).all()
     pooled = ~opponents.mirror
     single = TensorDict({"policy": obs[pooled], "critic": obs[pooled]}, batch_size=[int(pooled.sum())])
-    assert torch.allclose(actions[pooled], frozen(single), atol=1e-6)
+    assert torch.allclose(actions[pooled], solo_policy(single), atol=1e-6)
     opponents.record(torch.arange(4000), torch.zeros(4000, dtype=torch.bool))
     assert mm.races.item() == int(pooled.sum()) and mm.losses.item() == int(pooled.sum())
 
@@ -158,17 +163,13 @@ def test_mirror_copies_fly_the_learners_mean_or_sampled_action(line2, tmp_path, 
         assert torch.allclose(deviation.mean(dim=0), torch.zeros_like(std), atol=4 * float(std.max()) / 512**0.5)
 
 
-def test_opponent_offsets_hold_for_an_episode_and_are_redrawn_at_reset(line2, tmp_path):
+def test_opponent_offsets_hold_for_an_episode_and_are_redrawn_at_reset(solo_policy):
     """Each opponent's position-target actions move by one offset per episode, within bounds; yaw is untouched."""
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
-    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "a", pool_dir=tmp_path / "p", init_checkpoint=None,
-              progress=False)
-    frozen = load_policy(tmp_path / "a" / "best.pt")
-    dim = frozen.obs_layout["obs_dim"]
+    dim = solo_policy.obs_layout["obs_dim"]
     obs = TensorDict({"policy": torch.randn(40, dim), "critic": torch.randn(40, dim)}, batch_size=[40])
-    plain = PoolOpponents([frozen], Matchmaker(1, latest=0, p_latest=0.5), world_count=20, per_world=2,
+    plain = PoolOpponents([solo_policy], Matchmaker(1, latest=0, p_latest=0.5), world_count=20, per_world=2,
                           generator=torch.Generator().manual_seed(0))
-    shifted = PoolOpponents([frozen], Matchmaker(1, latest=0, p_latest=0.5), world_count=20, per_world=2,
+    shifted = PoolOpponents([solo_policy], Matchmaker(1, latest=0, p_latest=0.5), world_count=20, per_world=2,
                             generator=torch.Generator().manual_seed(0), offset=0.2)
     delta = shifted(obs) - plain(obs)
     assert torch.allclose(shifted(obs) - plain(obs), delta)  # the same offset at every step
@@ -179,18 +180,14 @@ def test_opponent_offsets_hold_for_an_episode_and_are_redrawn_at_reset(line2, tm
     assert moved[:20].all() and not moved[20:].any()  # only the reset worlds (rows 0-19) draw new offsets
 
 
-def test_opponent_pace_scales_each_opponents_clipped_targets_for_an_episode(line2, tmp_path):
+def test_opponent_pace_scales_each_opponents_clipped_targets_for_an_episode(solo_policy):
     """With pace 0.4 each opponent's position-target actions are its policy's, clipped to [-1, 1], times one factor
     in [0.6, 1] per episode (its own, redrawn at reset); yaw is untouched."""
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
-    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "a", pool_dir=tmp_path / "p", init_checkpoint=None,
-              progress=False)
-    frozen = load_policy(tmp_path / "a" / "best.pt")
-    dim = frozen.obs_layout["obs_dim"]
+    dim = solo_policy.obs_layout["obs_dim"]
     obs = TensorDict({"policy": 5 * torch.randn(40, dim), "critic": torch.randn(40, dim)}, batch_size=[40])
-    plain = PoolOpponents([frozen], Matchmaker(1, latest=0, p_latest=0.5), world_count=20, per_world=2,
+    plain = PoolOpponents([solo_policy], Matchmaker(1, latest=0, p_latest=0.5), world_count=20, per_world=2,
                           generator=torch.Generator().manual_seed(0))
-    slow = PoolOpponents([frozen], Matchmaker(1, latest=0, p_latest=0.5), world_count=20, per_world=2,
+    slow = PoolOpponents([solo_policy], Matchmaker(1, latest=0, p_latest=0.5), world_count=20, per_world=2,
                          generator=torch.Generator().manual_seed(0), pace=0.4)
     base = plain(obs)
     clipped = base[:, :3].clamp(-1.0, 1.0)
