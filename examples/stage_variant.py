@@ -7,8 +7,10 @@ docs/training.md.
 Each ``--set dotted.key=value`` (value parsed as YAML) overrides the stage's spec, which is validated again. A
 multi-drone stage copies the pool next to the init checkpoint (if any) into ``OUT/pool``; a frozen (no-self-play)
 stage races ``--opponent CKPT`` (in the pipeline the best of its ``selfplay.opponent_from`` stage), else its init.
-The 50-race self-match evaluation (seed 0, as in the pipeline's eval step) is printed and written to
-``OUT/summary.json``.
+``--pool-from DIR`` (repeatable) adds every member of another stage's pool folder, e.g. the 1v1 pool of a run with
+another seed, as frozen opponents the learner's pool draws from beside its own (its own latest best stays the latest
+best; promotion still races the stage's own best). The 50-race self-match evaluation (seed 0, as in the pipeline's
+eval step) is printed and written to ``OUT/summary.json``.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import yaml
 from spiral.config import StageSpec, load_pipeline, resolve_airframe
 from spiral.eval import evaluate_methods
 from spiral.selfplay import run_stage
+from spiral.selfplay.pool import Pool
 
 
 def override(spec: dict, dotted: str, value: object) -> None:
@@ -32,6 +35,25 @@ def override(spec: dict, dotted: str, value: object) -> None:
     for key in path:
         spec = spec.setdefault(key, {})
     spec[last] = value
+
+
+def add_foreign_members(pool: Pool, sources: list[Path], init: Path) -> None:
+    """Copy every member of each ``sources`` pool into ``pool``, the k-th source's tagged ``-fromk`` in their stage
+    (a source already copied, on a rerun into the same folder, is skipped). A new pool gets them first and then the
+    init policy; either way the pool's own latest best stays its latest best."""
+    own = pool.latest_best
+    for k, source in enumerate(sources, start=1):
+        tag = f"-from{k}"
+        if any(m.stage.endswith(tag) for m in pool.members):
+            continue
+        for m in Pool(source).members:
+            pool.add(source / m.file, stage=m.stage + tag, iteration=m.iteration, evaluation=m.evaluation,
+                     rating=m.rating)
+    if own is None:
+        pool.add(init, stage="init", iteration=0, evaluation={})
+    else:
+        pool.latest_best = own
+        pool.save()
 
 
 def main() -> None:
@@ -44,6 +66,8 @@ def main() -> None:
     parser.add_argument("--opponent", type=Path, help="frozen stages: the checkpoint every opponent runs (the "
                         "pipeline's selfplay.opponent_from stage's best); the init checkpoint when absent")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets")
+    parser.add_argument("--pool-from", action="append", default=[], type=Path, metavar="DIR",
+                        help="another pool folder whose members join the learner's opponents (multi-drone stages)")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
 
@@ -64,6 +88,10 @@ def main() -> None:
     init = None if args.init == "none" else Path(args.init)
     if init is not None and not pool.exists() and (init.parent / "pool").is_dir():
         shutil.copytree(init.parent / "pool", pool)
+    if args.pool_from:
+        if init is None or stage.scenario == "solo" or stage.selfplay.mode != "pool":
+            parser.error("--pool-from needs a self-play stage (selfplay.mode: pool) and an init checkpoint")
+        add_foreign_members(Pool(pool), args.pool_from, init)
     start = time.perf_counter()
     result = run_stage(track, resolve_airframe(spec.airframe), spec.sim, stage, args.out, pool_dir=pool,
                        init_checkpoint=init, opponent_checkpoint=args.opponent, device=args.device,

@@ -64,6 +64,26 @@ def test_stage_variant_trains_an_overridden_stage_and_evaluates_it(script_env, m
     assert len((out / "train_log.jsonl").read_text().splitlines()) == 1  # the iterations override took effect
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == summary
 
+    # --pool-from: the first variant's pool joins a second variant's opponents beside its own line
+    from spiral.selfplay.pool import Pool
+
+    foreign = Pool(out / "pool").members
+    second = script_env / "variant-2"
+    argv = ["stage_variant.py", str(pipeline), "1v1", str(script_env / "solo" / "best.pt"), str(second),
+            "--pool-from", str(out / "pool"), "--set", "iterations=1"]
+    monkeypatch.setattr(sys, "argv", argv)
+    runpy.run_path(str(EXAMPLES / "stage_variant.py"), run_name="__main__")
+    pool = Pool(second / "pool")
+    (init,) = [m for m in pool.members if m.stage == "init"]
+    assert init.sha256 == foreign[0].sha256  # both variants start from the same solo best
+    assert not pool.member(pool.latest_best).stage.endswith("-from1")  # the learner's own line stays the latest
+    copied = [m for m in pool.members if m.stage.endswith("-from1")]
+    assert [(m.stage, m.iteration, m.sha256) for m in copied] == [(m.stage + "-from1", m.iteration, m.sha256)
+                                                                   for m in foreign]
+    monkeypatch.setattr(sys, "argv", argv)  # a rerun into the same folder copies nothing twice
+    runpy.run_path(str(EXAMPLES / "stage_variant.py"), run_name="__main__")
+    assert len(Pool(second / "pool").members) == len(pool.members)
+
 
 def test_separation_probe_races_a_policy_with_each_filter_setting(script_env, policy_checkpoint, monkeypatch, capsys):
     """Self-match with no filter and with one, then cross-play against itself: one line per setting."""
