@@ -154,6 +154,12 @@ class EpisodeCfg(StrictModel):
         default=0.5, ge=0, le=1, description="Share of episodes started at a random point along the track"
     )
     track_start_speed: NonNegFloat = Field(default=1.0, description="Largest initial speed of a track start [m/s]")
+    file_start_prob: float = Field(
+        default=0.0, ge=0, le=1,
+        description="Share of multi-drone episodes that start with the world's drones in single file on one stretch "
+        "of the track, 0.4-1 m apart in random order, each at its own speed up to track_start_speed: starts where a "
+        "drone must follow or pass another (not in the paper)",
+    )
     time_limit_s: PosFloat | None = Field(default=None, description="Episode time limit; the track's when absent")
     start_cut_prob: float = Field(
         default=0.0, ge=0, le=1,

@@ -10,7 +10,10 @@ import torch
 from spiral.config.env import EpisodeCfg
 from spiral.config.track import TrackSpec
 
-__all__ = ["Starts", "draw_starts", "sample_box_starts", "sample_track_starts"]
+__all__ = ["FILE_GAP", "Starts", "draw_starts", "sample_box_starts", "sample_file_starts", "sample_track_starts"]
+
+FILE_GAP = (0.4, 1.0)
+"""Range of the distance [m] along the track between consecutive drones of a file start."""
 
 
 def _place_sequentially(
@@ -83,6 +86,40 @@ def sample_track_starts(
     return pos, direction * speed, yaw, target
 
 
+def sample_file_starts(
+    track: TrackSpec, world_count: int, drones: int, generator: torch.Generator, *, max_speed: float,
+    device: torch.device,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The drones of each world in single file on one centreline segment between consecutive gates.
+
+    The file's lead is at a random point of the segment's middle 70 %, each next drone a distance drawn from
+    :data:`FILE_GAP` behind the one before (the gaps shrink in proportion on a segment too short for them), with
+    0.05 m of jitter; which drone takes which place is random. Every drone heads for the segment's end gate at its
+    own speed, uniform up to ``max_speed``. Returns positions (W, D, 3), velocities (W, D, 3), yaws (W, D) and the
+    next gate (W, D).
+    """
+    centers = torch.tensor(track.gate_centers(), dtype=torch.float32, device=device)
+    count = centers.shape[0]
+    target = torch.randint(0, count, (world_count,), generator=generator, device=device)
+    origin = centers[(target - 1) % count]
+    seg = centers[target] - origin
+    length = seg.norm(dim=-1, keepdim=True)
+    direction = seg / length
+    lo, hi = FILE_GAP
+    gaps = lo + (hi - lo) * torch.rand(world_count, drones - 1, generator=generator, device=device)
+    behind = torch.cat([torch.zeros(world_count, 1, device=device), gaps.cumsum(dim=1)], dim=1)
+    behind = behind * (0.7 * length / behind[:, -1:].clamp(min=1e-6)).clamp(max=1.0)
+    first = 0.15 * length + behind[:, -1:]
+    lead = first + (0.85 * length - first) * torch.rand(world_count, 1, generator=generator, device=device)
+    order = torch.rand(world_count, drones, generator=generator, device=device).argsort(dim=1)
+    along = (lead - behind).gather(1, order)
+    jitter = 0.05 * torch.randn(world_count, drones, 3, generator=generator, device=device)
+    pos = origin[:, None] + along[..., None] * direction[:, None] + jitter
+    speed = max_speed * torch.rand(world_count, drones, 1, generator=generator, device=device)
+    yaw = torch.atan2(direction[:, 1], direction[:, 0])[:, None].expand(world_count, drones)
+    return pos, direction[:, None] * speed, yaw.contiguous(), target[:, None].expand(world_count, drones)
+
+
 @dataclass(frozen=True)
 class Starts:
     """Start states of the drones of some worlds."""
@@ -101,10 +138,11 @@ class Starts:
 
 def draw_starts(track: TrackSpec, episode: EpisodeCfg, world_count: int, drones: int, generator: torch.Generator, *,
                 training: bool, device: torch.device) -> Starts:
-    """Starts in the start box, and in training a share ``episode.track_start_prob`` of worlds along the track.
+    """Starts in the start box, and in training a share ``episode.track_start_prob`` of worlds along the track and,
+    with several drones, a share ``episode.file_start_prob`` in single file (taking precedence over the other two).
 
     The draws depend only on the generator's state: box placements for every world first, then track starts and
-    the choice between them (training with track starts only).
+    the choice between them (training with track starts only), then file starts and theirs (only when used).
     """
     pos, yaw = sample_box_starts(track, world_count, drones, generator, device=device)
     vel = torch.zeros_like(pos)
@@ -117,4 +155,11 @@ def draw_starts(track: TrackSpec, episode: EpisodeCfg, world_count: int, drones:
         pos, vel = torch.where(use[:, None, None], t_pos, pos), torch.where(use[:, None, None], t_vel, vel)
         yaw, gate = torch.where(use[:, None], t_yaw, yaw), torch.where(use[:, None], t_gate.int(), gate)
         box = ~use
+    if training and episode.file_start_prob > 0 and drones > 1:
+        f_pos, f_vel, f_yaw, f_gate = sample_file_starts(
+            track, world_count, drones, generator, max_speed=episode.track_start_speed, device=device)
+        use = (torch.rand(world_count, generator=generator, device=device) < episode.file_start_prob)
+        pos, vel = torch.where(use[:, None, None], f_pos, pos), torch.where(use[:, None, None], f_vel, vel)
+        yaw, gate = torch.where(use[:, None], f_yaw, yaw), torch.where(use[:, None], f_gate.int(), gate)
+        box = box & ~use
     return Starts(pos, vel, yaw, gate, box)

@@ -1,0 +1,80 @@
+"""Start placements: single-file starts along the track, and how draw_starts shares the worlds out."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from spiral.config import EpisodeCfg
+from spiral.env.starts import FILE_GAP, draw_starts, sample_file_starts
+
+CPU = torch.device("cpu")
+
+
+def file_starts(track, worlds: int, drones: int, *, seed: int = 0, max_speed: float = 1.0):
+    generator = torch.Generator().manual_seed(seed)
+    return sample_file_starts(track, worlds, drones, generator, max_speed=max_speed, device=CPU)
+
+
+def along_and_across(track, pos: torch.Tensor, gate: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """Distance of each drone from its segment's first gate along the segment, its distance from the segment's
+    line, and the segment's length (every world of these tests uses one segment of the same length)."""
+    centers = torch.tensor(track.gate_centers(), dtype=torch.float32)
+    origin, end = centers[(gate.long() - 1) % len(centers)], centers[gate.long()]
+    direction = (end - origin) / (end - origin).norm(dim=-1, keepdim=True)
+    rel = pos - origin
+    along = (rel * direction).sum(-1)
+    across = (rel - along[..., None] * direction).norm(dim=-1)
+    return along, across, float((end - origin).norm(dim=-1).max())
+
+
+def test_a_file_start_puts_two_drones_on_one_stretch_a_gap_apart_in_random_order(line2):
+    """line2's stretches are 2.5 m long: the pair heads for one gate, 0.4-1 m apart along the stretch (within the
+    jitter), inside its middle 70 %, moving along it no faster than the limit; either drone may lead."""
+    pos, vel, yaw, gate = file_starts(line2, 400, 2, max_speed=1.5)
+    assert (gate[:, 0] == gate[:, 1]).all()
+    along, across, length = along_and_across(line2, pos, gate)
+    jitter = 4 * 0.05 * math.sqrt(3)
+    assert (across < jitter).all()
+    gap = (along[:, 0] - along[:, 1]).abs()
+    assert (gap > FILE_GAP[0] - 2 * jitter).all() and (gap < FILE_GAP[1] + 2 * jitter).all()
+    assert gap.mean() == pytest.approx(sum(FILE_GAP) / 2, abs=0.05)
+    assert (along > 0.15 * length - jitter).all() and (along < 0.85 * length + jitter).all()
+    lead_share = (along[:, 0] > along[:, 1]).float().mean()
+    assert 0.4 < lead_share < 0.6
+    heading = torch.stack([torch.cos(yaw), torch.sin(yaw)], dim=-1)
+    speed = vel.norm(dim=-1)
+    assert (speed <= 1.5).all() and speed.max() > 1.2 and vel[..., 2].abs().max() < 1e-6
+    moving = speed > 1e-3
+    assert torch.allclose((vel[..., :2] / speed[..., None].clamp(min=1e-9))[moving], heading[moving], atol=1e-5)
+
+
+def test_a_file_too_long_for_its_stretch_is_compressed_into_the_middle(line2):
+    """Four drones need up to 3 m of gaps; line2's 2.5 m stretch holds 1.75 m in its middle 70 %: the file is
+    shortened in proportion and stays inside it."""
+    pos, _, _, gate = file_starts(line2, 300, 4)
+    along, _, length = along_and_across(line2, pos, gate)
+    jitter = 4 * 0.05 * math.sqrt(3)
+    span = along.amax(dim=1) - along.amin(dim=1)
+    assert (span < 0.7 * length + 2 * jitter).all() and span.max() > 0.7 * length - 2 * jitter
+    assert (along > 0.15 * length - jitter).all() and (along < 0.85 * length + jitter).all()
+
+
+def test_draw_starts_gives_file_starts_their_share_and_never_to_a_solo_drone(line2):
+    """With file_start_prob 1 every multi-drone world starts in single file (not in the start box); a solo world
+    never does and draws what it would without the option; evaluation always starts in the box."""
+    generator = torch.Generator().manual_seed(1)
+    all_file = EpisodeCfg(track_start_prob=0.5, file_start_prob=1.0)
+    starts = draw_starts(line2, all_file, 64, 2, generator, training=True, device=CPU)
+    assert not starts.box.any() and (starts.gate[:, 0] == starts.gate[:, 1]).all()
+    solo = draw_starts(line2, all_file, 64, 1, torch.Generator().manual_seed(1), training=True, device=CPU)
+    plain = draw_starts(line2, EpisodeCfg(track_start_prob=0.5), 64, 1, torch.Generator().manual_seed(1),
+                        training=True, device=CPU)
+    assert torch.equal(solo.pos, plain.pos) and torch.equal(solo.box, plain.box)
+    half = draw_starts(line2, EpisodeCfg(track_start_prob=0.0, file_start_prob=0.5), 2000, 2,
+                       torch.Generator().manual_seed(2), training=True, device=CPU)
+    assert (~half.box).float().mean() == pytest.approx(0.5, abs=0.04)
+    evaluation = draw_starts(line2, all_file, 64, 2, torch.Generator().manual_seed(1), training=False, device=CPU)
+    assert evaluation.box.all()
