@@ -10,10 +10,12 @@ import torch
 from spiral.config.env import EpisodeCfg
 from spiral.config.track import TrackSpec
 
-__all__ = ["FILE_GAP", "Starts", "draw_starts", "sample_box_starts", "sample_file_starts", "sample_track_starts"]
+__all__ = ["FILE_GAP", "FILE_JITTER", "Starts", "draw_starts", "sample_box_starts", "sample_file_starts", "sample_track_starts"]
 
 FILE_GAP = (0.4, 1.0)
 """Range of the distance [m] along the track between consecutive drones of a file start."""
+FILE_JITTER = 0.05
+"""Standard deviation [m] of the random offset of each drone of a file start from its place on the line."""
 
 
 def _place_sequentially(
@@ -93,8 +95,8 @@ def sample_file_starts(
     """The drones of each world in single file on one centreline segment between consecutive gates.
 
     The file's lead is at a random point of the segment's middle 70 %, each next drone a distance drawn from
-    :data:`FILE_GAP` behind the one before (the gaps shrink in proportion on a segment too short for them), with
-    0.05 m of jitter; which drone takes which place is random. Every drone heads for the segment's end gate at its
+    :data:`FILE_GAP` behind the one before (the gaps shrink in proportion on a segment too short for them), each
+    offset by Gaussian noise of :data:`FILE_JITTER` per axis; which drone takes which place is random. Every drone heads for the segment's end gate at its
     own speed, uniform up to ``max_speed``. Returns positions (W, D, 3), velocities (W, D, 3), yaws (W, D) and the
     next gate (W, D).
     """
@@ -113,7 +115,7 @@ def sample_file_starts(
     lead = first + (0.85 * length - first) * torch.rand(world_count, 1, generator=generator, device=device)
     order = torch.rand(world_count, drones, generator=generator, device=device).argsort(dim=1)
     along = (lead - behind).gather(1, order)
-    jitter = 0.05 * torch.randn(world_count, drones, 3, generator=generator, device=device)
+    jitter = FILE_JITTER * torch.randn(world_count, drones, 3, generator=generator, device=device)
     pos = origin[:, None] + along[..., None] * direction[:, None] + jitter
     speed = max_speed * torch.rand(world_count, drones, 1, generator=generator, device=device)
     yaw = torch.atan2(direction[:, 1], direction[:, 0])[:, None].expand(world_count, drones)

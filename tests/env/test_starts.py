@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from spiral.config import EpisodeCfg
+import spiral.env.starts as starts_module
 from spiral.env.starts import FILE_GAP, draw_starts, sample_file_starts
 
 CPU = torch.device("cpu")
@@ -30,18 +31,23 @@ def along_and_across(track, pos: torch.Tensor, gate: torch.Tensor) -> tuple[torc
     return along, across, float((end - origin).norm(dim=-1).max())
 
 
-def test_a_file_start_puts_two_drones_on_one_stretch_a_gap_apart_in_random_order(line2):
-    """line2's stretches are 2.5 m long: the pair heads for one gate, 0.4-1 m apart along the stretch (within the
-    jitter), inside its middle 70 %, moving along it no faster than the limit; either drone may lead."""
+@pytest.fixture
+def no_jitter(monkeypatch):
+    """File starts exactly on the line between the gates."""
+    monkeypatch.setattr(starts_module, "FILE_JITTER", 0.0)
+
+
+def test_a_file_start_puts_two_drones_on_one_stretch_a_gap_apart_in_random_order(line2, no_jitter):
+    """line2's stretches are 2.5 m long: the pair heads for one gate, on the line between the gates, 0.4-1 m apart,
+    inside its middle 70 %, moving along it no faster than the limit; either drone may lead."""
     pos, vel, yaw, gate = file_starts(line2, 400, 2, max_speed=1.5)
     assert (gate[:, 0] == gate[:, 1]).all()
     along, across, length = along_and_across(line2, pos, gate)
-    jitter = 4 * 0.05 * math.sqrt(3)
-    assert (across < jitter).all()
+    assert across.max() < 1e-5
     gap = (along[:, 0] - along[:, 1]).abs()
-    assert (gap > FILE_GAP[0] - 2 * jitter).all() and (gap < FILE_GAP[1] + 2 * jitter).all()
+    assert (gap > FILE_GAP[0] - 1e-5).all() and (gap < FILE_GAP[1] + 1e-5).all()
     assert gap.mean() == pytest.approx(sum(FILE_GAP) / 2, abs=0.05)
-    assert (along > 0.15 * length - jitter).all() and (along < 0.85 * length + jitter).all()
+    assert (along > 0.15 * length - 1e-5).all() and (along < 0.85 * length + 1e-5).all()
     lead_share = (along[:, 0] > along[:, 1]).float().mean()
     assert 0.4 < lead_share < 0.6
     heading = torch.stack([torch.cos(yaw), torch.sin(yaw)], dim=-1)
@@ -51,15 +57,24 @@ def test_a_file_start_puts_two_drones_on_one_stretch_a_gap_apart_in_random_order
     assert torch.allclose((vel[..., :2] / speed[..., None].clamp(min=1e-9))[moving], heading[moving], atol=1e-5)
 
 
-def test_a_file_too_long_for_its_stretch_is_compressed_into_the_middle(line2):
+def test_a_file_too_long_for_its_stretch_is_compressed_into_the_middle(line2, no_jitter):
     """Four drones need up to 3 m of gaps; line2's 2.5 m stretch holds 1.75 m in its middle 70 %: the file is
     shortened in proportion and stays inside it."""
     pos, _, _, gate = file_starts(line2, 300, 4)
     along, _, length = along_and_across(line2, pos, gate)
-    jitter = 4 * 0.05 * math.sqrt(3)
     span = along.amax(dim=1) - along.amin(dim=1)
-    assert (span < 0.7 * length + 2 * jitter).all() and span.max() > 0.7 * length - 2 * jitter
-    assert (along > 0.15 * length - jitter).all() and (along < 0.85 * length + jitter).all()
+    assert (span < 0.7 * length + 1e-5).all() and (span > 0.7 * length - 1e-5).float().mean() > 0.5
+    assert (along > 0.15 * length - 1e-5).all() and (along < 0.85 * length + 1e-5).all()
+    gaps = along.sort(dim=1).values.diff(dim=1)
+    assert gaps.min() > FILE_GAP[0] * 1.75 / 3.0 - 1e-5  # each gap >= 0.4 m, shrunk by at most 1.75 / 3
+
+
+def test_file_start_jitter_is_the_set_spread_around_the_line(line2):
+    """With the default jitter each drone sits off the line by about FILE_JITTER per axis."""
+    pos, _, _, gate = file_starts(line2, 2000, 2)
+    _, across, _ = along_and_across(line2, pos, gate)
+    # two of the three axes are across the line: E|across|^2 = 2 sigma^2
+    assert (across ** 2).mean().sqrt() == pytest.approx(math.sqrt(2) * starts_module.FILE_JITTER, rel=0.05)
 
 
 def test_draw_starts_gives_file_starts_their_share_and_never_to_a_solo_drone(line2):
