@@ -10,7 +10,8 @@ import torch
 from spiral.config.env import EpisodeCfg
 from spiral.config.track import TrackSpec
 
-__all__ = ["FILE_GAP", "FILE_JITTER", "Starts", "draw_starts", "sample_box_starts", "sample_file_starts", "sample_track_starts"]
+__all__ = ["FILE_GAP", "FILE_JITTER", "Starts", "draw_starts", "sample_box_starts", "sample_file_starts",
+           "sample_track_starts"]
 
 FILE_GAP = (0.4, 1.0)
 """Range of the distance [m] along the track between consecutive drones of a file start."""
@@ -96,9 +97,9 @@ def sample_file_starts(
 
     The file's lead is at a random point of the segment's middle 70 %, each next drone a distance drawn from
     :data:`FILE_GAP` behind the one before (the gaps shrink in proportion on a segment too short for them), each
-    offset by Gaussian noise of :data:`FILE_JITTER` per axis; which drone takes which place is random. Every drone heads for the segment's end gate at its
-    own speed, uniform up to ``max_speed``. Returns positions (W, D, 3), velocities (W, D, 3), yaws (W, D) and the
-    next gate (W, D).
+    offset by Gaussian noise of :data:`FILE_JITTER` per axis; which drone takes which place is random. Every drone
+    heads for the segment's end gate at its own speed, uniform up to ``max_speed``. Returns positions (W, D, 3),
+    velocities (W, D, 3), yaws (W, D) and the next gate (W, D).
     """
     centers = torch.tensor(track.gate_centers(), dtype=torch.float32, device=device)
     count = centers.shape[0]

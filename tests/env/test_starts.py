@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from spiral.config import EpisodeCfg
 import spiral.env.starts as starts_module
+from spiral.config import EpisodeCfg
 from spiral.env.starts import FILE_GAP, draw_starts, sample_file_starts
 
 CPU = torch.device("cpu")
