@@ -148,21 +148,17 @@ def draw_starts(track: TrackSpec, episode: EpisodeCfg, world_count: int, drones:
     the choice between them (training with track starts only), then file starts and theirs (only when used).
     """
     pos, yaw = sample_box_starts(track, world_count, drones, generator, device=device)
-    vel = torch.zeros_like(pos)
-    gate = torch.zeros(world_count, drones, dtype=torch.int32, device=device)
+    state = (pos, torch.zeros_like(pos), yaw, torch.zeros(world_count, drones, dtype=torch.int32, device=device))
     box = torch.ones(world_count, dtype=torch.bool, device=device)
+    others = []
     if training and episode.track_start_prob > 0:
-        t_pos, t_vel, t_yaw, t_gate = sample_track_starts(
-            track, world_count, drones, generator, max_speed=episode.track_start_speed, device=device)
-        use = (torch.rand(world_count, generator=generator, device=device) < episode.track_start_prob)
-        pos, vel = torch.where(use[:, None, None], t_pos, pos), torch.where(use[:, None, None], t_vel, vel)
-        yaw, gate = torch.where(use[:, None], t_yaw, yaw), torch.where(use[:, None], t_gate.int(), gate)
-        box = ~use
+        others.append((sample_track_starts, episode.track_start_prob))
     if training and episode.file_start_prob > 0 and drones > 1:
-        f_pos, f_vel, f_yaw, f_gate = sample_file_starts(
-            track, world_count, drones, generator, max_speed=episode.track_start_speed, device=device)
-        use = (torch.rand(world_count, generator=generator, device=device) < episode.file_start_prob)
-        pos, vel = torch.where(use[:, None, None], f_pos, pos), torch.where(use[:, None, None], f_vel, vel)
-        yaw, gate = torch.where(use[:, None], f_yaw, yaw), torch.where(use[:, None], f_gate.int(), gate)
+        others.append((sample_file_starts, episode.file_start_prob))
+    for sample, share in others:
+        drawn = sample(track, world_count, drones, generator, max_speed=episode.track_start_speed, device=device)
+        use = torch.rand(world_count, generator=generator, device=device) < share
+        state = tuple(torch.where(use.view(-1, *[1] * (old.dim() - 1)), new.to(old.dtype), old)
+                      for new, old in zip(drawn, state, strict=True))
         box = box & ~use
-    return Starts(pos, vel, yaw, gate, box)
+    return Starts(*state, box)
