@@ -65,6 +65,16 @@ def sample_box_starts(
     return pos, yaw
 
 
+def _random_segments(track: TrackSpec, shape: tuple[int, ...], generator: torch.Generator,
+                     device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A uniformly drawn next gate per entry of ``shape``, the centre of the gate before it (where the segment
+    starts) and the segment's vector to the next gate's centre."""
+    centers = torch.tensor(track.gate_centers(), dtype=torch.float32, device=device)
+    target = torch.randint(0, centers.shape[0], shape, generator=generator, device=device)
+    origin = centers[(target - 1) % centers.shape[0]]
+    return target, origin, centers[target] - origin
+
+
 def sample_track_starts(
     track: TrackSpec, world_count: int, drones: int, generator: torch.Generator, *, max_speed: float,
     device: torch.device,
@@ -74,12 +84,8 @@ def sample_track_starts(
     Returns positions (W, D, 3), velocities along the segment up to ``max_speed`` (W, D, 3), yaws (W, D) and the
     next gate (W, D). Drones of one world draw their points independently.
     """
-    centers = torch.tensor(track.gate_centers(), dtype=torch.float32, device=device)
-    count = centers.shape[0]
     shape = (world_count, drones)
-    target = torch.randint(0, count, shape, generator=generator, device=device)
-    origin = centers[(target - 1) % count]
-    seg = centers[target] - origin
+    target, origin, seg = _random_segments(track, shape, generator, device)
     u = 0.15 + 0.7 * torch.rand(*shape, 1, generator=generator, device=device)
     jitter = 0.1 * torch.randn(*shape, 3, generator=generator, device=device)
     pos = origin + u * seg + jitter
@@ -101,11 +107,7 @@ def sample_file_starts(
     heads for the segment's end gate at its own speed, uniform up to ``max_speed``. Returns positions (W, D, 3),
     velocities (W, D, 3), yaws (W, D) and the next gate (W, D).
     """
-    centers = torch.tensor(track.gate_centers(), dtype=torch.float32, device=device)
-    count = centers.shape[0]
-    target = torch.randint(0, count, (world_count,), generator=generator, device=device)
-    origin = centers[(target - 1) % count]
-    seg = centers[target] - origin
+    target, origin, seg = _random_segments(track, (world_count,), generator, device)
     length = seg.norm(dim=-1, keepdim=True)
     direction = seg / length
     lo, hi = FILE_GAP
@@ -136,7 +138,7 @@ class Starts:
     gate: torch.Tensor
     """Next gate (W, D), int32."""
     box: torch.Tensor
-    """Whether each world starts in the start box (W,), else along the track."""
+    """Whether each world starts in the start box (W,), else along the track (at a random point or in single file)."""
 
 
 def draw_starts(track: TrackSpec, episode: EpisodeCfg, world_count: int, drones: int, generator: torch.Generator, *,
