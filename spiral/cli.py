@@ -213,6 +213,9 @@ def evaluate(
     separation: Annotated[str, typer.Option(
         "--separation", help="Flight stack of every drone: 'keep' (as trained), 'none' (no separation filter) or "
         "DISTANCE,HORIZON_S,GAIN (a filter)")] = "keep",
+    separation_team: Annotated[str, typer.Option(
+        "--separation-team", help="Drones the filter acts on: 'all', 'a' (the --method's drones only, team A; with "
+        "--against they keep it when the sides are swapped) or 'b' (team B's only)")] = "all",
     downwash: Annotated[bool | None, typer.Option(
         "--downwash/--no-downwash", help="Switch the simulator's downwash on or off (default: as trained)")] = None,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
@@ -226,7 +229,10 @@ def evaluate(
         raise ValueError(f"--scenario: expected solo, 1v1 or 2v2, got {scenario!r}")
     methods = dict(_parse_method(m) for m in method)
     opponent = _parse_method(against) if against else None
-    flight = FlightOverride(separation=parse_separation(separation), downwash=downwash)
+    if separation_team not in ("all", "a", "b"):
+        raise ValueError(f"--separation-team: expected all, a or b, got {separation_team!r}")
+    flight = FlightOverride(separation=parse_separation(separation), downwash=downwash,
+                            separation_team=separation_team)  # type: ignore[arg-type]
     result = evaluate_methods(load_track(track), methods, scenario=scenario, runs=runs, seed=seed, device=device,
                               against=opponent, sides=sides, flight=flight)
     typer.echo(format_eval(result))

@@ -98,6 +98,18 @@ class ActionCfg(StrictModel):
     separation: SeparationCfg | None = Field(
         default=None, description="Separation filter on the position targets (none in the paper's stack)"
     )
+    separation_team: Literal["all", "a", "b"] = Field(
+        default="all",
+        description="Drones whose targets the separation filter shifts: every drone, or only race team A's or B's "
+        "(a deployment layer on one team's drones racing drones without it); every racing drone is avoided either way",
+    )
+
+    @model_validator(mode="after")
+    def _team_needs_filter(self) -> ActionCfg:
+        if self.separation_team != "all" and self.separation is None:
+            raise ValueError(f"separation_team: {self.separation_team!r} names the drones of a separation filter, but "
+                             "separation is null")
+        return self
 
 
 class RewardCfg(StrictModel):

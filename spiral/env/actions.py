@@ -9,6 +9,7 @@ import torch
 
 from spiral.config.env import EnvCfg, SeparationCfg
 from spiral.config.track import TrackSpec
+from spiral.core.scenario import race_teams
 from spiral.env.separation import separation_offsets
 
 __all__ = ["ActionMap"]
@@ -19,8 +20,8 @@ class ActionMap:
 
     ``action.mode`` relative: an offset from the drone (``pos_scale``, ``yaw_scale_deg`` at 1); absolute: a point
     of the arena's bounds and a yaw in [−π, π]. Then ``action.separation`` shifts the position targets of every
-    drone (part of the flight stack), and in training the shield (``cfg.shield``) shifts them by its filter at a
-    gain that fades over the stage.
+    drone, or of one race team's (``action.separation_team``; part of the flight stack), and in training the shield
+    (``cfg.shield``) shifts them by its filter at a gain that fades over the stage.
     """
 
     def __init__(self, cfg: EnvCfg, track: TrackSpec, *, world_count: int, drones_per_world: int, training: bool,
@@ -33,6 +34,10 @@ class ActionMap:
         self.hi = torch.tensor(track.bounds.max, device=device)
         self.shield_scale = 1.0 if self.shield is not None else 0.0
         """Gain factor of the training shield."""
+        team = self.cfg.separation_team
+        self.filtered = None if team == "all" else torch.tensor(
+            [t == "ab".index(team) for t in race_teams(drones_per_world)], device=device).repeat(world_count)[:, None]
+        """Which drones (N, 1) the separation filter shifts; None: all."""
 
     def set_training_progress(self, fraction: float) -> None:
         """Fade the shield by the stage's progress (fraction of its iterations)."""
@@ -51,7 +56,8 @@ class ActionMap:
             target = self.lo + (actions[:, :3] + 1.0) * 0.5 * (self.hi - self.lo)
             yaw = math.pi * actions[:, 3]
         if a.separation is not None:
-            target = target + self._shift(pos, vel, racing, a.separation)
+            shift = self._shift(pos, vel, racing, a.separation)
+            target = target + (shift if self.filtered is None else shift * self.filtered)
         intervention = None
         if self.shield is not None:
             shift = self._shift(pos, vel, racing, self.shield.filter)

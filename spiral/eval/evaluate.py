@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from tensordict import TensorDict
@@ -105,6 +105,9 @@ class FlightOverride:
     separation: SeparationCfg | str | None = KEEP
     """A separation filter between policy and PID (``SeparationCfg``), ``None`` for none (the paper's stack), or
     ``"keep"``: the trained layout's own."""
+    separation_team: Literal["all", "a", "b"] = "all"
+    """Drones the separation filter acts on: every drone, or team A's (the evaluated method's; in cross-play they
+    keep it when the sides are swapped) or team B's only."""
     downwash: bool | None = None
     """Switch the simulator's downwash on or off; None keeps the trained setting."""
 
@@ -113,6 +116,12 @@ class FlightOverride:
         env, sim = layout.env, layout.sim
         if self.separation != KEEP:
             env = env.model_copy(update={"action": env.action.model_copy(update={"separation": self.separation})})
+        if self.separation_team != "all":
+            if env.action.separation is None:
+                raise ValueError(f"separation_team: {self.separation_team!r} names the drones of a separation filter, "
+                                 "but these drones fly without one (give it with --separation DISTANCE,HORIZON_S,GAIN)")
+            env = env.model_copy(update={"action": env.action.model_copy(
+                update={"separation_team": self.separation_team})})
         if self.downwash is not None:
             sim = sim.model_copy(update={"downwash": self.downwash})
         return replace(layout, env=env, sim=sim)
@@ -122,9 +131,16 @@ class FlightOverride:
         out: dict[str, Any] = {}
         if isinstance(self.separation, SeparationCfg) or self.separation is None:
             out["separation"] = None if self.separation is None else self.separation.model_dump()
+        if self.separation_team != "all":
+            out["separation_team"] = self.separation_team
         if self.downwash is not None:
             out["downwash"] = self.downwash
         return out
+
+    def swapped(self) -> FlightOverride:
+        """The same changes for races with the teams' slots swapped: a one-team filter follows its team."""
+        other: dict[str, Literal["all", "a", "b"]] = {"all": "all", "a": "b", "b": "a"}
+        return replace(self, separation_team=other[self.separation_team])
 
 
 def parse_separation(text: str) -> SeparationCfg | str | None:
@@ -232,8 +248,8 @@ def cross_play(a: Agent, b: Agent, track: TrackSpec, scenario: str, runs: int, s
     assert winners is not None
     if sides == "a":
         return res, winners
-    swapped, won = race_agents(track, scenario, runs, seed, b, a, device=device, layout=layout, flight=flight,
-                               planners=planners)
+    swapped, won = race_agents(track, scenario, runs, seed, b, a, device=device, layout=layout,
+                               flight=flight.swapped() if flight is not None else None, planners=planners)
     assert won is not None
     team_a, team_b = TEAMS[scenario][0], TEAMS[scenario][-1]
     back = swapped.permuted([*team_b, *team_a])

@@ -130,7 +130,7 @@ def _race_learned(ev: Evaluations, held_ev: Evaluations | None, table: dict, sta
             _cross_matrix(ev, s, table[s], planner=False)
     held = None if held_ev is None else _held_out(held_ev)
     filtered = filter_rows(ev, separation) if separation is not None else {}
-    return held, filtered, race_learned(held_ev or ev, stages) if robustness else None
+    return held, filtered, race_learned(held_ev or ev, stages, separation) if robustness else None
 
 
 def _write_files(out_dir: Path, track: TrackSpec, airframe: AirframeCfg, stages: list[StageRun], table: dict,

@@ -19,6 +19,9 @@ FORMATS = tuple(SCENARIO_DRONES)
 NAMES = {"spiral": "SPIRAL", "noselfplay": "PPO No Selfplay", "se-ibr": "SE-IBR"}
 """Short method names of these sections."""
 
+OWN_FILTER = "+ separation filter on own drones"
+"""Label of the strangers rows whose method flies with the separation filter and its opponent without."""
+
 
 @dataclass
 class Robustness:
@@ -58,9 +61,10 @@ def filter_rows(ev: Evaluations, separation: SeparationCfg) -> dict[str, list[Ro
     return out
 
 
-def race_learned(ev: Evaluations, stages: list[StageRun]) -> Robustness:
+def race_learned(ev: Evaluations, stages: list[StageRun], separation: SeparationCfg | None = None) -> Robustness:
     """The extra sections' races among learned policies, with ``ev``'s races and seed: each final policy in every
-    format, downwash, and the learned methods against each other (pairings and mixed teams)."""
+    format, downwash, and the learned methods against each other (pairings, mixed teams and, with ``separation``,
+    each method with the filter on its own drones only)."""
     out = Robustness(runs=ev.runs, seed=ev.seed)
     finals = final_stages(stages)
     out.final_names = {key: stage.name for key, stage in finals.items()}
@@ -70,7 +74,7 @@ def race_learned(ev: Evaluations, stages: list[StageRun]) -> Robustness:
         agents = {key: a for key in MODE_OF if (a := ev.agent(scenario, key)) is not None}
         out.downwash[scenario] = {key: ev.flown(scenario, key, a, FlightOverride(downwash=True), "downwash")
                                   for key, a in agents.items()}
-        out.strangers[scenario] = _strangers(ev, scenario, agents)
+        out.strangers[scenario] = _strangers(ev, scenario, agents, separation)
     return out
 
 
@@ -83,21 +87,33 @@ def race_se_ibr(rb: Robustness, protocol: Evaluations) -> None:
                 scenario, (key, protocol.agent(scenario, key)), ("se-ibr", SE_IBR))
 
 
-def _strangers(ev: Evaluations, scenario: str, agents: dict[str, str]) -> dict[str, dict[str, Any]]:
+def _strangers(ev: Evaluations, scenario: str, agents: dict[str, str],
+               separation: SeparationCfg | None) -> dict[str, dict[str, Any]]:
     """Approach -> opponent label -> metrics of the approach's drones; each pairing is raced once and read from
-    both teams."""
+    both teams, and with ``separation`` twice more, the filter on one team's drones."""
     rows: dict[str, dict[str, Any]] = {key: {"itself": ev.self_match(scenario, key).metrics} for key in agents}
     keys = list(agents)
     for i, a in enumerate(keys):
         for b in keys[i + 1:]:
             entry = ev.cross(scenario, (a, agents[a]), (b, agents[b]))
             rows[a][NAMES[b]] = entry
-            rows[b][NAMES[a]] = {**entry["opponent"], "win_rate": entry["loss_rate"],
-                                 "loss_rate": entry["win_rate"], "draws": entry["draws"]}
+            rows[b][NAMES[a]] = _other_side(entry)
+            if separation is not None:
+                on_a = FlightOverride(separation=separation, separation_team="a")
+                for flight, key, other in ((on_a, a, b), (on_a.swapped(), b, a)):
+                    filtered = ev.cross(scenario, (a, agents[a]), (b, agents[b]), flight=flight,
+                                        variant=f"filter-{flight.separation_team}")
+                    rows[key][f"{NAMES[other]}, {OWN_FILTER}"] = filtered if key == a else _other_side(filtered)
             if scenario == "2v2":
                 mixed = ev.mixed((a, agents[a]), (b, agents[b]))
                 rows[a]["mixed teams"], rows[b]["mixed teams"] = mixed[a], mixed[b]
     return rows
+
+
+def _other_side(entry: dict[str, Any]) -> dict[str, Any]:
+    """A head-to-head entry read from the opponent team: its drones' metrics and its wins and losses."""
+    return {**entry["opponent"], "win_rate": entry["loss_rate"], "loss_rate": entry["win_rate"],
+            "draws": entry["draws"]}
 
 
 def robustness_markdown(rb: Robustness, sides: str) -> list[str]:
@@ -116,7 +132,9 @@ def robustness_markdown(rb: Robustness, sides: str) -> list[str]:
               "finished, its crashes (gate frames / drone contacts), where the other drone was at its drone contacts "
               "(ahead / beside / behind, along its direction of travel one control step before: docs/evaluation.md) "
               "and, against a team, its win / loss / draw. Mixed teams: 2v2 races whose teams each have one drone of "
-              "each method.", "",
+              "each method." + (f" {OWN_FILTER}: the method's drones fly with the opt-in separation filter and the "
+                                "other team's without, as a deployment layer would race drones that lack it."
+                                if _has_filter_rows(rb) else ""), "",
               "| Scenario | Method | Against | Success | Races all home | Crashes gate / drone "
               "| Contacts: other ahead / beside / behind | Win / loss / draw |",
               "|---|---|---|---|---|---|---|---|"]
@@ -132,6 +150,10 @@ def robustness_markdown(rb: Robustness, sides: str) -> list[str]:
         lines.append(f"| {scenario} | " + " | ".join(_self_cell(by_key[k].metrics) if k in by_key else "missing"
                                                        for k in MODE_OF) + " |")
     return [*lines, ""]
+
+
+def _has_filter_rows(rb: Robustness) -> bool:
+    return any(OWN_FILTER in label for by_key in rb.strangers.values() for rows in by_key.values() for label in rows)
 
 
 def _self_cell(m: dict[str, Any] | None) -> str:

@@ -1,4 +1,5 @@
-"""Separation filter: the closed-form target shift, who it applies to, and two drones flying through each other."""
+"""Separation filter: the closed-form target shift, who it applies to, one team's drones only, and two drones flying
+through each other."""
 
 from __future__ import annotations
 
@@ -6,7 +7,9 @@ import pytest
 import torch
 
 from spiral.config import AIRFRAMES, EnvCfg, ObsCfg, SeparationCfg, SimCfg, TrackSpec
+from spiral.config.env import ActionCfg
 from spiral.env import RaceEnv
+from spiral.env.actions import ActionMap
 from spiral.env.separation import separation_offsets
 
 FILTER = SeparationCfg(distance=0.25, horizon_s=0.4, gain=1.5)
@@ -50,6 +53,25 @@ def test_drones_out_of_the_race_neither_push_nor_are_pushed():
     racing = torch.tensor([[True, True, False]])
     shift = separation_offsets(pos, torch.zeros_like(pos), racing, FILTER)
     torch.testing.assert_close(shift[0], torch.tensor([[-0.9, 0.0, 0.0], [0.9, 0.0, 0.0], [0.0, 0.0, 0.0]]))
+
+
+@pytest.mark.parametrize(("team", "shifted"), [("all", [0, 1, 2, 3]), ("a", [0, 1]), ("b", [2, 3])])
+def test_a_one_team_filter_shifts_only_that_teams_targets_and_still_avoids_every_drone(line2, team, shifted):
+    """2v2, at rest: drone 0 (team A) 0.1 m from drone 2 (team B), drone 1 (A) 0.1 m from drone 3 (B); zero actions.
+    Each shifted drone's target moves 0.9 m away from its neighbour of the other team, the others' stay put."""
+    cfg = EnvCfg(action={"separation": FILTER, "separation_team": team})
+    actions = ActionMap(cfg, line2, world_count=2, drones_per_world=4, training=False, device=torch.device("cpu"))
+    pos = torch.tensor([[0.0, 0.0, 1.0], [0.0, 1.0, 1.0], [0.1, 0.0, 1.0], [0.1, 1.0, 1.0]]).repeat(2, 1)
+    racing = torch.ones(8, dtype=torch.bool)
+    target, _ = actions.targets(torch.zeros(8, 4), pos, torch.zeros(8, 3), torch.zeros(8), racing)
+    away = torch.tensor([[-0.9, 0.0, 0.0], [-0.9, 0.0, 0.0], [0.9, 0.0, 0.0], [0.9, 0.0, 0.0]])
+    expected = pos.view(2, 4, 3) + away * torch.tensor([float(i in shifted) for i in range(4)])[:, None]
+    torch.testing.assert_close(target[:, :3], expected.view(8, 3))
+
+
+def test_a_one_team_filter_needs_a_filter():
+    with pytest.raises(ValueError, match="separation_team"):
+        ActionCfg(separation_team="a")
 
 
 HEAD_ON = ([[0.5, 1.5, 1.0], [2.0, 1.52, 1.0]], [[2.0, 1.52, 1.0], [0.5, 1.5, 1.0]])

@@ -47,3 +47,15 @@ def test_report_without_stages_fails_with_an_error_line(tmp_path):
     result = runner.invoke(app, ["report", str(tmp_path)])
     assert result.exit_code == 1
     assert "Error:" in result.output and "no train-<stage>/spec.json" in result.output
+
+
+@pytest.mark.parametrize(("args", "named"), [(["--separation-team", "c"], "--separation-team"),
+                                             (["--separation-team", "a"], "separation_team")],
+                         ids=["unknown-team", "team-without-a-filter"])
+def test_eval_refuses_a_one_team_filter_it_cannot_fly(sprint_yaml, tiny_checkpoint, args, named):
+    """An unknown team, or a team for the filter of a policy trained without one (`--separation keep`): exit 1 with
+    an `Error:` line naming the option."""
+    result = runner.invoke(app, ["eval", "--track", str(sprint_yaml), "--scenario", "1v1", "--runs", "1",
+                                 "--method", f"a={tiny_checkpoint}", *args])
+    assert result.exit_code == 1
+    assert "Error:" in result.output and named in result.output

@@ -193,6 +193,15 @@ def test_report_races_the_filter_rows_final_policies_strangers_and_downwash(spri
     mixed = json.loads((evals / "holdout-mixed-2v2-spiral-noselfplay.json").read_text())
     assert mixed["methods"]["spiral"]["slots"] == [0, 2] and mixed["methods"]["noselfplay"]["slots"] == [1, 3]
     assert "| 2v2 | SPIRAL | mixed teams |" in strangers
+    # The filter on one method's drones only: raced once per team it is on, each read from the filtered team.
+    for team, key, other in (("a", "SPIRAL", "PPO No Selfplay"), ("b", "PPO No Selfplay", "SPIRAL")):
+        one = json.loads((evals / f"holdout-cross-1v1-spiral-vs-noselfplay-filter-{team}.json").read_text())
+        assert one["flight"] == {"separation": separation.model_dump(), "separation_team": team}
+        entry = one["methods"]["spiral"] if team == "a" else one["methods"]["spiral"]["opponent"]
+        row = next(r for r in strangers.splitlines()
+                   if r.startswith(f"| 1v1 | {key} | {other}, + separation filter on own drones |"))
+        assert f"| {entry['crashes']['gate']} / {entry['crashes']['drone']} |" in row
+    assert "+ separation filter on own drones: the method's drones fly with" in strangers
 
     downwash = json.loads((evals / "holdout-self-2v2-noselfplay-downwash.json").read_text())
     assert downwash["flight"] == {"downwash": True}

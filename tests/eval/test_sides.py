@@ -7,10 +7,11 @@ from pathlib import Path
 import pytest
 import torch
 
+from spiral.config import SeparationCfg
 from spiral.core.outcome import race_winner
 from spiral.core.scenario import TEAMS
 from spiral.env.racing import RaceResults, concat_results
-from spiral.eval.evaluate import cross_play, evaluate_methods, load_agent, race_agents
+from spiral.eval.evaluate import FlightOverride, cross_play, evaluate_methods, load_agent, race_agents
 
 SHIPPED = Path(__file__).resolve().parents[2] / "checkpoints" / "full"
 SPIRAL_1V1, NOSELFPLAY_1V1 = SHIPPED / "1v1" / "best.pt", SHIPPED / "1v1-noselfplay" / "best.pt"
@@ -88,3 +89,17 @@ def test_a_policy_against_itself_from_both_sides_wins_exactly_as_often_as_it_los
     by_side = entry["win_rate_by_side"]
     assert (by_side["a"] + by_side["b"]) / 2 == pytest.approx(entry["win_rate"])
     assert entry["success_ratio"] == entry["opponent"]["success_ratio"]
+
+
+def test_a_one_team_filter_stays_with_its_method_when_the_sides_are_swapped(circuit6):
+    """The method's drones carry the filter in both halves: team A's slots first, team B's in the swapped races."""
+    spiral, baseline = load_agent(SPIRAL_1V1), load_agent(NOSELFPLAY_1V1)
+    on_a = FlightOverride(separation=SeparationCfg(distance=0.25, horizon_s=0.4, gain=1.5), separation_team="a")
+    assert on_a.swapped().separation_team == "b" and on_a.swapped().swapped() == on_a
+    both, _ = cross_play(spiral, baseline, circuit6, "1v1", 4, 5, sides="both", flight=on_a)
+    first, _ = race_agents(circuit6, "1v1", 4, 5, spiral, baseline, flight=on_a)
+    swapped, _ = race_agents(circuit6, "1v1", 4, 5, baseline, spiral, flight=on_a.swapped())
+    assert bool(both.finished.any())
+    assert torch.equal(both.lap_time[:4], first.lap_time)
+    assert torch.equal(both.lap_time[4:], swapped.lap_time.flip(1))
+    assert on_a.to_json()["separation_team"] == "a"
