@@ -206,7 +206,7 @@ def setup_race(track: TrackSpec, scenario: str, runs: int, seed: int, agent: Age
 def _check_compatible(a: FrozenPolicy, b: FrozenPolicy) -> None:
     if a.meta["obs_layout"] != b.meta["obs_layout"]:
         raise ValueError("cross-play needs policies with the same obs_layout")
-    if a.meta["env"]["action"] != b.meta["env"]["action"]:
+    if ActionCfg(**a.meta["env"]["action"]) != ActionCfg(**b.meta["env"]["action"]):  # as read: defaults filled in
         raise ValueError("cross-play needs policies with the same action mapping")
 
 

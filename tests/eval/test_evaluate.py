@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import pytest
 import torch
 from typer.testing import CliRunner
 
@@ -73,3 +74,27 @@ def test_self_match_results_keep_the_scenarios_two_teams(sprint, tiny_checkpoint
     """Every drone of a 2v2 self-match runs the learner, yet its results split slots 0-1 from 2-3 (for contacts)."""
     res = evaluate_policy(load_agent(tiny_checkpoint), sprint, "2v2", 2, 0)
     assert res.team.tolist() == [0, 0, 1, 1]
+
+
+def test_cross_play_compares_action_mappings_as_read_so_older_checkpoints_still_pair(sprint, tiny_checkpoint, tmp_path):
+    """A checkpoint written before an action field existed (the key absent: its default) races one that spells the
+    default out; a different mapping is refused."""
+    from spiral.core.checkpoint import load_checkpoint, save_checkpoint
+    from spiral.eval.evaluate import cross_play
+
+    data = load_checkpoint(tiny_checkpoint)
+    meta = {k: v for k, v in data.pop("spiral").items() if k not in ("format", "versions")}
+
+    def variant(name: str, action: dict) -> object:
+        path = tmp_path / f"{name}.pt"
+        save_checkpoint(path, data, {**meta, "env": {**meta["env"], "action": action}})
+        return load_agent(path)
+
+    action = dict(meta["env"]["action"])
+    older = variant("older", {k: v for k, v in action.items() if k != "separation_team"})
+    newer = variant("newer", {**action, "separation_team": "all"})
+    res, winners = cross_play(older, newer, sprint, "1v1", 2, 0, sides="a")
+    assert res.finished.shape == (2, 2) and winners.shape == (2,)
+    other = variant("other", {**action, "pos_scale": 1.0})
+    with pytest.raises(ValueError, match="same action mapping"):
+        cross_play(older, other, sprint, "1v1", 2, 0, sides="a")
