@@ -99,7 +99,8 @@ def test_a_one_team_filter_stays_with_its_method_when_the_sides_are_swapped(circ
     both, _ = cross_play(spiral, baseline, circuit6, "1v1", 4, 5, sides="both", flight=on_a)
     first, _ = race_agents(circuit6, "1v1", 4, 5, spiral, baseline, flight=on_a)
     swapped, _ = race_agents(circuit6, "1v1", 4, 5, baseline, spiral, flight=on_a.swapped())
-    assert bool(both.finished.any())
+    unswapped, _ = race_agents(circuit6, "1v1", 4, 5, baseline, spiral, flight=on_a)  # the filter on the baseline
+    assert bool(both.finished.any()) and not torch.equal(swapped.lap_time, unswapped.lap_time)
     assert torch.equal(both.lap_time[:4], first.lap_time)
     assert torch.equal(both.lap_time[4:], swapped.lap_time.flip(1))
     assert on_a.to_json()["separation_team"] == "a"
