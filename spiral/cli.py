@@ -10,8 +10,10 @@ from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
 import typer
+from pydantic import ValidationError
 
 from spiral.config import KINDS, SpecError, load_pipeline, load_spec, load_track
+from spiral.config.errors import format_validation_error
 
 __all__ = ["app", "main"]
 
@@ -53,7 +55,12 @@ def handles_errors(fn: F) -> F:
         try:
             return fn(*args, **kwargs)
         except _expected_errors() as exc:
-            lines = exc.problems if isinstance(exc, SpecError) else str(exc).splitlines()
+            if isinstance(exc, SpecError):
+                lines = exc.problems
+            elif isinstance(exc, ValidationError):  # a setting built from options: its model and field, one a line
+                lines = format_validation_error(exc.title, exc)
+            else:
+                lines = str(exc).splitlines()
             for line in lines:
                 typer.echo(f"Error: {line}", err=True)
             raise typer.Exit(1) from None

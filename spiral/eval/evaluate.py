@@ -114,14 +114,12 @@ class FlightOverride:
     def apply(self, layout: EvalLayout) -> EvalLayout:
         """``layout`` with these changes."""
         env, sim = layout.env, layout.sim
-        if self.separation != KEEP:
-            env = env.model_copy(update={"action": env.action.model_copy(update={"separation": self.separation})})
+        changes: dict[str, Any] = {} if self.separation == KEEP else {"separation": self.separation}
         if self.separation_team != "all":
-            if env.action.separation is None:
-                raise ValueError(f"separation_team: {self.separation_team!r} names the drones of a separation filter, "
-                                 "but these drones fly without one (give it with --separation DISTANCE,HORIZON_S,GAIN)")
-            env = env.model_copy(update={"action": env.action.model_copy(
-                update={"separation_team": self.separation_team})})
+            changes["separation_team"] = self.separation_team
+        if changes:  # validated again: a one-team setting needs a filter
+            action = ActionCfg.model_validate({**env.action.model_dump(), **changes})
+            env = env.model_copy(update={"action": action})
         if self.downwash is not None:
             sim = sim.model_copy(update={"downwash": self.downwash})
         return replace(layout, env=env, sim=sim)
