@@ -141,6 +141,13 @@ class RewardCfg(StrictModel):
         "its next gate): 1 both drones pay, 0 only the one behind, which is to make room (racing's rule for the "
         "overtaking car)",
     )
+    contact: NonNegFloat = Field(
+        default=0.0,
+        description="Weight of a further penalty for a drone-drone contact, shared by fault: each of the two drones "
+        "pays the share of the closing speed it flew into the other one step before (the drone that runs into a "
+        "slower one ahead pays all of it, two drones converging alike half each); 0 leaves the paper's reward "
+        "(not in the paper)",
+    )
     intervention: NonNegFloat = Field(
         default=0.0,
         description="Weight of the per-step cost of the target shift [m] the training shield at full gain asks for "

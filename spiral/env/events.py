@@ -8,9 +8,10 @@ from dataclasses import dataclass
 import torch
 
 from spiral.core.outcome import race_winner
-from spiral.env.observations import nearest_others
+from spiral.env.observations import nearest_others, relative_to_others
 
-__all__ = ["RaceEvents", "gate_distance", "heading", "nearest_distance", "nearest_is_behind", "race_result"]
+__all__ = ["RaceEvents", "contact_fault", "gate_distance", "heading", "nearest_distance", "nearest_is_behind",
+           "race_result"]
 
 
 @dataclass(frozen=True)
@@ -70,6 +71,26 @@ def nearest_is_behind(pos: torch.Tensor, out: torch.Tensor, to_gate: torch.Tenso
     index, found = nearest_others(p, (out == 0).view(w, d), count=1)
     offset = torch.gather(p, 1, index.expand(-1, -1, 3)) - p
     return (found[..., 0] & ((offset * to_gate.view(w, d, 3)).sum(-1) < 0)).flatten()
+
+
+def contact_fault(pos: torch.Tensor, pos_before: torch.Tensor, vel_before: torch.Tensor, racing: torch.Tensor,
+                  contact: torch.Tensor, *, world_count: int, drones_per_world: int) -> torch.Tensor:
+    """Each contact drone's share of the fault for its drone-drone contact (N,), 0 for the others.
+
+    The other drone is the nearest one (at ``pos``, after the step) of those ``racing`` before it. With u the unit
+    offset from a drone to the other one step before (``pos_before``) and v its velocity then (``vel_before``), it
+    flew c = max(0, v·u) into the other; its share is c / (c + c_other), half each when neither closed in.
+    """
+    w, d = world_count, drones_per_world
+    index, found = nearest_others(pos.view(w, d, 3), racing.view(w, d), count=1)
+    offset = relative_to_others(pos_before, index, found).view(-1, 3)
+    u = offset / offset.norm(dim=-1, keepdim=True).clamp(min=1e-9)
+    v = vel_before.view(w, d, 3)
+    other_vel = torch.gather(v, 1, index.expand(-1, -1, 3)).view(-1, 3)
+    closing = (vel_before * u).sum(-1).clamp(min=0.0)
+    total = closing + (-(other_vel * u).sum(-1)).clamp(min=0.0)
+    share = torch.where(total > 0, closing / total.clamp(min=1e-9), torch.full_like(total, 0.5))
+    return torch.where(contact & found.flatten(), share, torch.zeros_like(share))
 
 
 def race_result(finished_now: torch.Tensor, lap_time: torch.Tensor, racing: torch.Tensor, contested: torch.Tensor,

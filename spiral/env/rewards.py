@@ -37,6 +37,8 @@ class StepOutcome:
     leader and follower pay alike (``proximity_leader`` 1)."""
     race_result: torch.Tensor | None = None
     """+1 / −1 for the winning / losing team's drones at the step their race is decided, else 0."""
+    contact_fault: torch.Tensor | None = None
+    """Share of the fault for a drone-drone contact during the step, 0 for drones without one."""
     intervention: torch.Tensor | None = None
     """Length of the target shift the training shield at full gain asked for this step [m]."""
 
@@ -73,6 +75,13 @@ def _reward_proximity(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
     return torch.where(o.nearest_behind, cfg.proximity_leader * penalty, penalty)
 
 
+def _reward_contact(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
+    """−share once, at the step of a drone–drone contact: the drone's share of the fault for it (not in the paper)."""
+    if o.contact_fault is None:
+        return torch.zeros_like(o.dist_before)
+    return -o.contact_fault
+
+
 def _reward_intervention(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
     """−|shift| per step: the training shield's target shift at full gain, whether or not it still acts."""
     if o.intervention is None:
@@ -99,6 +108,7 @@ REWARD_TERMS = {
     "collision": _reward_collision,
     "alignment": _reward_alignment,
     "proximity": _reward_proximity,
+    "contact": _reward_contact,
     "intervention": _reward_intervention,
     "lap": _reward_lap,
     "win": _reward_win,

@@ -15,11 +15,12 @@ from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
 from spiral.core.outcome import race_winner
 from spiral.core.policy import OpponentPolicy
-from spiral.env.events import RaceEvents, gate_distance, heading, nearest_distance, nearest_is_behind
+from spiral.env.events import RaceEvents, contact_fault, gate_distance, heading, nearest_distance, nearest_is_behind
 from spiral.env.rewards import REWARD_TERMS, StepOutcome
 from spiral.env.slots import slot_map
 from spiral.env.stats import empty_stats, log_episodes, summarize_stats
 from spiral.sim import World
+from spiral.sim.state import COLLISION_KINDS
 
 __all__ = ["RaceState"]
 
@@ -81,6 +82,8 @@ class RaceState:
         self.intervention = torch.zeros(n, device=dev)
         """Length of the training shield's target shift at full gain in the last step [m]."""
         self.crash_kind = torch.zeros(n, dtype=torch.int32, device=dev)
+        self.before = (self.pos.clone(), self.vel.clone())
+        """Positions and velocities before the last control step (kept only with ``reward.contact``)."""
         self.episode_length_buf = torch.zeros(self.num_envs, dtype=torch.long, device=dev)
         self.term_sums = {name: torch.zeros(n, device=dev) for name in REWARD_TERMS}
         self.cut_time = torch.full((w,), math.inf, device=dev)
@@ -138,8 +141,18 @@ class RaceState:
             nearest=nearest,
             nearest_behind=behind,
             race_result=ev.race_result,
+            contact_fault=self._contact_fault(ev) if reward.contact > 0 else None,
             intervention=torch.where(racing, self.intervention, 0.0) if self.cfg.shield is not None else None,
         )
+
+    def _contact_fault(self, ev: RaceEvents) -> torch.Tensor:
+        """Each drone's share of the fault for a drone–drone contact this step (:func:`~spiral.env.events.contact_fault`)."""
+        contact = ev.crashed_now & ((self.step_collision & COLLISION_KINDS["drone"]) != 0)
+        if not bool(contact.any()):
+            return torch.zeros_like(ev.dist_before)
+        pos_before, vel_before = self.before
+        return contact_fault(self.pos, pos_before, vel_before, ev.racing, contact, world_count=self.world_count,
+                             drones_per_world=self.drones_per_world)
 
     def learner_won(self) -> torch.Tensor:
         """Per world, whether the learner's team won the race against the opponent slots (bool, (W,))."""

@@ -12,9 +12,11 @@ from spiral.config import AIRFRAMES, EnvCfg, ObsCfg, RewardCfg, SimCfg, TrackSpe
 from spiral.core.checkpoint import load_policy
 from spiral.env import HISTORY_FEATURES, RaceEnv, compute_rewards, run_races
 from spiral.env.observations import HISTORY_FIELDS, OBS_TERMS
+from spiral.env.events import contact_fault
 from spiral.env.racing import BEARINGS, contact_bearing
 from spiral.env.rewards import StepOutcome
 from spiral.eval.metrics import summarize_races
+from spiral.sim.state import COLLISION_KINDS
 
 CF2X = AIRFRAMES["cf2x"]
 ROOT = Path(__file__).resolve().parents[2]
@@ -249,6 +251,36 @@ def test_proximity_leader_share_charges_the_drone_behind_in_full_and_the_leader_
     place(env, [[-1.5, -1.1, 1.0], [-1.5, -0.9, 1.0]])  # abreast: neither is behind the other
     _, rewards, _, _ = env.step(hold)
     assert rewards.tolist() == pytest.approx([-0.06, -0.06], abs=2e-3)
+
+
+@pytest.mark.parametrize(("v0", "v1", "expected"), [(3.0, 1.0, [-4.0, 0.0]), (2.0, -2.0, [-2.0, -2.0])])
+def test_contact_penalty_charges_the_drone_that_runs_into_another_by_its_share_of_the_closing_speed(
+        oval2, v0, v1, expected):
+    """Two drones 0.13 m apart on one line (contact below 0.12 m): the one behind at 3 m/s runs into one ahead at
+    1 m/s and pays the whole contact weight, the one ahead nothing; flying into each other alike, each pays half."""
+    reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, collision=0.0, contact=4.0)
+    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), auto_reset=False, reward=reward)
+    env.reset()
+    place(env, [[-1.70, -1.0, 1.0], [-1.57, -1.0, 1.0]])
+    env.vel[:2] = torch.tensor([[v0, 0.0, 0.0], [v1, 0.0, 0.0]])
+    _, rewards, _, _ = env.step(torch.zeros(2, 4))
+    assert env.crashed[:2].all() and ((env.crash_kind[:2] & COLLISION_KINDS["drone"]) != 0).all()
+    assert rewards.tolist() == pytest.approx(expected)
+
+
+def test_contact_fault_takes_the_closing_speed_along_the_offset_before_the_step():
+    """A drone closing at 2 m/s on one that flies away from it at 1 m/s takes it all; a drone crossing at right
+    angles shares with the one that flies into it by their closing speeds; drones without a contact pay nothing."""
+    pos_before = torch.tensor([[0.0, 0.0, 1.0], [0.3, 0.0, 1.0], [5.0, 0.0, 1.0], [5.0, 0.3, 1.0]])
+    vel_before = torch.tensor([[2.0, 0.0, 0.0], [1.0, 0.0, 0.0], [3.0, 1.0, 0.0], [0.0, -3.0, 0.0]])
+    pos = pos_before + 0.02 * vel_before
+    racing = torch.ones(4, dtype=torch.bool)
+    contact = torch.tensor([True, True, True, True])
+    share = contact_fault(pos, pos_before, vel_before, racing, contact, world_count=2, drones_per_world=2)
+    assert share.tolist() == pytest.approx([1.0, 0.0, 0.25, 0.75])
+    none = contact_fault(pos, pos_before, vel_before, racing, torch.zeros(4, dtype=torch.bool), world_count=2,
+                         drones_per_world=2)
+    assert none.tolist() == [0.0] * 4
 
 
 def test_scripted_lap_pays_each_gate_once_and_the_lap_bonus_once(oval2):
