@@ -146,7 +146,8 @@ class RaceState:
         )
 
     def _contact_fault(self, ev: RaceEvents) -> torch.Tensor:
-        """Each drone's share of the fault for a drone–drone contact this step (:func:`~spiral.env.events.contact_fault`)."""
+        """Each drone's share of the fault for a drone–drone contact this step
+        (:func:`~spiral.env.events.contact_fault`)."""
         contact = ev.crashed_now & ((self.step_collision & COLLISION_KINDS["drone"]) != 0)
         if not bool(contact.any()):
             return torch.zeros_like(ev.dist_before)

@@ -11,8 +11,8 @@ import torch
 from spiral.config import AIRFRAMES, EnvCfg, ObsCfg, RewardCfg, SimCfg, TrackSpec
 from spiral.core.checkpoint import load_policy
 from spiral.env import HISTORY_FEATURES, RaceEnv, compute_rewards, run_races
-from spiral.env.observations import HISTORY_FIELDS, OBS_TERMS
 from spiral.env.events import contact_fault
+from spiral.env.observations import HISTORY_FIELDS, OBS_TERMS
 from spiral.env.racing import BEARINGS, contact_bearing
 from spiral.env.rewards import StepOutcome
 from spiral.eval.metrics import summarize_races
