@@ -225,6 +225,9 @@ def evaluate(
         "--against they keep it when the sides are swapped) or 'b' (team B's only)")] = "all",
     downwash: Annotated[bool | None, typer.Option(
         "--downwash/--no-downwash", help="Switch the simulator's downwash on or off (default: as trained)")] = None,
+    starts: Annotated[str, typer.Option(
+        "--starts", help="Where the races start: 'box' (the start box, the protocol), 'track' (every drone at its "
+        "own random point along the track) or 'file' (each world's drones in single file on one stretch)")] = "box",
     device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
     json_out: JsonOut = None,
 ) -> None:
@@ -238,8 +241,10 @@ def evaluate(
     opponent = _parse_method(against) if against else None
     if separation_team not in ("all", "a", "b"):
         raise ValueError(f"--separation-team: expected all, a or b, got {separation_team!r}")
+    if starts not in ("box", "track", "file"):
+        raise ValueError(f"--starts: expected box, track or file, got {starts!r}")
     flight = FlightOverride(separation=parse_separation(separation), downwash=downwash,
-                            separation_team=separation_team)  # type: ignore[arg-type]
+                            separation_team=separation_team, starts=starts)  # type: ignore[arg-type]
     result = evaluate_methods(load_track(track), methods, scenario=scenario, runs=runs, seed=seed, device=device,
                               against=opponent, sides=sides, flight=flight)
     typer.echo(format_eval(result))

@@ -167,7 +167,7 @@ class RewardCfg(StrictModel):
 
 
 class EpisodeCfg(StrictModel):
-    """Episode starts and limits in training (evaluation always starts in the start box)."""
+    """Episode starts and limits in training (evaluation starts in the start box unless ``eval_starts`` says)."""
 
     track_start_prob: float = Field(
         default=0.5, ge=0, le=1, description="Share of episodes started at a random point along the track"
@@ -186,6 +186,11 @@ class EpisodeCfg(StrictModel):
         "that more of the samples come from the start, where the drones race as a pack",
     )
     start_cut_s: PosFloat = Field(default=1.5, description="Race time after which a cut episode ends [s]")
+    eval_starts: Literal["box", "track", "file"] = Field(
+        default="box",
+        description="Where evaluation races start: in the start box (the protocol), every drone at its own random "
+        "point along the track, or the drones of each world in single file (robustness checks; training ignores it)",
+    )
 
 
 class EnvCfg(StrictModel):

@@ -145,6 +145,7 @@ def draw_starts(track: TrackSpec, episode: EpisodeCfg, world_count: int, drones:
                 training: bool, device: torch.device) -> Starts:
     """Starts in the start box, and in training a share ``episode.track_start_prob`` of worlds along the track and,
     with several drones, a share ``episode.file_start_prob`` in single file (taking precedence over the other two).
+    Evaluation starts every world where ``episode.eval_starts`` says.
 
     The draws depend only on the generator's state: box placements for every world first, then track starts and
     the choice between them (training with track starts only), then file starts and theirs (only when used).
@@ -152,6 +153,10 @@ def draw_starts(track: TrackSpec, episode: EpisodeCfg, world_count: int, drones:
     pos, yaw = sample_box_starts(track, world_count, drones, generator, device=device)
     state = (pos, torch.zeros_like(pos), yaw, torch.zeros(world_count, drones, dtype=torch.int32, device=device))
     box = torch.ones(world_count, dtype=torch.bool, device=device)
+    if not training and episode.eval_starts != "box":  # a robustness check: every world starts off the box
+        sample = sample_track_starts if episode.eval_starts == "track" else sample_file_starts
+        drawn = sample(track, world_count, drones, generator, max_speed=episode.track_start_speed, device=device)
+        return Starts(*(new.to(old.dtype) for new, old in zip(drawn, state, strict=True)), ~box)
     others = []
     if training and episode.track_start_prob > 0:
         others.append((sample_track_starts, episode.track_start_prob))

@@ -97,7 +97,8 @@ KEEP = "keep"
 
 @dataclass(frozen=True)
 class FlightOverride:
-    """Changes to the flight stack the policies were trained with, for one evaluation (zero-shot tests).
+    """Changes to the flight stack the policies were trained with, or to where the races start, for one evaluation
+    (zero-shot tests).
 
     Every drone of the races flies with them, whichever method commands it.
     """
@@ -110,6 +111,8 @@ class FlightOverride:
     keep it when the sides are swapped) or team B's only."""
     downwash: bool | None = None
     """Switch the simulator's downwash on or off; None keeps the trained setting."""
+    starts: Literal["box", "track", "file"] = "box"
+    """Where the races start (``EpisodeCfg.eval_starts``): the start box, or off it, as a robustness check."""
 
     def apply(self, layout: EvalLayout) -> EvalLayout:
         """``layout`` with these changes."""
@@ -122,6 +125,8 @@ class FlightOverride:
             env = env.model_copy(update={"action": action})
         if self.downwash is not None:
             sim = sim.model_copy(update={"downwash": self.downwash})
+        if self.starts != "box":
+            env = env.model_copy(update={"episode": env.episode.model_copy(update={"eval_starts": self.starts})})
         return replace(layout, env=env, sim=sim)
 
     def to_json(self) -> dict[str, Any]:
@@ -133,6 +138,8 @@ class FlightOverride:
             out["separation_team"] = self.separation_team
         if self.downwash is not None:
             out["downwash"] = self.downwash
+        if self.starts != "box":
+            out["starts"] = self.starts
         return out
 
     def swapped(self) -> FlightOverride:
@@ -361,7 +368,7 @@ def format_eval(result: dict[str, Any]) -> str:
         if result.get("sides") == "both":
             head += " (each placement raced from both sides)"
     if "flight" in result:
-        head += f", flight stack changed: {json.dumps(result['flight'])}"
+        head += f", changed from training: {json.dumps(result['flight'])}"
     lines = [head, f"{'method':<20} {'success':>8} {'95% CI':>15} {'races':>6} {'lap [s]':>14} {'win':>6}  crashes"]
     for name, m in result["methods"].items():
         lap = f"{m['lap_time_mean']:.2f} ± {m['lap_time_std']:.2f}" if m["lap_time_mean"] is not None else "-"

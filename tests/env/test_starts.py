@@ -93,3 +93,21 @@ def test_draw_starts_gives_file_starts_their_share_and_never_to_a_solo_drone(lin
     assert (~half.box).float().mean() == pytest.approx(0.5, abs=0.04)
     evaluation = draw_starts(line2, all_file, 64, 2, torch.Generator().manual_seed(1), training=False, device=CPU)
     assert evaluation.box.all()
+
+
+@pytest.mark.parametrize("where", ["track", "file"])
+def test_evaluation_starts_every_world_off_the_box_when_asked_and_ignores_the_training_shares(line2, where):
+    """``eval_starts`` track or file: every evaluation world starts off the start box, drawn as the training sampler
+    of that kind draws from the same generator state; training starts are unchanged by the option."""
+    asked = EpisodeCfg(track_start_prob=0.0, eval_starts=where)
+    starts = draw_starts(line2, asked, 64, 2, torch.Generator().manual_seed(3), training=False, device=CPU)
+    assert not starts.box.any()
+    generator = torch.Generator().manual_seed(3)
+    starts_module.sample_box_starts(line2, 64, 2, generator, device=CPU)  # drawn first, as always
+    sample = starts_module.sample_track_starts if where == "track" else sample_file_starts
+    pos, vel, _, gate = sample(line2, 64, 2, generator, max_speed=asked.track_start_speed, device=CPU)
+    assert torch.equal(starts.pos, pos) and torch.equal(starts.vel, vel) and torch.equal(starts.gate, gate.int())
+    trained = draw_starts(line2, asked, 64, 2, torch.Generator().manual_seed(3), training=True, device=CPU)
+    box = draw_starts(line2, EpisodeCfg(track_start_prob=0.0), 64, 2, torch.Generator().manual_seed(3),
+                      training=True, device=CPU)
+    assert trained.box.all() and torch.equal(trained.pos, box.pos)

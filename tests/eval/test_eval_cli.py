@@ -59,3 +59,16 @@ def test_eval_refuses_a_one_team_filter_it_cannot_fly(sprint_yaml, tiny_checkpoi
                                  "--method", f"a={tiny_checkpoint}", *args])
     assert result.exit_code == 1
     assert "Error:" in result.output and named in result.output
+
+
+def test_eval_starts_the_races_where_asked_and_says_so(sprint_yaml, tiny_checkpoint, tmp_path):
+    """`--starts track` races from points along the track and records the change; an unknown kind is refused."""
+    out = tmp_path / "eval.json"
+    result = runner.invoke(app, ["eval", "--track", str(sprint_yaml), "--runs", "2", "--method",
+                                 f"a={tiny_checkpoint}", "--starts", "track", "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    assert 'changed from training: {"starts": "track"}' in result.output
+    assert json.loads(out.read_text())["flight"] == {"starts": "track"}
+    refused = runner.invoke(app, ["eval", "--track", str(sprint_yaml), "--runs", "1", "--method",
+                                  f"a={tiny_checkpoint}", "--starts", "air"])
+    assert refused.exit_code == 1 and "--starts" in refused.output
