@@ -11,10 +11,10 @@ import warp as wp
 from tensordict import TensorDict
 
 from spiral.config.airframe import AirframeCfg
-from spiral.config.env import EnvCfg
+from spiral.config.env import EnvCfg, ObsCfg
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
-from spiral.core.policy import RecordingOpponent, ResettingOpponent
+from spiral.core.policy import OpponentPolicy, RecordingOpponent, ResettingOpponent
 from spiral.core.scenario import team_slots
 from spiral.env.actions import ActionMap
 from spiral.env.events import RaceEvents, race_result
@@ -57,11 +57,26 @@ class RaceEnv(RaceState):
                          learner_slots=learner_slots, device=device, seed=seed, auto_reset=auto_reset)
         self.action_map = ActionMap(cfg, track, world_count=world_count, drones_per_world=drones_per_world,
                                     training=auto_reset, device=self.device)
-        source = ObsSource(**{f.name: getattr(self, f.name) for f in fields(ObsSource)})
-        self.observer = Observer(cfg, source, device=self.device)
+        self._obs_source = ObsSource(**{f.name: getattr(self, f.name) for f in fields(ObsSource)})
+        self.observer = Observer(cfg, self._obs_source, device=self.device)
         self.obs_builder = self.observer.builder
         """The observation layout and history buffer."""
+        self.opponent_observer: Observer | None = None
+        """The opponent slots' own observer when their policy reads another observation layout (cross-play)."""
         self.reset()
+
+    def set_opponent_policy(self, policy: OpponentPolicy | None, *, obs: ObsCfg | None = None) -> None:
+        """Drive the opponent slots with ``policy`` from the next reset on (``None``: the slots are absent).
+
+        ``obs``: the observation layout ``policy`` reads, when it differs from the env's (a policy trained with other
+        inputs, raced in cross-play); its slots are then observed a second time, with that layout.
+        """
+        super().set_opponent_policy(policy)
+        self.opponent_observer = None
+        if obs is not None and obs != self.cfg.obs:  # observes the current state at once, each history afresh
+            cfg = self.cfg.model_copy(update={"obs": obs, "critic": "policy"})
+            self.opponent_observer = Observer(cfg, self._obs_source, device=self.device)
+            self.opponent_observer.record(self.last_action, torch.ones_like(self.finished))
 
     def set_training_progress(self, fraction: float) -> None:
         """Tell the env how far its training stage is (fraction of its iterations): schedules follow it."""
@@ -91,7 +106,7 @@ class RaceEnv(RaceState):
         all_actions[self.learner_idx] = actions.to(self.device).clamp(-1.0, 1.0)
         if self.opponent_policy is not None and self.opponent_idx.numel():
             with torch.no_grad():
-                opp = self.opponent_policy(self.observer.rows(self.opponent_idx))
+                opp = self.opponent_policy((self.opponent_observer or self.observer).rows(self.opponent_idx))
             all_actions[self.opponent_idx] = opp.to(self.device).clamp(-1.0, 1.0)
         racing = ~(self.out.bool())
         target, shift = self.action_map.targets(all_actions, self.pos, self.vel, self.rpy[:, 2], racing)
@@ -170,6 +185,8 @@ class RaceEnv(RaceState):
         """Observe: record this step in the history and return the learner drones' ``policy`` and ``critic`` groups
         (the same tensor unless the environment's ``critic`` is ``race``)."""
         self.observer.record(self.last_action, self._fresh)
+        if self.opponent_observer is not None:
+            self.opponent_observer.record(self.last_action, self._fresh)
         return self.observer.rows(self.learner_idx)
 
     # Reset
@@ -195,7 +212,8 @@ class RaceEnv(RaceState):
         self.world.reset(buf["mask"], buf["pos"], buf["yaw"], init_vel=buf["vel"], init_next_gate=buf["gate"])
         drones = worlds.repeat_interleave(d)
         self._reset_drone_buffers(drones)
-        if self.cfg.obs.priority:
+        opponent_obs = self.cfg.obs if self.opponent_observer is None else self.opponent_observer.builder.cfg
+        if self.cfg.obs.priority or opponent_obs.priority:
             self.priority[drones] = torch.rand(n * d, generator=self.generator, device=self.device)
         driven = self.learner_slots + (self.opponent_slots if self.opponent_policy is not None else [])
         self.contested[idx] = starts.box & (len({int(self.race_team[s]) for s in driven}) > 1)

@@ -195,7 +195,7 @@ def setup_race(track: TrackSpec, scenario: str, runs: int, seed: int, agent: Age
     if opponent is not None and scenario == "solo":
         raise ValueError("cross-play needs a 1v1 or 2v2 scenario")
     if isinstance(agent, FrozenPolicy) and isinstance(opponent, FrozenPolicy):
-        _check_compatible(agent, opponent)
+        _check_compatible(agent, opponent, same_inputs=False)
     learned = [a for a in (agent, opponent) if isinstance(a, FrozenPolicy)]
     chosen = EvalLayout.of_policy(learned[0]) if learned else (layout or EvalLayout.default())
     if flight is not None:
@@ -203,14 +203,17 @@ def setup_race(track: TrackSpec, scenario: str, runs: int, seed: int, agent: Age
     env = _race_env(chosen, track, scenario, runs, seed, device=device, team_a_only=opponent is not None)
     if opponent is not None:
         opp: OpponentPolicy = opponent_policy(env) if isinstance(opponent, str) else opponent
-        env.set_opponent_policy(opp)
+        own = EvalLayout.of_policy(opponent).env.obs if isinstance(opponent, FrozenPolicy) else None
+        env.set_opponent_policy(opp, obs=own)  # a policy with other inputs reads its own layout
     policy: Policy = se_ibr_policy(env) if isinstance(agent, str) else agent
     return env, policy
 
 
-def _check_compatible(a: FrozenPolicy, b: FrozenPolicy) -> None:
-    if a.meta["obs_layout"] != b.meta["obs_layout"]:
-        raise ValueError("cross-play needs policies with the same obs_layout")
+def _check_compatible(a: FrozenPolicy, b: FrozenPolicy, *, same_inputs: bool = True) -> None:
+    """Two policies can race each other if every drone flies the same action mapping; sharing a team's slots in one
+    env (``same_inputs``) also needs the same observation layout, while opposing teams each read their own."""
+    if same_inputs and a.meta["obs_layout"] != b.meta["obs_layout"]:
+        raise ValueError("mixed teams need policies with the same obs_layout")
     if ActionCfg(**a.meta["env"]["action"]) != ActionCfg(**b.meta["env"]["action"]):  # as read: defaults filled in
         raise ValueError("cross-play needs policies with the same action mapping")
 

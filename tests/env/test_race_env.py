@@ -283,6 +283,31 @@ def test_contact_fault_takes_the_closing_speed_along_the_offset_before_the_step(
     assert none.tolist() == [0.0] * 4
 
 
+def test_opponents_with_their_own_layout_read_what_an_env_of_that_layout_shows_them(oval2):
+    """Opponent slots driven by a policy with other inputs are observed with its layout: after the same starts and
+    actions their rows equal those an env built with that layout gives the same drones, while the learner keeps the
+    env's layout."""
+    mine, theirs = ObsCfg(history_len=3), ObsCfg(history_len=1, gate_normals=True, opponent_velocity=True)
+    widths = []
+
+    def opponent(obs):
+        widths.append(obs["policy"].shape[1])
+        return torch.full((obs.batch_size[0], 4), 0.2)
+
+    env = make_env(oval2, worlds=2, drones=2, learners=(0,), auto_reset=False, obs=mine)
+    env.set_opponent_policy(opponent, obs=theirs)
+    ref = make_env(oval2, worlds=2, drones=2, learners=(0, 1), auto_reset=False, obs=theirs)
+    obs, _ = env.reset(), ref.reset()
+    act = torch.tensor([[0.1, 0.0, 0.0, 0.0], [0.2, 0.2, 0.2, 0.2]]).repeat(2, 1)  # per world: learner, opponent
+    for _ in range(3):
+        obs, _, _, _ = env.step(act[0::2])
+        ref.step(act)
+    assert obs["policy"].shape[1] == env.obs_dim != ref.obs_dim
+    assert set(widths) == {ref.obs_dim}
+    seen = env.opponent_observer.rows(env.opponent_idx)["policy"]
+    assert torch.equal(seen, ref.current_observations()["policy"][1::2])
+
+
 def test_scripted_lap_pays_each_gate_once_and_the_lap_bonus_once(oval2):
     """Fly gate 0, gate 1, gate 0 again: three gate bonuses, one lap bonus of 100 / lap time, success."""
     env = make_env(oval2, worlds=1, auto_reset=False, reward=RewardCfg(progress=0.0, alignment=0.0))

@@ -24,11 +24,11 @@ SPRINT = {
 """Two gates ahead of a start box roomy enough for four drones; races last at most 2 s."""
 
 
-def tiny_stage(scenario: str = "solo", *, name: str = "tiny", mode: str = "pool") -> StageSpec:
-    """A one-iteration stage with a compact observation and a small network."""
+def tiny_stage(scenario: str = "solo", *, name: str = "tiny", mode: str = "pool", obs: dict | None = None) -> StageSpec:
+    """A one-iteration stage with a compact observation (or ``obs``) and a small network."""
     return StageSpec.model_validate({
         "name": name, "scenario": scenario, "worlds": 4, "iterations": 1,
-        "env": {"obs": {"history_len": 1, "gate_normals": True, "pid_integral": True}},
+        "env": {"obs": obs or {"history_len": 1, "gate_normals": True, "pid_integral": True}},
         "ppo": {"num_steps_per_env": 8, "actor_hidden_dims": [16, 16], "critic_hidden_dims": [16, 16]},
         "selection": {"interval": 1, "races": 2}, **({"selfplay": {"mode": mode}} if scenario != "solo" else {})})
 
@@ -54,3 +54,12 @@ def tiny_checkpoint(sprint: TrackSpec, tmp_path_factory: pytest.TempPathFactory)
     result = StageTrainer(sprint, AIRFRAMES["cf2x"], SimCfg(), tiny_stage(), run_dir, seed=0, progress=False,
                           log=lambda _: None).train()
     return result.best_path
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint_other_inputs(sprint: TrackSpec, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Like ``tiny_checkpoint``, but trained with another observation layout (two history entries, other terms)."""
+    run_dir = tmp_path_factory.mktemp("tiny-other")
+    stage = tiny_stage(obs={"history_len": 2, "opponent_velocity": True})
+    return StageTrainer(sprint, AIRFRAMES["cf2x"], SimCfg(), stage, run_dir, seed=0, progress=False,
+                        log=lambda _: None).train().best_path

@@ -98,3 +98,21 @@ def test_cross_play_compares_action_mappings_as_read_so_older_checkpoints_still_
     other = variant("other", {**action, "pos_scale": 1.0})
     with pytest.raises(ValueError, match="same action mapping"):
         cross_play(older, other, sprint, "1v1", 2, 0, sides="a")
+
+
+def test_cross_play_lets_each_team_read_its_own_observation_layout(sprint, tiny_checkpoint,
+                                                                   tiny_checkpoint_other_inputs):
+    """Two policies trained with different inputs race each other from both sides, each fed rows of its own width;
+    mixed teams, which share one layout per env, still refuse them."""
+    from spiral.eval.evaluate import cross_play, evaluate_mixed_teams
+
+    a, b = load_agent(tiny_checkpoint), load_agent(tiny_checkpoint_other_inputs)
+    assert a.obs_layout["obs_dim"] != b.obs_layout["obs_dim"]  # a policy fed the other's rows would not run
+    res, winners = cross_play(a, b, sprint, "1v1", 2, 0, sides="both")
+    assert res.finished.shape == (4, 2) and winners.shape == (4,)
+    for agent, opponent in ((a, b), (b, a)):
+        env, _ = setup_race(sprint, "1v1", 2, 0, agent, opponent)
+        assert env.obs_dim == agent.obs_layout["obs_dim"] and env.opponent_observer is not None
+        assert env.opponent_observer.rows(env.opponent_idx)["policy"].shape[1] == opponent.obs_layout["obs_dim"]
+    with pytest.raises(ValueError, match="same obs_layout"):
+        evaluate_mixed_teams(sprint, {"a": tiny_checkpoint, "b": tiny_checkpoint_other_inputs}, runs=2, seed=0)
