@@ -66,11 +66,8 @@ class RaceEnv(RaceState):
         self.reset()
 
     def set_opponent_policy(self, policy: OpponentPolicy | None, *, obs: ObsCfg | None = None) -> None:
-        """Drive the opponent slots with ``policy`` from the next reset on (``None``: the slots are absent).
-
-        ``obs``: the observation layout ``policy`` reads, when it differs from the env's (a policy trained with other
-        inputs, raced in cross-play); its slots are then observed a second time, with that layout.
-        """
+        """Drive the opponent slots with ``policy`` from the next reset on (``None``: the slots are absent);
+        ``obs``: the layout ``policy`` reads if not the env's (cross-play): its slots are then observed with it too."""
         super().set_opponent_policy(policy)
         self.opponent_observer = None
         if obs is not None and obs != self.cfg.obs:  # observes the current state at once, each history afresh
@@ -212,8 +209,7 @@ class RaceEnv(RaceState):
         self.world.reset(buf["mask"], buf["pos"], buf["yaw"], init_vel=buf["vel"], init_next_gate=buf["gate"])
         drones = worlds.repeat_interleave(d)
         self._reset_drone_buffers(drones)
-        opponent_obs = self.cfg.obs if self.opponent_observer is None else self.opponent_observer.builder.cfg
-        if self.cfg.obs.priority or opponent_obs.priority:
+        if any(o is not None and o.builder.cfg.priority for o in (self.observer, self.opponent_observer)):
             self.priority[drones] = torch.rand(n * d, generator=self.generator, device=self.device)
         driven = self.learner_slots + (self.opponent_slots if self.opponent_policy is not None else [])
         self.contested[idx] = starts.box & (len({int(self.race_team[s]) for s in driven}) > 1)
