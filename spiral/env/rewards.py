@@ -116,7 +116,16 @@ REWARD_TERMS = {
 """Reward term functions by the name of their weight in ``RewardCfg``."""
 
 
+SUMMED_AT_ONCE = ("progress", "gate", "collision", "alignment", "proximity", "intervention", "lap", "win")
+"""Terms summed in one reduction, as when the shipped checkpoints were trained. Terms added since are added to its
+result one at a time: a reduction over more rows groups its additions otherwise (for some drone counts), so a new
+term at weight 0 would change the totals in their last bits and training would not repeat bit for bit."""
+
+
 def compute_rewards(outcome: StepOutcome, cfg: RewardCfg) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Total reward per drone and each weighted term."""
     terms = {name: fn(outcome, cfg) * getattr(cfg, name) for name, fn in REWARD_TERMS.items()}
-    return torch.stack(list(terms.values())).sum(0), terms
+    total = torch.stack([terms[name] for name in SUMMED_AT_ONCE]).sum(0)
+    for name in (name for name in REWARD_TERMS if name not in SUMMED_AT_ONCE):
+        total = total + terms[name]
+    return total, terms

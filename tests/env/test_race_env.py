@@ -221,6 +221,24 @@ def test_reward_terms_on_a_hand_made_transition():
     assert total.tolist() == pytest.approx([24.5, -10.0])
 
 
+@pytest.mark.parametrize("drones", [154, 512])
+def test_a_term_at_weight_zero_leaves_every_total_bit_for_bit(drones):
+    """With the contact term at weight 0 the totals equal, bit for bit, one reduction over the terms summed before
+    it existed (for 154 drones a reduction over one more row would round differently)."""
+    from spiral.env import rewards
+
+    g = torch.Generator().manual_seed(0)
+    outcome = StepOutcome(
+        dist_before=3 * torch.rand(drones, generator=g), dist_after=3 * torch.rand(drones, generator=g),
+        gates_passed=(torch.rand(drones, generator=g) < 0.1).int(), crashed_now=torch.rand(drones, generator=g) < 0.05,
+        heading=torch.randn(drones, 3, generator=g), to_gate=torch.randn(drones, 3, generator=g),
+        lap_time=3 + torch.rand(drones, generator=g), nearest=torch.rand(drones, generator=g),
+        race_result=torch.randint(-1, 2, (drones,), generator=g).float())
+    total, terms = compute_rewards(outcome, RewardCfg(proximity=0.1, win=3))
+    before = torch.stack([terms[name] for name in rewards.SUMMED_AT_ONCE]).sum(0)
+    assert torch.equal(total, before) and set(terms) - set(rewards.SUMMED_AT_ONCE) == {"contact"}
+
+
 def test_proximity_penalty_grows_linearly_inside_the_safe_distance(oval2):
     """Pay −w·(1 − d/d_safe) for the nearest racing drone: 0.2 m apart with d_safe 0.5 m costs 0.6·w per step,
     1 m apart costs nothing, and a lone drone pays nothing."""
