@@ -10,8 +10,8 @@ import torch
 from spiral.core.outcome import race_winner
 from spiral.env.observations import nearest_others, relative_to_others
 
-__all__ = ["RaceEvents", "contact_fault", "gate_distance", "heading", "nearest_distance", "nearest_is_behind",
-           "race_result"]
+__all__ = ["RaceEvents", "contact_fault", "contact_partners", "gate_distance", "heading", "nearest_distance",
+           "nearest_is_behind", "race_result"]
 
 
 @dataclass(frozen=True)
@@ -73,17 +73,26 @@ def nearest_is_behind(pos: torch.Tensor, out: torch.Tensor, to_gate: torch.Tenso
     return (found[..., 0] & ((offset * to_gate.view(w, d, 3)).sum(-1) < 0)).flatten()
 
 
+def contact_partners(pos: torch.Tensor, pos_before: torch.Tensor, racing: torch.Tensor, *, world_count: int,
+                     drones_per_world: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The other drone of each drone's contact in a step: the nearest one (at ``pos``, after the step) of those
+    ``racing`` before it. Its slot (W, D, 1), whether there is one (W, D, 1), and its offset one step before (at
+    ``pos_before``; (N, 3), zero where there is none)."""
+    w, d = world_count, drones_per_world
+    index, found = nearest_others(pos.view(w, d, 3), racing.view(w, d), count=1)
+    return index, found, relative_to_others(pos_before, index, found).view(-1, 3)
+
+
 def contact_fault(pos: torch.Tensor, pos_before: torch.Tensor, vel_before: torch.Tensor, racing: torch.Tensor,
                   contact: torch.Tensor, *, world_count: int, drones_per_world: int) -> torch.Tensor:
     """Each contact drone's share of the fault for its drone-drone contact (N,), 0 for the others.
 
-    The other drone is the nearest one (at ``pos``, after the step) of those ``racing`` before it. With u the unit
-    offset from a drone to the other one step before (``pos_before``) and v its velocity then (``vel_before``), it
-    flew c = max(0, v·u) into the other; its share is c / (c + c_other), half each when neither closed in.
+    The other drone is the one :func:`contact_partners` finds. With u the unit offset from a drone to the other one
+    step before (``pos_before``) and v its velocity then (``vel_before``), it flew c = max(0, v·u) into the other;
+    its share is c / (c + c_other), half each when neither closed in.
     """
     w, d = world_count, drones_per_world
-    index, found = nearest_others(pos.view(w, d, 3), racing.view(w, d), count=1)
-    offset = relative_to_others(pos_before, index, found).view(-1, 3)
+    index, found, offset = contact_partners(pos, pos_before, racing, world_count=w, drones_per_world=d)
     u = offset / offset.norm(dim=-1, keepdim=True).clamp(min=1e-9)
     v = vel_before.view(w, d, 3)
     other_vel = torch.gather(v, 1, index.expand(-1, -1, 3)).view(-1, 3)

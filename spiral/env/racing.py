@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 
 from spiral.core.policy import Policy
-from spiral.env.observations import nearest_others, relative_to_others
+from spiral.env.events import contact_partners
 from spiral.env.race_env import RaceEnv
 from spiral.sim import COLLISION_KINDS
 
@@ -108,9 +108,8 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
             passed = env.gates_passed.clone()
         contact = racing & env.crashed & ((env.crash_kind & COLLISION_KINDS["drone"]) != 0)
         if contact.any():  # the other drone: the nearest one that was still racing
-            near, found = nearest_others(env.pos.view(w, d, 3), racing.view(w, d), count=1)
+            near, found, rel = contact_partners(env.pos, before, racing, world_count=w, drones_per_world=d)
             partner = torch.where(contact, torch.where(found, near, -1).flatten(), partner)
-            rel = relative_to_others(before, near, found).view(-1, 3)
             bearing = torch.where(contact & found.flatten(), contact_bearing(rel, vel_before), bearing)
         if record:
             frames.append(env.pos.clone())

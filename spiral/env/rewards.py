@@ -121,11 +121,14 @@ SUMMED_AT_ONCE = ("progress", "gate", "collision", "alignment", "proximity", "in
 result one at a time: a reduction over more rows groups its additions otherwise (for some drone counts), so a new
 term at weight 0 would change the totals in their last bits and training would not repeat bit for bit."""
 
+ADDED_AFTER = tuple(name for name in REWARD_TERMS if name not in SUMMED_AT_ONCE)
+"""Terms added one at a time to the sum of :data:`SUMMED_AT_ONCE`, in :data:`REWARD_TERMS` order."""
+
 
 def compute_rewards(outcome: StepOutcome, cfg: RewardCfg) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Total reward per drone and each weighted term."""
     terms = {name: fn(outcome, cfg) * getattr(cfg, name) for name, fn in REWARD_TERMS.items()}
     total = torch.stack([terms[name] for name in SUMMED_AT_ONCE]).sum(0)
-    for name in (name for name in REWARD_TERMS if name not in SUMMED_AT_ONCE):
+    for name in ADDED_AFTER:
         total = total + terms[name]
     return total, terms

@@ -67,6 +67,11 @@ __all__ = [
 ]
 
 
+def policy_obs(policy: FrozenPolicy) -> ObsCfg:
+    """The observation layout ``policy`` was trained with (its checkpoint's ``obs_layout``)."""
+    return ObsCfg(**{k: v for k, v in policy.meta["obs_layout"].items() if k != "obs_dim"})
+
+
 @dataclass(frozen=True)
 class EvalLayout:
     """What an evaluation env is built from besides the track: airframe, simulator, observation/action layout."""
@@ -81,8 +86,7 @@ class EvalLayout:
     def of_policy(cls, policy: FrozenPolicy, *, source: str = "policy") -> EvalLayout:
         """The layout ``policy`` was trained with."""
         meta = policy.meta
-        obs = {k: v for k, v in meta["obs_layout"].items() if k != "obs_dim"}
-        env = EnvCfg(obs=ObsCfg(**obs), action=ActionCfg(**meta["env"]["action"]))
+        env = EnvCfg(obs=policy_obs(policy), action=ActionCfg(**meta["env"]["action"]))
         return cls(AirframeCfg(**meta["airframe"]), SimCfg(**meta["sim"]), env, source)
 
     @classmethod
@@ -203,7 +207,7 @@ def setup_race(track: TrackSpec, scenario: str, runs: int, seed: int, agent: Age
     env = _race_env(chosen, track, scenario, runs, seed, device=device, team_a_only=opponent is not None)
     if opponent is not None:
         opp: OpponentPolicy = opponent_policy(env) if isinstance(opponent, str) else opponent
-        own = EvalLayout.of_policy(opponent).env.obs if isinstance(opponent, FrozenPolicy) else None
+        own = policy_obs(opponent) if isinstance(opponent, FrozenPolicy) else None
         env.set_opponent_policy(opp, obs=own)  # a policy with other inputs reads its own layout
     policy: Policy = se_ibr_policy(env) if isinstance(agent, str) else agent
     return env, policy
