@@ -109,6 +109,12 @@ class SelfPlayCfg(StrictModel):
         "by a factor drawn per opponent uniformly in [1 - x, 1] (relative action mode: a nearer target, a slower "
         "flight), so that the learner meets slower drones ahead of it and learns to pass them; 0: off",
     )
+    opponent_blind: float = Field(
+        default=0.0, ge=0, le=1,
+        description="Probability that a world's opponents fly blind for an episode: their observation shows no other "
+        "drone, so they race their own line and never make room (mirror copies and pool members alike), and the "
+        "learner has to follow or pass drones that ignore it; 0: off",
+    )
     p_latest: float = Field(default=0.5, ge=0, le=1, description="Probability of racing the latest best")
     p_first: float = Field(
         default=0.0, ge=0, le=1,

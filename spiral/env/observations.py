@@ -31,6 +31,7 @@ __all__ = [
     "history_entry",
     "nearest_others",
     "neighbours",
+    "other_drone_columns",
     "race_state",
     "relative_to_others",
 ]
@@ -279,6 +280,28 @@ class ObservationBuilder:
     def build(self, state: ObsState) -> torch.Tensor:
         """Concatenate the observation of every drone, shape (N, obs_dim)."""
         return torch.cat([OBS_TERMS[name].compute(state, self.cfg) for name in self.terms], dim=-1)
+
+
+OTHER_DRONE_TERMS = ("presence", "opponent_velocity", "teammates", "closest_approach")
+"""Terms that describe only the other drones: all zero where none is near (in a solo world)."""
+
+
+def other_drone_columns(cfg: ObsCfg) -> torch.Tensor:
+    """Bool mask (obs_dim,) of the observation entries about other drones: the terms of :data:`OTHER_DRONE_TERMS`,
+    the neighbours' part of ``priority`` and the ``opponents`` field of every history entry. Zeroing them shows a
+    drone what it would observe with no other drone in its world."""
+    builder = ObservationBuilder(cfg, 0, device=torch.device("cpu"))
+    mask = torch.zeros(builder.obs_dim, dtype=torch.bool)
+    for name, (start, stop) in builder.slices().items():
+        if name in OTHER_DRONE_TERMS:
+            mask[start:stop] = True
+        elif name == "priority":
+            mask[start + 1:stop] = True  # the drone's own priority stays
+        elif name == "history":
+            first, last = HISTORY_FIELDS["opponents"]
+            entries = mask[start:stop].view(cfg.history_len, HISTORY_FEATURES)
+            entries[:, first:last] = True
+    return mask
 
 
 @dataclass(frozen=True)

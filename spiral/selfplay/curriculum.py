@@ -15,6 +15,7 @@ from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
 from spiral.core.checkpoint import CheckpointError, FrozenPolicy, load_checkpoint, load_policy
 from spiral.core.scenario import SCENARIO_DRONES
+from spiral.env.observations import other_drone_columns
 from spiral.selfplay.matchmaking import Matchmaker
 from spiral.selfplay.opponents import PoolOpponents
 from spiral.selfplay.pool import INITIAL_RATING, Pool
@@ -86,11 +87,13 @@ def _world_opponents(stage: StageSpec, members: list[FrozenPolicy], matchmaker: 
     """The opponents of each part of the stage's training worlds that has opponent slots, drawing from ``members``
     through one matchmaker and one generator."""
     p_self = 0.0 if stage.selfplay.mirror_actions == "learner" else stage.selfplay.p_self  # else: own parts
+    unseen = other_drone_columns(stage.env.obs).to(matchmaker.races.device)
     return {
         part.name: PoolOpponents(members, matchmaker, world_count=part.worlds,
                                  per_world=SCENARIO_DRONES[part.scenario] - len(part.learner_slots),
                                  generator=generator, p_self=p_self, offset=stage.selfplay.opponent_offset,
-                                 pace=stage.selfplay.opponent_pace)
+                                 pace=stage.selfplay.opponent_pace, blind=stage.selfplay.opponent_blind,
+                                 unseen=unseen)
         for part in stage.world_parts() if part.opponents
     }
 

@@ -24,13 +24,19 @@ class PoolOpponents:
     at its reset uniformly in [-offset, offset] per axis, to its position-target actions: it flies another line.
     With ``pace > 0`` every opponent first clips its position-target actions to [-1, 1] and scales them by a factor
     drawn at its world's reset uniformly in [1 - pace, 1]: in the relative action mode it aims nearer and flies slower.
+    With ``blind > 0`` a world's opponents fly blind with that probability, drawn at its reset: the observation
+    entries in the bool mask ``unseen`` (obs_dim,), those about other drones, are zeroed before their policy reads
+    them, so they race as if alone and never make room.
     """
 
     def __init__(self, policies: list[FrozenPolicy], matchmaker: Matchmaker, *, world_count: int, per_world: int,
-                 generator: torch.Generator, p_self: float = 0.0, offset: float = 0.0, pace: float = 0.0) -> None:
+                 generator: torch.Generator, p_self: float = 0.0, offset: float = 0.0, pace: float = 0.0,
+                 blind: float = 0.0, unseen: torch.Tensor | None = None) -> None:
+        if blind > 0 and unseen is None:
+            raise ValueError("blind opponents need the mask of the observation entries they do not see (unseen)")
         self.policies, self.matchmaker = policies, matchmaker
         self.per_world, self.generator, self.p_self, self.offset = per_world, generator, p_self, offset
-        self.pace = pace
+        self.pace, self.blind, self.unseen = pace, blind, unseen
         self.live: Callable[[TensorDict], torch.Tensor] | None = None
         """The learner's current policy, for mirror worlds."""
         self.assignment = torch.zeros(world_count, dtype=torch.long, device=matchmaker.races.device)
@@ -41,6 +47,8 @@ class PoolOpponents:
         """Constant offset of each opponent's position-target actions for the episode (its yaw is untouched)."""
         self.action_scale = torch.ones(world_count, per_world, 1, device=matchmaker.races.device)
         """Factor on each opponent's position-target actions for the episode (``pace``; its yaw is untouched)."""
+        self.blind_world = torch.zeros(world_count, dtype=torch.bool, device=matchmaker.races.device)
+        """Worlds whose opponents do not see the other drones (``blind``)."""
         self.reset(torch.ones(world_count, dtype=torch.bool, device=matchmaker.races.device))
 
     @torch.no_grad()
@@ -49,6 +57,8 @@ class PoolOpponents:
         member_of_row = self.assignment.repeat_interleave(self.per_world)
         mirror_row = self.mirror.repeat_interleave(self.per_world)
         actions = torch.zeros(obs.batch_size[0], 4, device=member_of_row.device)
+        if self.blind > 0:
+            obs = self._blinded(obs)
         if mirror_row.any():
             if self.live is None:
                 raise RuntimeError("mirror worlds need the learner's policy: set PoolOpponents.live")
@@ -75,6 +85,18 @@ class PoolOpponents:
             if self.pace > 0:
                 slow = torch.rand(count, self.per_world, 1, generator=self.generator, device=self.mirror.device)
                 self.action_scale[worlds] = 1.0 - slow * self.pace
+            if self.blind > 0:
+                u = torch.rand(count, generator=self.generator, device=self.mirror.device)
+                self.blind_world[worlds] = u < self.blind
+
+    def _blinded(self, obs: TensorDict) -> TensorDict:
+        """``obs`` with the unseen entries of the blind worlds' rows zeroed."""
+        rows = self.blind_world.repeat_interleave(self.per_world)
+        if not rows.any():
+            return obs
+        policy = obs["policy"].clone()
+        policy[rows[:, None] & self.unseen.to(policy.device)[None]] = 0.0
+        return obs.replace(policy=policy)
 
     def record(self, worlds: torch.Tensor, learner_won: torch.Tensor) -> None:
         """Feed race outcomes of ended pool worlds (indices) to the matchmaker."""

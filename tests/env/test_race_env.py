@@ -12,7 +12,7 @@ from spiral.config import AIRFRAMES, EnvCfg, ObsCfg, RewardCfg, SimCfg, TrackSpe
 from spiral.core.checkpoint import load_policy
 from spiral.env import HISTORY_FEATURES, RaceEnv, compute_rewards, run_races
 from spiral.env.events import contact_fault
-from spiral.env.observations import HISTORY_FIELDS, OBS_TERMS
+from spiral.env.observations import HISTORY_FIELDS, OBS_TERMS, other_drone_columns
 from spiral.env.racing import BEARINGS, contact_bearing
 from spiral.env.rewards import StepOutcome
 from spiral.eval.metrics import summarize_races
@@ -324,6 +324,26 @@ def test_opponents_with_their_own_layout_read_what_an_env_of_that_layout_shows_t
     assert set(widths) == {ref.obs_dim}
     seen = env.opponent_observer.rows(env.opponent_idx)["policy"]
     assert torch.equal(seen, ref.current_observations()["policy"][1::2])
+
+
+def test_hiding_the_other_drone_columns_shows_what_a_drone_alone_observes(oval2):
+    """Zeroing the columns ``other_drone_columns`` marks in a drone's rows of a 3-drone world gives the rows it
+    observes once the other drones have left the race: its ego state, gates, integral, own priority and actions
+    stay."""
+    every = ObsCfg(history_len=2, gate_normals=True, pid_integral=True, opponent_velocity=True, teammates=True,
+                   closest_approach=True, priority=True)
+    env = make_env(oval2, worlds=1, drones=3, learners=(0, 1, 2), obs=every)
+    place(env, [[-1.0, -1.0, 1.0], [-1.0, -0.6, 1.1], [-0.7, -1.0, 1.0]])
+    env.vel[:3] = torch.tensor([[1.0, 0.0, 0.0], [0.5, -0.5, 0.0], [0.0, 0.0, 0.3]])
+    env.get_observations()
+    with_others = env.get_observations()["policy"][0]
+    env.out[1:3] = 1
+    env.get_observations()
+    alone = env.get_observations()["policy"][0]
+    hidden = other_drone_columns(every)
+    assert int(hidden.sum()) == 2 + 6 + 2 + 8 + 2 + 2 * 6  # presence, velocities, mates, approach, priority, history
+    assert (with_others[hidden] != 0).sum() > 20 and not alone[hidden].any()
+    assert torch.equal(with_others.masked_fill(hidden, 0.0), alone)
 
 
 def test_scripted_lap_pays_each_gate_once_and_the_lap_bonus_once(oval2):

@@ -132,6 +132,14 @@ def test_pool_skips_a_member_whose_checksum_fails(tmp_path):
     assert "pool member x skipped" in logs[0]
 
 
+def test_opponent_blind_is_a_probability_and_off_by_default():
+    assert SelfPlayCfg().opponent_blind == 0.0
+    assert SelfPlayCfg(opponent_blind=0.3).opponent_blind == 0.3
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValidationError, match="opponent_blind"):
+            SelfPlayCfg(opponent_blind=bad)
+
+
 def test_opponent_pace_lies_in_zero_to_one_and_needs_relative_targets():
     """A pace below 0 or at 1 (an opponent that stops) names the field; absolute action targets refuse a pace."""
     assert SelfPlayCfg(opponent_pace=0.3).opponent_pace == 0.3

@@ -201,3 +201,67 @@ def test_opponent_pace_scales_each_opponents_clipped_targets_for_an_episode(solo
     slow.reset(torch.arange(20) < 10)
     changed = (slow(obs)[:, 0] / clipped[:, 0] - factor).abs() > 1e-6
     assert changed[:20].all() and not changed[20:].any()  # only the reset worlds (rows 0-19) draw new factors
+
+
+def test_blind_opponents_read_rows_without_the_unseen_entries_for_their_episode():
+    """With blind 0.5 about half the worlds' opponents (pool members and mirror copies alike) read their rows with
+    the unseen entries zeroed, the others their rows as they are; a world keeps its draw until its reset, and the
+    caller's rows are left untouched."""
+    dim, worlds = 10, 400
+    unseen = torch.zeros(dim, dtype=torch.bool)
+    unseen[3:7] = True
+    read: list[torch.Tensor] = []
+
+    def member(obs: TensorDict) -> torch.Tensor:
+        read.append(obs["policy"].clone())
+        return torch.zeros(obs.batch_size[0], 4)
+
+    x = torch.randn(2 * worlds, dim)
+    obs = TensorDict({"policy": x.clone(), "critic": x.clone()}, batch_size=[2 * worlds])
+    with pytest.raises(ValueError, match="unseen"):
+        PoolOpponents([member], Matchmaker(1, latest=0, p_latest=0.5), world_count=worlds, per_world=2,
+                      generator=torch.Generator().manual_seed(0), blind=0.5)
+    opponents = PoolOpponents([member], Matchmaker(1, latest=0, p_latest=0.5), world_count=worlds, per_world=2,
+                              generator=torch.Generator().manual_seed(0), p_self=0.5, blind=0.5, unseen=unseen)
+    opponents.live = member
+    opponents(obs)
+    assert torch.equal(obs["policy"], x)
+    order = torch.cat([torch.nonzero(opponents.mirror.repeat_interleave(2)).squeeze(1),
+                       torch.nonzero(~opponents.mirror.repeat_interleave(2)).squeeze(1)])
+    seen = torch.empty_like(x)
+    seen[order] = torch.cat(read)  # mirror rows first, then the member's
+    blind = opponents.blind_world.repeat_interleave(2)
+    assert 0.4 < opponents.blind_world.float().mean() < 0.6
+    assert (opponents.blind_world & opponents.mirror).any() and (opponents.blind_world & ~opponents.mirror).any()
+    assert not seen[blind][:, unseen].any() and torch.equal(seen[blind][:, ~unseen], x[blind][:, ~unseen])
+    assert torch.equal(seen[~blind], x[~blind])
+    drawn = opponents.blind_world.clone()
+    opponents(obs)
+    assert torch.equal(opponents.blind_world, drawn)
+    opponents.reset(torch.arange(worlds) < worlds // 2)
+    assert torch.equal(opponents.blind_world[worlds // 2:], drawn[worlds // 2:])
+    assert not torch.equal(opponents.blind_world[: worlds // 2], drawn[: worlds // 2])
+
+
+def test_a_stage_with_blind_opponents_hides_what_its_layout_shows_of_other_drones(line2, tmp_path, monkeypatch):
+    """`selfplay.opponent_blind` reaches every format's opponents with the stage layout's other-drone columns."""
+    from spiral.env.observations import other_drone_columns
+    from spiral.selfplay import curriculum
+
+    built: list[PoolOpponents] = []
+
+    def recording(*args, **kwargs):
+        built.append(PoolOpponents(*args, **kwargs))
+        return built[-1]
+
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
+    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "solo", pool_dir=tmp_path / "pool", init_checkpoint=None,
+              progress=False)
+    monkeypatch.setattr(curriculum, "PoolOpponents", recording)
+    duel = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 1, "mix": {"2v2": 0.5},
+                                     "selfplay": {**PERMISSIVE, "opponent_blind": 0.4}, **COMMON})
+    run_stage(line2, CF2X, SimCfg(), duel, tmp_path / "duel", pool_dir=tmp_path / "pool",
+              init_checkpoint=tmp_path / "solo" / "best.pt", progress=False)
+    hidden = other_drone_columns(duel.env.obs)
+    assert len(built) == 2 and {o.per_world for o in built} == {1, 2}
+    assert all(o.blind == 0.4 and torch.equal(o.unseen, hidden) for o in built)
