@@ -186,6 +186,13 @@ class EpisodeCfg(StrictModel):
         "that more of the samples come from the start, where the drones race as a pack",
     )
     start_cut_s: PosFloat = Field(default=1.5, description="Race time after which a cut episode ends [s]")
+    contact_margin: NonNegFloat = Field(
+        default=0.0,
+        description="Training only: two racing drones whose centres are closer than the airframe's contact distance "
+        "(twice its collision radius) plus this margin after a control step collide there (both crash, drone-drone "
+        "kind), so that the learner keeps that much more room from other drones; evaluation races (selection, "
+        "promotion, `spiral eval`) count touching spheres only [m]; 0: off (not in the paper)",
+    )
     eval_starts: Literal["box", "track", "file"] = Field(
         default="box",
         description="Where evaluation races start: in the start box (the protocol), every drone at its own random "

@@ -126,6 +126,7 @@ class RaceEnv(RaceState):
         longer an obstacle); a contested race is decided by its first finisher (with ``reward.forfeit`` a crash
         forfeits it)."""
         racing = ~(self.crashed | self.finished | self.absent)
+        self.collide_near_misses(racing)
         crashed_now = racing & (self.step_collision != 0)
         self.crashed |= crashed_now
         self.crash_kind = torch.where(crashed_now, self.step_collision, self.crash_kind)

@@ -15,7 +15,15 @@ from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
 from spiral.core.outcome import race_winner
 from spiral.core.policy import OpponentPolicy
-from spiral.env.events import RaceEvents, contact_fault, gate_distance, heading, nearest_distance, nearest_is_behind
+from spiral.env.events import (
+    RaceEvents,
+    contact_fault,
+    gate_distance,
+    heading,
+    near_misses,
+    nearest_distance,
+    nearest_is_behind,
+)
 from spiral.env.rewards import REWARD_TERMS, StepOutcome
 from spiral.env.slots import slot_map
 from spiral.env.stats import empty_stats, log_episodes, summarize_stats
@@ -51,6 +59,8 @@ class RaceState:
         self.time_limit = cfg.episode.time_limit_s or track.time_limit_s
         self.max_episode_length = math.ceil(self.time_limit / self.dt)
         self.passes_needed = len(track.gates) * track.laps + 1
+        self.margin_distance = 2.0 * airframe.radius + cfg.episode.contact_margin
+        """Training with ``episode.contact_margin``: drones closer than this collide [m]."""
         self.generator = torch.Generator(device=self.device).manual_seed(seed)
         self.opponent_policy: OpponentPolicy | None = None
         self._bind_views()
@@ -160,6 +170,19 @@ class RaceState:
         w, d = self.world_count, self.drones_per_world
         teams = [self.learner_slots, self.opponent_slots]
         return race_winner(self.finished.view(w, d), self.lap_time.view(w, d), teams) == 0
+
+    def collide_near_misses(self, racing: torch.Tensor) -> None:
+        """Training with ``episode.contact_margin``: ``racing`` drones without a collision in this step that are
+        within :attr:`margin_distance` of another such drone collide now (drone-drone kind), as if their spheres had
+        touched."""
+        if not (self.auto_reset and self.cfg.episode.contact_margin > 0):
+            return
+        near = near_misses(self.pos, racing & (self.step_collision == 0), self.margin_distance,
+                           world_count=self.world_count, drones_per_world=self.drones_per_world)
+        if near.any():
+            self.step_collision[near] |= COLLISION_KINDS["drone"]
+            self.crash_time[near] = self.world_time().repeat_interleave(self.drones_per_world)[near]
+            self.out[near] = 1
 
     def world_time(self) -> torch.Tensor:
         """Simulated time of each world since its reset [s]."""
