@@ -34,6 +34,12 @@ class PPOCfg(StrictModel):
     max_noise_std: PosFloat = Field(
         default=10.0, description="Upper clamp of the action noise, also of the noise a stage takes over from its init"
     )
+    bound_loss_coef: NonNegFloat = Field(
+        default=0.0,
+        description="Weight of a loss on the actor's mean actions beyond the action range (mean over samples of the "
+        "summed squared excess over ±1): keeps the exploration noise on both sides of the mean where the env "
+        "would clamp every sample alike (e.g. always full tilt forward, never a sample that brakes); 0: off",
+    )
     obs_normalization: bool = Field(default=True)
     mixed_precision: bool = Field(
         default=False,
@@ -65,6 +71,9 @@ class PPOCfg(StrictModel):
                     "init_std": self.init_noise_std,
                     "std_range": (self.min_noise_std, self.max_noise_std),
                 }
+                if self.bound_loss_coef > 0:  # the same Gaussian, its mean's gradient with the bound loss's
+                    cfg["distribution_cfg"].update(class_name="spiral.train.distribution:BoundedGaussianDistribution",
+                                                   bound_coef=self.bound_loss_coef)
             return cfg
 
         return {
