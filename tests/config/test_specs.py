@@ -196,6 +196,14 @@ def test_a_solo_stage_refuses_options_that_act_on_other_drones(tmp_path, options
         load_pipeline(path)
 
 
+def test_the_shipped_pipeline_trains_every_multi_drone_stage_with_the_bound_loss_and_the_solo_stage_without():
+    """full.yaml: both branches' multi-drone stages keep their mean actions inside the clamped range (bound loss 0.5);
+    the solo stage, whose policy both branches start from, trains as before."""
+    stages = {s.name: s for s in load_pipeline(ROOT / "pipelines" / "full.yaml")[0].stages}
+    assert {name: s.ppo.bound_loss_coef for name, s in stages.items()} == {
+        "solo": 0.0, "1v1": 0.5, "2v2": 0.5, "1v1-noselfplay": 0.5, "2v2-noselfplay": 0.5}
+
+
 def test_the_shipped_pipeline_flies_the_papers_stack_and_reports_the_filter_as_an_extra_row():
     """No stage of full.yaml puts a separation filter between policy and PID (training or evaluation); the filter
     appears only as the report's extra row."""
