@@ -13,6 +13,7 @@ from spiral.train.distribution import BoundedGaussianDistribution, bound_loss
 
 
 def test_bound_loss_on_hand_made_means_counts_only_the_excess_beyond_one():
+    """Row 1: (2 − 1)² + (1.5 − 1)², row 2: (3 − 1)²; entries within ±1 cost nothing; the mean over rows."""
     mean = torch.tensor([[2.0, -1.5, 0.5, 1.0], [0.0, 0.0, -3.0, 0.9]])
     assert float(bound_loss(mean)) == pytest.approx(((1.0 + 0.25) + 4.0) / 2)
 
@@ -50,8 +51,8 @@ def stage(coef: float) -> StageSpec:
 
 
 def saturated_means_after_updates(trainer: StageTrainer, updates: int) -> float:
-    """Largest |mean action| over a rollout's observations after setting the actor's output bias to 3 and running
-    ``updates`` PPO updates."""
+    """Mean |mean action| over the env's current observations after setting the actor's output bias to 3 (its
+    weights near 0) and running ``updates`` PPO updates."""
     alg = trainer.runner.alg
     last = [m for m in alg.actor.modules() if isinstance(m, nn.Linear)][-1]
     with torch.no_grad():
