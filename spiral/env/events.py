@@ -10,8 +10,8 @@ import torch
 from spiral.core.outcome import race_winner
 from spiral.env.observations import nearest_others, relative_to_others
 
-__all__ = ["RaceEvents", "contact_fault", "contact_partners", "gate_distance", "heading", "near_misses",
-           "nearest_distance", "nearest_is_behind", "race_result"]
+__all__ = ["RaceEvents", "contact_fault", "contact_partners", "gate_distance", "heading", "nearest_distance",
+           "nearest_is_behind", "race_result"]
 
 
 @dataclass(frozen=True)
@@ -60,14 +60,6 @@ def nearest_distance(pos: torch.Tensor, out: torch.Tensor, *, world_count: int, 
     gone_w = (out != 0).view(w, d)
     gone = torch.eye(d, dtype=torch.bool, device=pos.device)[None] | gone_w[:, None, :] | gone_w[:, :, None]
     return dist.masked_fill(gone, float("inf")).amin(dim=-1).flatten()
-
-
-def near_misses(pos: torch.Tensor, racing: torch.Tensor, distance: float, *, world_count: int,
-                drones_per_world: int) -> torch.Tensor:
-    """Which ``racing`` drones (N,) have another racing drone of their world closer than ``distance`` [m]."""
-    gone = (~racing).to(torch.int32)
-    near = nearest_distance(pos, gone, world_count=world_count, drones_per_world=drones_per_world) < distance
-    return racing & near
 
 
 def nearest_is_behind(pos: torch.Tensor, out: torch.Tensor, to_gate: torch.Tensor, *, world_count: int,

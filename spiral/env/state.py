@@ -15,15 +15,7 @@ from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
 from spiral.core.outcome import race_winner
 from spiral.core.policy import OpponentPolicy
-from spiral.env.events import (
-    RaceEvents,
-    contact_fault,
-    gate_distance,
-    heading,
-    near_misses,
-    nearest_distance,
-    nearest_is_behind,
-)
+from spiral.env.events import RaceEvents, contact_fault, gate_distance, heading, nearest_distance, nearest_is_behind
 from spiral.env.rewards import REWARD_TERMS, StepOutcome
 from spiral.env.slots import slot_map
 from spiral.env.stats import empty_stats, log_episodes, summarize_stats
@@ -177,8 +169,10 @@ class RaceState:
         touched."""
         if not (self.auto_reset and self.cfg.episode.contact_margin > 0):
             return
-        near = near_misses(self.pos, racing & (self.step_collision == 0), self.margin_distance,
-                           world_count=self.world_count, drones_per_world=self.drones_per_world)
+        candidates = racing & (self.step_collision == 0)
+        gap = nearest_distance(self.pos, (~candidates).to(torch.int32), world_count=self.world_count,
+                               drones_per_world=self.drones_per_world)
+        near = candidates & (gap < self.margin_distance)
         if near.any():
             self.step_collision[near] |= COLLISION_KINDS["drone"]
             self.crash_time[near] = self.world_time().repeat_interleave(self.drones_per_world)[near]

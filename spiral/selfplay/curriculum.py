@@ -87,7 +87,7 @@ def _world_opponents(stage: StageSpec, members: list[FrozenPolicy], matchmaker: 
     """The opponents of each part of the stage's training worlds that has opponent slots, drawing from ``members``
     through one matchmaker and one generator."""
     p_self = 0.0 if stage.selfplay.mirror_actions == "learner" else stage.selfplay.p_self  # else: own parts
-    unseen = other_drone_columns(stage.env.obs).to(matchmaker.races.device)
+    unseen = other_drone_columns(stage.env.obs)
     return {
         part.name: PoolOpponents(members, matchmaker, world_count=part.worlds,
                                  per_world=SCENARIO_DRONES[part.scenario] - len(part.learner_slots),

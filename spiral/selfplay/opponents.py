@@ -36,7 +36,8 @@ class PoolOpponents:
             raise ValueError("blind opponents need the mask of the observation entries they do not see (unseen)")
         self.policies, self.matchmaker = policies, matchmaker
         self.per_world, self.generator, self.p_self, self.offset = per_world, generator, p_self, offset
-        self.pace, self.blind, self.unseen = pace, blind, unseen
+        self.pace, self.blind = pace, blind
+        self.unseen = None if unseen is None else unseen.to(matchmaker.races.device)
         self.live: Callable[[TensorDict], torch.Tensor] | None = None
         """The learner's current policy, for mirror worlds."""
         self.assignment = torch.zeros(world_count, dtype=torch.long, device=matchmaker.races.device)
@@ -95,7 +96,7 @@ class PoolOpponents:
         if not rows.any():
             return obs
         policy = obs["policy"].clone()
-        policy[rows[:, None] & self.unseen.to(policy.device)[None]] = 0.0
+        policy[rows[:, None] & self.unseen[None]] = 0.0
         return obs.replace(policy=policy)
 
     def record(self, worlds: torch.Tensor, learner_won: torch.Tensor) -> None:
