@@ -12,7 +12,10 @@ from spiral.config.track import TrackSpec
 from spiral.core.scenario import race_teams
 from spiral.env.separation import separation_offsets
 
-__all__ = ["ActionMap"]
+__all__ = ["ACTION_AXES", "ActionMap"]
+
+ACTION_AXES = ("x", "y", "z", "yaw")
+"""The action's components, in order: the position target along the world's x, y, z and the yaw target."""
 
 
 class ActionMap:

@@ -99,12 +99,14 @@ class RaceEnv(RaceState):
     def apply_actions(self, actions: torch.Tensor) -> None:
         """Apply action: the learner's ``actions`` (num_envs, 4) and the opponent policy's (on the last observations)
         become the PID targets of the drones still racing."""
-        all_actions = torch.zeros(self.drone_count, 4, device=self.device)
-        all_actions[self.learner_idx] = actions.to(self.device).clamp(-1.0, 1.0)
+        commanded = torch.zeros(self.drone_count, 4, device=self.device)
+        commanded[self.learner_idx] = actions.to(self.device)
         if self.opponent_policy is not None and self.opponent_idx.numel():
             with torch.no_grad():
                 opp = self.opponent_policy((self.opponent_observer or self.observer).rows(self.opponent_idx))
-            all_actions[self.opponent_idx] = opp.to(self.device).clamp(-1.0, 1.0)
+            commanded[self.opponent_idx] = opp.to(self.device)
+        self.commanded = commanded
+        all_actions = commanded.clamp(-1.0, 1.0)
         racing = ~(self.out.bool())
         target, shift = self.action_map.targets(all_actions, self.pos, self.vel, self.rpy[:, 2], racing)
         if shift is not None:

@@ -49,6 +49,11 @@ class RaceResults:
     """Team of each slot, shape (D,)."""
     split_time: torch.Tensor | None = None
     """Race time of each gate passage of the lap, in passing order, shape (W, D, passes); 0 when not passed [s]."""
+    racing_steps: torch.Tensor | None = None
+    """Control steps the drone raced (W, D)."""
+    beyond_steps: torch.Tensor | None = None
+    """Of those, the steps in which its commanded action lay beyond the range the env clamps to (|a| > 1), per
+    action axis (W, D, 4)."""
 
     def permuted(self, order: list[int]) -> RaceResults:
         """The same races with the drones reordered: slot ``j`` of the result is slot ``order[j]`` of these.
@@ -75,6 +80,8 @@ class RaceResults:
             crash_partner=partner, team=self.team,
             split_time=None if self.split_time is None else self.split_time[:, idx],
             contact_bearing=None if self.contact_bearing is None else self.contact_bearing[:, idx],
+            racing_steps=None if self.racing_steps is None else self.racing_steps[:, idx],
+            beyond_steps=None if self.beyond_steps is None else self.beyond_steps[:, idx],
         )
 
 
@@ -93,6 +100,8 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
     partner = torch.full((env.drone_count,), -1, dtype=torch.long, device=env.device)
     bearing = torch.full((env.drone_count,), -1, dtype=torch.long, device=env.device)
     splits = torch.zeros(env.drone_count, env.passes_needed, device=env.device)
+    steps = torch.zeros(env.drone_count, dtype=torch.long, device=env.device)
+    beyond = torch.zeros(env.drone_count, 4, dtype=torch.long, device=env.device)
     passed = env.gates_passed.clone()
     frames = [env.pos.clone()] if record else []
     for _ in range(env.max_episode_length):
@@ -100,6 +109,8 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
         racing = ~(env.finished | env.crashed | env.absent)
         with torch.no_grad():
             obs, _, _, _ = env.step(policy(obs))
+        steps += racing
+        beyond += racing[:, None] & (env.commanded.abs() > 1.0)
         distance += (env.pos - before).norm(dim=-1)
         if bool((env.gates_passed != passed).any()):
             k = torch.arange(env.passes_needed, device=env.device)
@@ -133,6 +144,8 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
         contact_bearing=grid(bearing),
         team=env.slot_team.cpu() if teams is None else _team_of_slots(teams, d),
         split_time=splits.view(w, d, -1).cpu(),
+        racing_steps=grid(steps),
+        beyond_steps=beyond.view(w, d, 4).cpu(),
     )
 
 
@@ -160,6 +173,7 @@ def concat_results(parts: list[RaceResults]) -> RaceResults:
         gates_passed=cat("gates_passed"), distance=cat("distance"), present=cat("present"),
         crash_time=cat_optional("crash_time"), crash_partner=cat_optional("crash_partner"), team=first.team,
         split_time=cat_optional("split_time"), contact_bearing=cat_optional("contact_bearing"),
+        racing_steps=cat_optional("racing_steps"), beyond_steps=cat_optional("beyond_steps"),
     )
 
 

@@ -72,6 +72,9 @@ class RaceState:
     def _alloc_buffers(self) -> None:
         n, w, dev = self.drone_count, self.world_count, self.device
         self.last_action = torch.zeros(n, 4, device=dev)
+        """Actions applied at the last control step, clamped to [-1, 1]."""
+        self.commanded = torch.zeros(n, 4, device=dev)
+        """Actions the policies commanded at the last control step, before that clamp."""
         self.finished = torch.zeros(n, dtype=torch.bool, device=dev)
         """Lap(s) completed without collision."""
         self.crashed = torch.zeros(n, dtype=torch.bool, device=dev)

@@ -386,4 +386,8 @@ def format_eval(result: dict[str, Any]) -> str:
                      f"{m['race_success_ratio']:>6.2f} {lap:>14} {win:>6}  {crashes or 'none'}")
     lines.append("success: drones home; 95% CI with the race as the unit; races: share of races with every counted "
                  "drone home")
+    beyond = {name: m["action_beyond_range"] for name, m in result["methods"].items() if m.get("action_beyond_range")}
+    if beyond:
+        lines.append("commanded action beyond the clamped range, share of racing steps (x / y / z / yaw): " + "; ".join(
+            f"{name} {' / '.join(f'{v:.2f}' for v in shares.values())}" for name, shares in beyond.items()))
     return "\n".join(lines)

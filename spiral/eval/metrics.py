@@ -8,6 +8,7 @@ from typing import Any
 
 import torch
 
+from spiral.env.actions import ACTION_AXES
 from spiral.env.racing import BEARINGS, RaceResults
 from spiral.sim import COLLISION_KINDS
 
@@ -99,7 +100,23 @@ def summarize_races(res: RaceResults, slots: list[int] | None = None) -> dict[st
         "crashes": crashes,
         **_crash_details(res, mask),
         **({"split_times": _split_times(res, mask)} if res.split_time is not None else {}),
+        **({"action_beyond_range": _beyond_range(res, mask)} if res.beyond_steps is not None else {}),
     }
+
+
+def _beyond_range(res: RaceResults, mask: torch.Tensor) -> dict[str, float] | None:
+    """Share of the ``mask`` drones' racing control steps in which the commanded action lay beyond the range the env
+    clamps it to (|a| > 1), per action axis (None without racing steps).
+
+    A policy whose mean action sits beyond the range on an axis acts at the clamp there: a small change of its mean
+    changes nothing that is applied, and in training its Gaussian's samples on that side all act alike.
+    """
+    assert res.racing_steps is not None and res.beyond_steps is not None
+    steps = int(res.racing_steps[mask].sum())
+    if steps == 0:
+        return None
+    beyond = res.beyond_steps[mask].sum(dim=0)
+    return {axis: int(n) / steps for axis, n in zip(ACTION_AXES, beyond.tolist(), strict=True)}
 
 
 def _split_times(res: RaceResults, mask: torch.Tensor) -> list[float] | None:

@@ -9,7 +9,9 @@ import torch
 from typer.testing import CliRunner
 
 from spiral.cli import app
+from spiral.env import run_races
 from spiral.eval.evaluate import SE_IBR, EvalLayout, evaluate_methods, evaluate_policy, load_agent, setup_race
+from spiral.eval.metrics import summarize_races
 
 runner = CliRunner()
 
@@ -116,3 +118,22 @@ def test_cross_play_lets_each_team_read_its_own_observation_layout(sprint, tiny_
         assert env.opponent_observer.rows(env.opponent_idx)["policy"].shape[1] == opponent.obs_layout["obs_dim"]
     with pytest.raises(ValueError, match="same obs_layout"):
         evaluate_mixed_teams(sprint, {"a": tiny_checkpoint, "b": tiny_checkpoint_other_inputs}, runs=2, seed=0)
+
+
+def test_actions_beyond_the_clamped_range_are_counted_per_axis_over_racing_steps(sprint, tiny_checkpoint):
+    """A policy commanding (2, 0.5, −0.2, −1.5) on every step is beyond ±1 on x and yaw in each step it races and on
+    y and z in none; the steps stop counting when a drone's race ends, and the summary gives the shares 1, 0, 0, 1."""
+    env, _ = setup_race(sprint, "1v1", 3, 0, load_agent(tiny_checkpoint))
+    command = torch.tensor([2.0, 0.5, -0.2, -1.5])
+    res = run_races(env, lambda obs: command.expand(obs.shape[0], 4))
+    assert res.racing_steps is not None and res.beyond_steps is not None
+    assert bool((res.racing_steps > 0).all())
+    assert bool((res.racing_steps <= env.max_episode_length).all())
+    ended = res.finished | res.crashed
+    assert bool((res.racing_steps[ended] < env.max_episode_length).all())  # no counting after the race ended
+    assert torch.equal(res.beyond_steps[..., 0], res.racing_steps)
+    assert torch.equal(res.beyond_steps[..., 3], res.racing_steps)
+    assert int(res.beyond_steps[..., 1:3].sum()) == 0
+    assert summarize_races(res)["action_beyond_range"] == {"x": 1.0, "y": 0.0, "z": 0.0, "yaw": 1.0}
+    swapped = res.permuted([1, 0])
+    assert torch.equal(swapped.beyond_steps[:, 0], res.beyond_steps[:, 1])

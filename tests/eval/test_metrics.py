@@ -90,3 +90,14 @@ def test_success_interval_of_independent_looking_drones_is_capped_at_the_drone_c
     assert summarize_races(res)["success_ci95"] == pytest.approx(list(wilson_interval(20, 40)))
     assert summarize_races(hand_results([[True, True]] * 20))["success_ci95"] == pytest.approx(
         list(wilson_interval(20, 20)))
+
+
+def test_action_beyond_range_is_a_share_of_the_counted_drones_racing_steps():
+    """Two drones, 10 and 30 racing steps, beyond the range on x in 5 and 15 of them and on yaw in 10 and 0: shares
+    20/40 and 10/40 over both; counting the first drone only, 5/10 and 10/10. Results without the counts omit it."""
+    res = hand_results([[True, False]])
+    res.racing_steps = torch.tensor([[10, 30]])
+    res.beyond_steps = torch.tensor([[[5, 0, 0, 10], [15, 0, 0, 0]]])
+    assert summarize_races(res)["action_beyond_range"] == {"x": 0.5, "y": 0.0, "z": 0.0, "yaw": 0.25}
+    assert summarize_races(res, [0])["action_beyond_range"] == {"x": 0.5, "y": 0.0, "z": 0.0, "yaw": 1.0}
+    assert "action_beyond_range" not in summarize_races(hand_results([[True, False]]))
