@@ -117,11 +117,7 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
             now = (passed[:, None] <= k) & (env.gates_passed[:, None] > k)
             splits = torch.where(now, env.pass_time[:, None], splits)
             passed = env.gates_passed.clone()
-        contact = racing & env.crashed & ((env.crash_kind & COLLISION_KINDS["drone"]) != 0)
-        if contact.any():  # the other drone: the nearest one that was still racing
-            near, found, rel = contact_partners(env.pos, before, racing, world_count=w, drones_per_world=d)
-            partner = torch.where(contact, torch.where(found, near, -1).flatten(), partner)
-            bearing = torch.where(contact & found.flatten(), contact_bearing(rel, vel_before), bearing)
+        partner, bearing = _note_contacts(env, racing, before, vel_before, partner, bearing)
         if record:
             frames.append(env.pos.clone())
         if bool((env.finished | env.crashed | env.absent).all()):
@@ -147,6 +143,19 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
         racing_steps=grid(steps),
         beyond_steps=beyond.view(w, d, 4).cpu(),
     )
+
+
+def _note_contacts(env: RaceEnv, racing: torch.Tensor, before: torch.Tensor, vel_before: torch.Tensor,
+                   partner: torch.Tensor, bearing: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``partner`` and ``bearing`` with this step's drone–drone crashes of ``racing`` drones filled in: the other
+    drone (the nearest one that was still racing) and where it was at ``before`` / ``vel_before``."""
+    contact = racing & env.crashed & ((env.crash_kind & COLLISION_KINDS["drone"]) != 0)
+    if not contact.any():
+        return partner, bearing
+    near, found, rel = contact_partners(env.pos, before, racing, world_count=env.world_count,
+                                        drones_per_world=env.drones_per_world)
+    partner = torch.where(contact, torch.where(found, near, -1).flatten(), partner)
+    return partner, torch.where(contact & found.flatten(), contact_bearing(rel, vel_before), bearing)
 
 
 def concat_results(parts: list[RaceResults]) -> RaceResults:
