@@ -101,7 +101,7 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
     bearing = torch.full((env.drone_count,), -1, dtype=torch.long, device=env.device)
     splits = torch.zeros(env.drone_count, env.passes_needed, device=env.device)
     steps = torch.zeros(env.drone_count, dtype=torch.long, device=env.device)
-    beyond = torch.zeros(env.drone_count, 4, dtype=torch.long, device=env.device)
+    beyond = torch.zeros_like(env.commanded, dtype=torch.long)
     passed = env.gates_passed.clone()
     frames = [env.pos.clone()] if record else []
     for _ in range(env.max_episode_length):
@@ -141,7 +141,7 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
         team=env.slot_team.cpu() if teams is None else _team_of_slots(teams, d),
         split_time=splits.view(w, d, -1).cpu(),
         racing_steps=grid(steps),
-        beyond_steps=beyond.view(w, d, 4).cpu(),
+        beyond_steps=beyond.view(w, d, -1).cpu(),
     )
 
 
