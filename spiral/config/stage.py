@@ -115,6 +115,13 @@ class SelfPlayCfg(StrictModel):
         "drone, so they race their own line and never make room (mirror copies and pool members alike), and the "
         "learner has to follow or pass drones that ignore it; 0: off",
     )
+    init_snapshots: bool = Field(
+        default=False,
+        description="A new pool also starts with the periodic checkpoints that the initial policy's stage saved "
+        "before it (`ckpt/model_<it>.pt` beside it, earlier iterations only; pool mode): in full.yaml earlier, slower "
+        "solo policies that fly the racing line and never make room, so that the learner meets drones it has to "
+        "follow or pass; false: the pool starts with the initial policy alone",
+    )
     p_latest: float = Field(default=0.5, ge=0, le=1, description="Probability of racing the latest best")
     p_first: float = Field(
         default=0.0, ge=0, le=1,
@@ -128,6 +135,8 @@ class SelfPlayCfg(StrictModel):
     def _mirror_needs_pool(self) -> SelfPlayCfg:
         if self.mode == "frozen" and self.p_self > 0:
             raise ValueError("p_self: frozen opponents (PPO without self-play) cannot race the learner itself")
+        if self.mode == "frozen" and self.init_snapshots:
+            raise ValueError("init_snapshots: frozen opponents race one policy; earlier snapshots join a pool")
         if self.mode == "pool" and self.opponent_from is not None:
             raise ValueError("opponent_from: only frozen opponents come from one stage; pool opponents are the pool")
         if self.mirror_actions != "mean" and self.p_self == 0:

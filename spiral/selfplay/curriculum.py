@@ -13,7 +13,7 @@ from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
-from spiral.core.checkpoint import CheckpointError, FrozenPolicy, load_checkpoint, load_policy
+from spiral.core.checkpoint import CheckpointError, FrozenPolicy, list_checkpoints, load_checkpoint, load_policy
 from spiral.core.scenario import SCENARIO_DRONES
 from spiral.env.observations import other_drone_columns
 from spiral.selfplay.matchmaking import Matchmaker
@@ -123,6 +123,9 @@ def _opponent_policies(stage: StageSpec, pool: Pool | None, layout: dict[str, An
                                   "stage's")
         return [frozen], 0, INITIAL_RATING
     if not pool.members:
+        if stage.selfplay.init_snapshots:
+            for iteration, path, origin in _earlier_snapshots(stage, init_checkpoint):
+                pool.add(path, stage=origin, iteration=iteration, evaluation={})
         pool.add(init_checkpoint, stage=stage.init_from or "init", iteration=0, evaluation={})
     policies = pool.load_policies(layout, device=device)
     ids = list(policies)
@@ -130,3 +133,15 @@ def _opponent_policies(stage: StageSpec, pool: Pool | None, layout: dict[str, An
         return [], 0, INITIAL_RATING
     latest = ids.index(pool.latest_best) if pool.latest_best in policies else len(ids) - 1
     return [policies[i] for i in ids], latest, pool.member(ids[latest]).rating
+
+
+def _earlier_snapshots(stage: StageSpec, init_checkpoint: Path) -> list[tuple[int, Path, str]]:
+    """``(iteration, path, stage)`` of the periodic checkpoints in ``ckpt/`` beside ``init_checkpoint`` from before
+    its iteration, oldest first (``selfplay.init_snapshots``)."""
+    meta = load_checkpoint(init_checkpoint)["spiral"]
+    folder = init_checkpoint.parent / "ckpt"
+    found = sorted((it, path) for it, path in list_checkpoints(folder) if it < meta["iteration"])
+    if not found:
+        raise ValueError(f"stage {stage.name!r}: selfplay.init_snapshots: no periodic checkpoint before iteration "
+                         f"{meta['iteration']} of {init_checkpoint} in {folder}")
+    return [(it, path, meta.get("stage", "init")) for it, path in found]
