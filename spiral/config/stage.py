@@ -118,9 +118,9 @@ class SelfPlayCfg(StrictModel):
     init_snapshots: bool = Field(
         default=False,
         description="A new pool also starts with the periodic checkpoints that the initial policy's stage saved "
-        "before it (`ckpt/model_<it>.pt` beside it, earlier iterations only; pool mode): in full.yaml earlier, slower "
-        "solo policies that fly the racing line and never make room, so that the learner meets drones it has to "
-        "follow or pass; false: the pool starts with the initial policy alone",
+        "before it (`ckpt/model_<it>.pt` beside it, earlier iterations only; pool mode): after a solo stage, earlier "
+        "and slower policies that fly the racing line and never make room, so that the learner meets drones it has "
+        "to follow or pass; false: the pool starts with the initial policy alone",
     )
     p_latest: float = Field(default=0.5, ge=0, le=1, description="Probability of racing the latest best")
     p_first: float = Field(
