@@ -58,10 +58,10 @@ def run_stage(
         raise ValueError(f"stage {stage.name!r}: an opponent checkpoint is for frozen opponents; pool mode races "
                          "the pool")
     best_path = _first_best(run_dir, init_checkpoint)
-    layout = load_checkpoint(init_checkpoint)["spiral"]["obs_layout"]
+    init_meta = load_checkpoint(init_checkpoint)["spiral"]
     generator = torch.Generator(device=device).manual_seed(seed + 30_000)
     pool = Pool(pool_dir, log=log) if stage.selfplay.mode == "pool" else None
-    members, latest, best_rating = _opponent_policies(stage, pool, layout, init_checkpoint, opponent_checkpoint,
+    members, latest, best_rating = _opponent_policies(stage, pool, init_meta, init_checkpoint, opponent_checkpoint,
                                                       device=device)
     if not members:
         raise ValueError(f"stage {stage.name!r}: no usable policy in the pool {pool_dir}")
@@ -108,14 +108,16 @@ def _first_best(run_dir: Path, init_checkpoint: Path) -> Path:
     return best_path
 
 
-def _opponent_policies(stage: StageSpec, pool: Pool | None, layout: dict[str, Any], init_checkpoint: Path,
+def _opponent_policies(stage: StageSpec, pool: Pool | None, init_meta: dict[str, Any], init_checkpoint: Path,
                        opponent_checkpoint: Path | None, *, device: str) -> tuple[list[FrozenPolicy], int, float]:
     """The opponents a multi-drone stage starts with (one list, shared by every format's opponents), which of them
     is the latest best, and its rating.
 
-    Pool mode: the pool's valid members of this observation layout (a new pool starts with the initial policy).
+    ``init_meta`` is the initial policy's spiral metadata (its observation layout is the stage's). Pool mode: the
+    pool's valid members of this observation layout (a new pool starts with the initial policy).
     Frozen mode: ``opponent_checkpoint``'s policy, else the initial policy's.
     """
+    layout = init_meta["obs_layout"]
     if pool is None:
         frozen = load_policy(opponent_checkpoint or init_checkpoint, device=device)
         if frozen.obs_layout != layout:
@@ -124,7 +126,7 @@ def _opponent_policies(stage: StageSpec, pool: Pool | None, layout: dict[str, An
         return [frozen], 0, INITIAL_RATING
     if not pool.members:
         if stage.selfplay.init_snapshots:
-            for iteration, path, origin in _earlier_snapshots(stage, init_checkpoint):
+            for iteration, path, origin in _earlier_snapshots(stage, init_checkpoint, init_meta):
                 pool.add(path, stage=origin, iteration=iteration, evaluation={})
         pool.add(init_checkpoint, stage=stage.init_from or "init", iteration=0, evaluation={})
     policies = pool.load_policies(layout, device=device)
@@ -135,10 +137,9 @@ def _opponent_policies(stage: StageSpec, pool: Pool | None, layout: dict[str, An
     return [policies[i] for i in ids], latest, pool.member(ids[latest]).rating
 
 
-def _earlier_snapshots(stage: StageSpec, init_checkpoint: Path) -> list[tuple[int, Path, str]]:
-    """``(iteration, path, stage)`` of the periodic checkpoints in ``ckpt/`` beside ``init_checkpoint`` from before
-    its iteration, oldest first (``selfplay.init_snapshots``)."""
-    meta = load_checkpoint(init_checkpoint)["spiral"]
+def _earlier_snapshots(stage: StageSpec, init_checkpoint: Path, meta: dict[str, Any]) -> list[tuple[int, Path, str]]:
+    """``(iteration, path, stage)`` of the periodic checkpoints in ``ckpt/`` beside ``init_checkpoint`` (whose spiral
+    metadata is ``meta``) from before its iteration, oldest first (``selfplay.init_snapshots``)."""
     folder = init_checkpoint.parent / "ckpt"
     found = sorted((it, path) for it, path in list_checkpoints(folder) if it < meta["iteration"])
     if not found:
