@@ -10,8 +10,8 @@ import torch
 from spiral.core.outcome import race_winner
 from spiral.env.observations import nearest_others, relative_to_others
 
-__all__ = ["RaceEvents", "contact_fault", "contact_partners", "gate_distance", "heading", "nearest_distance",
-           "nearest_is_behind", "race_result"]
+__all__ = ["RaceEvents", "contact_fault", "contact_partners", "fault_share", "gate_distance", "heading",
+           "nearest_distance", "nearest_is_behind", "race_result"]
 
 
 @dataclass(frozen=True)
@@ -87,19 +87,28 @@ def contact_fault(pos: torch.Tensor, pos_before: torch.Tensor, vel_before: torch
                   contact: torch.Tensor, *, world_count: int, drones_per_world: int) -> torch.Tensor:
     """Each contact drone's share of the fault for its drone-drone contact (N,), 0 for the others.
 
-    The other drone is the one :func:`contact_partners` finds. With u the unit offset from a drone to the other one
-    step before (``pos_before``) and v its velocity then (``vel_before``), it flew c = max(0, v·u) into the other;
-    its share is c / (c + c_other), half each when neither closed in.
+    The other drone is the one :func:`contact_partners` finds; the share is :func:`fault_share`'s.
     """
     w, d = world_count, drones_per_world
     index, found, offset = contact_partners(pos, pos_before, racing, world_count=w, drones_per_world=d)
+    share = fault_share(offset, index, vel_before, world_count=w, drones_per_world=d)
+    return torch.where(contact & found.flatten(), share, torch.zeros_like(share))
+
+
+def fault_share(offset: torch.Tensor, index: torch.Tensor, vel_before: torch.Tensor, *, world_count: int,
+                drones_per_world: int) -> torch.Tensor:
+    """How much of a contact each drone flew into (N,), given the other drone's slot ``index`` (W, D, 1) and its
+    ``offset`` (N, 3) one step before, as :func:`contact_partners` returns them.
+
+    With u the unit offset to the other drone and v the drone's velocity then (``vel_before``), it flew
+    c = max(0, v·u) into the other; its share is c / (c + c_other), half each when neither closed in.
+    """
     u = offset / offset.norm(dim=-1, keepdim=True).clamp(min=1e-9)
-    v = vel_before.view(w, d, 3)
+    v = vel_before.view(world_count, drones_per_world, 3)
     other_vel = torch.gather(v, 1, index.expand(-1, -1, 3)).view(-1, 3)
     closing = (vel_before * u).sum(-1).clamp(min=0.0)
     total = closing + (-(other_vel * u).sum(-1)).clamp(min=0.0)
-    share = torch.where(total > 0, closing / total.clamp(min=1e-9), torch.full_like(total, 0.5))
-    return torch.where(contact & found.flatten(), share, torch.zeros_like(share))
+    return torch.where(total > 0, closing / total.clamp(min=1e-9), torch.full_like(total, 0.5))
 
 
 def race_result(finished_now: torch.Tensor, lap_time: torch.Tensor, racing: torch.Tensor, contested: torch.Tensor,

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 
 from spiral.core.policy import Policy
-from spiral.env.events import contact_partners
+from spiral.env.events import contact_partners, fault_share
 from spiral.env.race_env import RaceEnv
 from spiral.sim import COLLISION_KINDS
 
@@ -45,6 +45,9 @@ class RaceResults:
     contact_bearing: torch.Tensor | None = None
     """Where that drone was one control step before the contact, by :func:`contact_bearing` (index into
     ``BEARINGS``), else −1."""
+    contact_fault: torch.Tensor | None = None
+    """That drone's share of the contact by :func:`~spiral.env.events.fault_share` (1: it flew into a drone that
+    did not close in, 0.5: both closed in alike or neither), else −1."""
     team: torch.Tensor | None = None
     """Team of each slot, shape (D,)."""
     split_time: torch.Tensor | None = None
@@ -80,6 +83,7 @@ class RaceResults:
             crash_partner=partner, team=self.team,
             split_time=None if self.split_time is None else self.split_time[:, idx],
             contact_bearing=None if self.contact_bearing is None else self.contact_bearing[:, idx],
+            contact_fault=None if self.contact_fault is None else self.contact_fault[:, idx],
             racing_steps=None if self.racing_steps is None else self.racing_steps[:, idx],
             beyond_steps=None if self.beyond_steps is None else self.beyond_steps[:, idx],
         )
@@ -99,6 +103,7 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
     distance = torch.zeros(env.drone_count, device=env.device)
     partner = torch.full((env.drone_count,), -1, dtype=torch.long, device=env.device)
     bearing = torch.full((env.drone_count,), -1, dtype=torch.long, device=env.device)
+    fault = torch.full((env.drone_count,), -1.0, device=env.device)
     splits = torch.zeros(env.drone_count, env.passes_needed, device=env.device)
     steps = torch.zeros(env.drone_count, dtype=torch.long, device=env.device)
     beyond = torch.zeros_like(env.commanded, dtype=torch.long)
@@ -117,7 +122,7 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
             now = (passed[:, None] <= k) & (env.gates_passed[:, None] > k)
             splits = torch.where(now, env.pass_time[:, None], splits)
             passed = env.gates_passed.clone()
-        partner, bearing = _note_contacts(env, racing, before, vel_before, partner, bearing)
+        partner, bearing, fault = _note_contacts(env, racing, before, vel_before, partner, bearing, fault)
         if record:
             frames.append(env.pos.clone())
         if bool((env.finished | env.crashed | env.absent).all()):
@@ -138,6 +143,7 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
         crash_time=grid(torch.where(env.crashed, env.crash_time, 0.0)),
         crash_partner=grid(partner),
         contact_bearing=grid(bearing),
+        contact_fault=grid(fault),
         team=env.slot_team.cpu() if teams is None else _team_of_slots(teams, d),
         split_time=splits.view(w, d, -1).cpu(),
         racing_steps=grid(steps),
@@ -146,16 +152,20 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
 
 
 def _note_contacts(env: RaceEnv, racing: torch.Tensor, before: torch.Tensor, vel_before: torch.Tensor,
-                   partner: torch.Tensor, bearing: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``partner`` and ``bearing`` with this step's drone–drone crashes of ``racing`` drones filled in: the other
-    drone (the nearest one that was still racing) and where it was at ``before`` / ``vel_before``."""
+                   partner: torch.Tensor, bearing: torch.Tensor, fault: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``partner``, ``bearing`` and ``fault`` with this step's drone–drone crashes of ``racing`` drones filled in:
+    the other drone (the nearest one that was still racing), where it was at ``before`` / ``vel_before``, and how
+    much of the contact the drone flew into."""
     contact = racing & env.crashed & ((env.crash_kind & COLLISION_KINDS["drone"]) != 0)
     if not contact.any():
-        return partner, bearing
-    near, found, rel = contact_partners(env.pos, before, racing, world_count=env.world_count,
-                                        drones_per_world=env.drones_per_world)
-    partner = torch.where(contact, torch.where(found, near, -1).flatten(), partner)
-    return partner, torch.where(contact & found.flatten(), contact_bearing(rel, vel_before), bearing)
+        return partner, bearing, fault
+    w, d = env.world_count, env.drones_per_world
+    near, found, rel = contact_partners(env.pos, before, racing, world_count=w, drones_per_world=d)
+    noted = contact & found.flatten()
+    share = fault_share(rel, near, vel_before, world_count=w, drones_per_world=d)
+    return (torch.where(contact, torch.where(found, near, -1).flatten(), partner),
+            torch.where(noted, contact_bearing(rel, vel_before), bearing), torch.where(noted, share, fault))
 
 
 def concat_results(parts: list[RaceResults]) -> RaceResults:
@@ -182,6 +192,7 @@ def concat_results(parts: list[RaceResults]) -> RaceResults:
         gates_passed=cat("gates_passed"), distance=cat("distance"), present=cat("present"),
         crash_time=cat_optional("crash_time"), crash_partner=cat_optional("crash_partner"), team=first.team,
         split_time=cat_optional("split_time"), contact_bearing=cat_optional("contact_bearing"),
+        contact_fault=cat_optional("contact_fault"),
         racing_steps=cat_optional("racing_steps"), beyond_steps=cat_optional("beyond_steps"),
     )
 

@@ -131,7 +131,10 @@ def _crash_details(res: RaceResults, mask: torch.Tensor) -> dict[str, Any]:
     ``crash_gates`` counts crashes by the gate of the lap the drone was flying to (0 = the first gate after the
     start, in passing order); ``drone_contacts`` splits drone–drone crashes by the other drone's team and
     ``contact_bearing`` by where the other drone was one control step before (ahead, beside, behind: see
-    :func:`~spiral.env.racing.contact_bearing`).
+    :func:`~spiral.env.racing.contact_bearing`) and ``contact_fault`` by who flew into whom: ``own`` counts the
+    contacts in which the drone closed in at least twice as fast as the other (its share of
+    :func:`~spiral.env.events.fault_share` at least 2/3), ``other`` those in which the other did (at most 1/3),
+    ``even`` the rest; ``mean_share`` is the drones' mean share (None without contacts).
     """
     crashed = res.crashed & mask
     gates = res.gates_passed[crashed].tolist()
@@ -149,4 +152,11 @@ def _crash_details(res: RaceResults, mask: torch.Tensor) -> dict[str, Any]:
     if res.contact_bearing is not None:
         codes = res.contact_bearing[crashed]
         out["contact_bearing"] = {name: int((codes == i).sum()) for i, name in enumerate(BEARINGS)}
+    if res.contact_fault is not None:
+        share = res.contact_fault[crashed]
+        share = share[share >= 0]
+        mine, theirs = share >= 2 / 3, share <= 1 / 3
+        mean = float(share.mean()) if share.numel() else None
+        out["contact_fault"] = {"own": int(mine.sum()), "even": int((~mine & ~theirs).sum()),
+                                "other": int(theirs.sum()), "mean_share": mean}
     return out

@@ -130,14 +130,17 @@ def robustness_markdown(rb: Robustness, sides: str) -> list[str]:
               f"Each learned method (its stage's best, as in the tables) racing drones it did not train with, from "
               f"{where} ({side}): success of its drones with its 95% interval, races in which all of its drones "
               "finished, its crashes (gate frames / drone contacts), where the other drone was at its drone contacts "
-              "(ahead / beside / behind, along its direction of travel one control step before: docs/evaluation.md) "
-              "and, against a team, its win / loss / draw. Mixed teams: 2v2 races whose teams each have one drone of "
-              "each method." + (f" {OWN_FILTER}: the method's drones fly with the opt-in separation filter and the "
-                                "other team's without, as a deployment layer would race drones that lack it."
-                                if _has_filter_rows(rb) else ""), "",
+              "(ahead / beside / behind, along its direction of travel one control step before: docs/evaluation.md), "
+              "who flew into whom there (its drone closed in at least twice as fast as the other / neither / the "
+              "other did) and, against a team, its win / loss / draw. Mixed teams: 2v2 races whose teams each "
+              "have one drone of each method."
+              + (f" {OWN_FILTER}: the method's drones fly with the opt-in separation filter and the other team's "
+                 "without, as a deployment layer would race drones that lack it." if _has_filter_rows(rb) else ""),
+              "",
               "| Scenario | Method | Against | Success | Races all home | Crashes gate / drone "
-              "| Contacts: other ahead / beside / behind | Win / loss / draw |",
-              "|---|---|---|---|---|---|---|---|"]
+              "| Contacts: other ahead / beside / behind | Contacts: flew in / even / was flown into "
+              "| Win / loss / draw |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for scenario, by_key in rb.strangers.items():
         for key, rows in by_key.items():
             for label, m in rows.items():
@@ -166,12 +169,14 @@ def _self_cell(m: dict[str, Any] | None) -> str:
 
 def _stranger_cells(m: dict[str, Any] | None) -> str:
     if m is None:
-        return "missing | – | – | – | –"
+        return "missing | – | – | – | – | –"
     lo, hi = m["success_ci95"]
     crashes = m["crashes"]
     where = m.get("contact_bearing")
     bearing = f"{where['ahead']} / {where['beside']} / {where['behind']}" if where else "–"
+    fault = m.get("contact_fault")
+    into = f"{fault['own']} / {fault['even']} / {fault['other']}" if fault else "–"
     races = f"{m['race_success_ratio']:.3f}" if "race_success_ratio" in m else "–"
     duel = f"{m['win_rate']:.2f} / {m['loss_rate']:.2f} / {m['draws']:.2f}" if "win_rate" in m else "–"
     return (f"{m['success_ratio']:.3f} [{lo:.2f}, {hi:.2f}] | {races} | {crashes['gate']} / {crashes['drone']} | "
-            f"{bearing} | {duel}")
+            f"{bearing} | {into} | {duel}")

@@ -559,6 +559,21 @@ def test_race_results_name_the_drone_each_crashed_drone_touched(oval2, partner):
     # flying at each other, each had the other ahead of it; drones that did not touch anyone record no bearing
     assert summary["contact_bearing"] == {"ahead": 2, "beside": 0, "behind": 0}
     assert (res.contact_bearing[0, others] == -1).all()
+    # both closed in alike, so neither flew into the other alone
+    assert summary["contact_fault"]["even"] == 2 and summary["contact_fault"]["mean_share"] == pytest.approx(0.5)
+    assert (res.contact_fault[0, others] == -1).all()
+
+
+def test_race_results_charge_a_contact_to_the_drone_that_flew_into_a_hovering_one(oval2):
+    """Drone 0 flies at drone 1, which hovers where it started: drone 0's share of the contact is 1 (``own``),
+    drone 1's is 0 (``other``); the summary of either team counts its own drone's side only."""
+    env = make_env(oval2, worlds=1, drones=2, learners=(0,), auto_reset=False)
+    env.set_opponent_policy(lambda obs: torch.zeros(1, 4))
+    res = run_races(env, lambda obs: torch.cat([((env.pos[1] - env.pos[0]) / env.cfg.action.pos_scale).clamp(-1, 1),
+                                                torch.zeros(1)])[None])
+    assert res.crashed[0].all() and res.contact_fault[0].tolist() == pytest.approx([1.0, 0.0], abs=0.05)
+    assert summarize_races(res, [0])["contact_fault"] == {"own": 1, "even": 0, "other": 0, "mean_share": 1.0}
+    assert summarize_races(res, [1])["contact_fault"] == {"own": 0, "even": 0, "other": 1, "mean_share": 0.0}
 
 
 def test_contact_bearing_splits_ahead_beside_and_behind_at_45_degrees():

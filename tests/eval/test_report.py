@@ -187,9 +187,11 @@ def test_report_races_the_filter_rows_final_policies_strangers_and_downwash(spri
     strangers = md[md.index("## Racing strangers"):md.index("## Downwash")]
     row = next(r for r in strangers.splitlines() if r.startswith("| 1v1 | PPO No Selfplay | SPIRAL |"))
     assert row.endswith(f"| {duel['loss_rate']:.2f} / {duel['win_rate']:.2f} / {duel['draws']:.2f} |")
-    where = json.loads((evals / "holdout-cross-1v1-spiral-vs-noselfplay.json").read_text())["methods"]["spiral"][
-        "opponent"]["contact_bearing"]  # the baseline's drones, read from the same races
-    assert f"| {where['ahead']} / {where['beside']} / {where['behind']} |" in row
+    baseline = json.loads((evals / "holdout-cross-1v1-spiral-vs-noselfplay.json").read_text())["methods"]["spiral"][
+        "opponent"]  # the baseline's drones, read from the same races
+    where, fault = baseline["contact_bearing"], baseline["contact_fault"]
+    assert (f"| {where['ahead']} / {where['beside']} / {where['behind']} | "
+            f"{fault['own']} / {fault['even']} / {fault['other']} |") in row
     mixed = json.loads((evals / "holdout-mixed-2v2-spiral-noselfplay.json").read_text())
     assert mixed["methods"]["spiral"]["slots"] == [0, 2] and mixed["methods"]["noselfplay"]["slots"] == [1, 3]
     assert "| 2v2 | SPIRAL | mixed teams |" in strangers
