@@ -148,6 +148,15 @@ class RewardCfg(StrictModel):
         "slower one ahead pays all of it, two drones converging alike half each); 0 leaves the paper's reward "
         "(not in the paper)",
     )
+    closing: NonNegFloat = Field(
+        default=0.0,
+        description="Weight of a per-step penalty for closing in on the nearest other racing drone: the rate r at "
+        "which the two close in [m/s] times the drone's share of it (as for `contact`: the share of the closing "
+        "speed it flies into the other) times max(0, 1 − d/closing_distance); the drone that runs up on a slower "
+        "one ahead pays, the one ahead does not, whether or not it makes room (not in the paper; 0 leaves the "
+        "paper's reward)",
+    )
+    closing_distance: PosFloat = Field(default=1.0, description="Distance where the closing penalty starts [m]")
     intervention: NonNegFloat = Field(
         default=0.0,
         description="Weight of the per-step cost of the target shift [m] the training shield at full gain asks for "

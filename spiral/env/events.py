@@ -10,8 +10,8 @@ import torch
 from spiral.core.outcome import race_winner
 from spiral.env.observations import nearest_others, relative_to_others
 
-__all__ = ["RaceEvents", "contact_fault", "contact_partners", "fault_share", "gate_distance", "heading",
-           "nearest_distance", "nearest_is_behind", "race_result"]
+__all__ = ["RaceEvents", "closing_in", "contact_fault", "contact_partners", "fault_share", "gate_distance",
+           "heading", "nearest_distance", "nearest_is_behind", "race_result"]
 
 
 @dataclass(frozen=True)
@@ -93,6 +93,29 @@ def contact_fault(pos: torch.Tensor, pos_before: torch.Tensor, vel_before: torch
     index, found, offset = contact_partners(pos, pos_before, racing, world_count=w, drones_per_world=d)
     share = fault_share(offset, index, vel_before, world_count=w, drones_per_world=d)
     return torch.where(contact & found.flatten(), share, torch.zeros_like(share))
+
+
+def closing_in(pos: torch.Tensor, vel: torch.Tensor, out: torch.Tensor, *, distance: float, world_count: int,
+               drones_per_world: int) -> torch.Tensor:
+    """How fast each racing drone closes in on its nearest racing drone, by its share (N,) [m/s]; 0 for the rest.
+
+    With u the unit offset to the other drone, the two close in at r = max(0, (v − v_other)·u); the drone's part of
+    it is its :func:`fault_share`, and it counts in full at contact and not at all from ``distance`` away:
+    r · share · max(0, 1 − d / distance). A drone that runs up on a slower one ahead takes all of it, the one
+    ahead none; two drones converging alike half each.
+    """
+    w, d = world_count, drones_per_world
+    p = pos.view(w, d, 3)
+    racing = (out == 0).view(w, d)
+    index, found = nearest_others(p, racing, count=1)
+    offset = (torch.gather(p, 1, index.expand(-1, -1, 3)) - p).view(-1, 3)
+    other_vel = torch.gather(vel.view(w, d, 3), 1, index.expand(-1, -1, 3)).view(-1, 3)
+    dist = offset.norm(dim=-1)
+    rate = ((vel - other_vel) * offset).sum(-1).clamp(min=0.0) / dist.clamp(min=1e-9)
+    share = fault_share(offset, index, vel, world_count=w, drones_per_world=d)
+    near = (1.0 - dist / distance).clamp(min=0.0)
+    value = rate * share * near
+    return torch.where(found.flatten() & racing.flatten(), value, torch.zeros_like(value))
 
 
 def fault_share(offset: torch.Tensor, index: torch.Tensor, vel_before: torch.Tensor, *, world_count: int,

@@ -39,6 +39,9 @@ class StepOutcome:
     """+1 / −1 for the winning / losing team's drones at the step their race is decided, else 0."""
     contact_fault: torch.Tensor | None = None
     """Share of the fault for a drone-drone contact during the step, 0 for drones without one."""
+    closing: torch.Tensor | None = None
+    """How fast the drone closes in on its nearest racing drone, by its share and nearness after the step
+    (:func:`~spiral.env.events.closing_in`) [m/s]."""
     intervention: torch.Tensor | None = None
     """Length of the target shift the training shield at full gain asked for this step [m]."""
 
@@ -82,6 +85,14 @@ def _reward_contact(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
     return -o.contact_fault
 
 
+def _reward_closing(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
+    """−(closing rate · share · nearness) per step: closing in on the nearest drone, charged to the drone that
+    flies into the other (not in the paper)."""
+    if o.closing is None:
+        return torch.zeros_like(o.dist_before)
+    return -o.closing
+
+
 def _reward_intervention(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
     """−|shift| per step: the training shield's target shift at full gain, whether or not it still acts."""
     if o.intervention is None:
@@ -109,6 +120,7 @@ REWARD_TERMS = {
     "alignment": _reward_alignment,
     "proximity": _reward_proximity,
     "contact": _reward_contact,
+    "closing": _reward_closing,
     "intervention": _reward_intervention,
     "lap": _reward_lap,
     "win": _reward_win,

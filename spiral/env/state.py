@@ -15,7 +15,15 @@ from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
 from spiral.core.outcome import race_winner
 from spiral.core.policy import OpponentPolicy
-from spiral.env.events import RaceEvents, contact_fault, gate_distance, heading, nearest_distance, nearest_is_behind
+from spiral.env.events import (
+    RaceEvents,
+    closing_in,
+    contact_fault,
+    gate_distance,
+    heading,
+    nearest_distance,
+    nearest_is_behind,
+)
 from spiral.env.rewards import REWARD_TERMS, StepOutcome
 from spiral.env.slots import slot_map
 from spiral.env.stats import empty_stats, log_episodes, summarize_stats
@@ -147,6 +155,8 @@ class RaceState:
             nearest_behind=behind,
             race_result=ev.race_result,
             contact_fault=self._contact_fault(ev) if reward.contact > 0 else None,
+            closing=closing_in(self.pos, self.vel, self.out, distance=reward.closing_distance, world_count=w,
+                               drones_per_world=d) if reward.closing > 0 else None,
             intervention=torch.where(racing, self.intervention, 0.0) if self.cfg.shield is not None else None,
         )
 

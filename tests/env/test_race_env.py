@@ -11,7 +11,7 @@ import torch
 from spiral.config import AIRFRAMES, EnvCfg, ObsCfg, RewardCfg, SimCfg, TrackSpec
 from spiral.core.checkpoint import load_policy
 from spiral.env import HISTORY_FEATURES, RaceEnv, compute_rewards, run_races
-from spiral.env.events import contact_fault
+from spiral.env.events import closing_in, contact_fault
 from spiral.env.observations import HISTORY_FIELDS, OBS_TERMS, other_drone_columns
 from spiral.env.racing import BEARINGS, contact_bearing
 from spiral.env.rewards import StepOutcome
@@ -223,7 +223,7 @@ def test_reward_terms_on_a_hand_made_transition():
 
 @pytest.mark.parametrize("drones", [154, 512])
 def test_a_term_at_weight_zero_leaves_every_total_bit_for_bit(drones):
-    """With the contact term at weight 0 the totals equal, bit for bit, one reduction over the terms summed before
+    """With the contact and closing terms at weight 0 the totals equal, bit for bit, one reduction over the terms summed before
     it existed (for 154 drones a reduction over one more row would round differently)."""
     from spiral.env import rewards
 
@@ -236,7 +236,7 @@ def test_a_term_at_weight_zero_leaves_every_total_bit_for_bit(drones):
         race_result=torch.randint(-1, 2, (drones,), generator=g).float())
     total, terms = compute_rewards(outcome, RewardCfg(proximity=0.1, win=3))
     before = torch.stack([terms[name] for name in rewards.SUMMED_AT_ONCE]).sum(0)
-    assert torch.equal(total, before) and set(terms) - set(rewards.SUMMED_AT_ONCE) == {"contact"}
+    assert torch.equal(total, before) and set(terms) - set(rewards.SUMMED_AT_ONCE) == {"contact", "closing"}
 
 
 def test_proximity_penalty_grows_linearly_inside_the_safe_distance(oval2):
@@ -284,6 +284,35 @@ def test_contact_penalty_charges_the_drone_that_runs_into_another_by_its_share_o
     _, rewards, _, _ = env.step(torch.zeros(2, 4))
     assert env.crashed[:2].all() and ((env.crash_kind[:2] & COLLISION_KINDS["drone"]) != 0).all()
     assert rewards.tolist() == pytest.approx(expected)
+
+
+def test_closing_in_charges_the_drone_that_runs_up_on_a_slower_one_and_shares_a_convergence():
+    """Four pairs of drones (two worlds of four, each pair far from the other): a drone at 4.5 m/s 0.5 m behind one
+    at 4 m/s closes in at 0.5 m/s and takes all of it, at half weight halfway into the 1 m window, the one ahead
+    nothing; two drones 0.4 m apart side by side, each drifting 0.5 m/s towards the other while flying on at 4 m/s,
+    close in at 1 m/s and share it; drones drifting apart, and a pair 1.5 m apart, pay nothing; so does a drone
+    whose only near neighbour has left the race."""
+    pos = torch.tensor([[0.0, 0.0, 1.0], [0.5, 0.0, 1.0], [5.0, 0.0, 1.0], [5.0, 0.4, 1.0],
+                        [9.0, 0.0, 1.0], [9.0, 0.3, 1.0], [12.0, 0.0, 1.0], [13.5, 0.0, 1.0]])
+    vel = torch.tensor([[4.5, 0.0, 0.0], [4.0, 0.0, 0.0], [4.0, 0.5, 0.0], [4.0, -0.5, 0.0],
+                        [4.0, -0.5, 0.0], [4.0, 0.5, 0.0], [4.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    out = torch.zeros(8, dtype=torch.int32)
+    rate = closing_in(pos, vel, out, distance=1.0, world_count=2, drones_per_world=4)
+    assert rate.tolist() == pytest.approx([0.25, 0.0, 0.3, 0.3, 0.0, 0.0, 0.0, 0.0])
+    out[1] = 1  # drone 1 left the race: drone 0's nearest racing drone is now 2, 5 m away
+    assert closing_in(pos, vel, out, distance=1.0, world_count=2, drones_per_world=4)[:2].tolist() == [0.0, 0.0]
+
+
+def test_closing_penalty_is_weighted_into_the_reward(oval2):
+    """Two drones 0.5 m apart on one line, the one behind 1 m/s faster: with weight 2 and a 1 m window it pays
+    2 · 1 · 1 · (1 − 0.5) = 1 after the step (the gap shrinks a little), the one ahead nothing."""
+    reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, closing=2.0, closing_distance=1.0)
+    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), auto_reset=False, reward=reward)
+    env.reset()
+    place(env, [[-1.70, -1.0, 1.0], [-1.20, -1.0, 1.0]])
+    env.vel[:2] = torch.tensor([[2.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    _, rewards, _, _ = env.step(torch.zeros(2, 4))
+    assert rewards[1] == 0.0 and -1.1 < float(rewards[0]) < -0.5
 
 
 def test_contact_fault_takes_the_closing_speed_along_the_offset_before_the_step():
