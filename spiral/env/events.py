@@ -97,7 +97,8 @@ def contact_fault(pos: torch.Tensor, pos_before: torch.Tensor, vel_before: torch
 
 def closing_in(pos: torch.Tensor, vel: torch.Tensor, out: torch.Tensor, *, distance: float, world_count: int,
                drones_per_world: int) -> torch.Tensor:
-    """How fast each racing drone closes in on its nearest racing drone, by its share (N,) [m/s]; 0 for the rest.
+    """How fast each racing drone closes in on its nearest racing drone, times its share and the nearness (N,)
+    [m/s]; 0 for the drones without a racing neighbour and for those out of the race.
 
     With u the unit offset to the other drone, the two close in at r = max(0, (v − v_other)·u); the drone's part of
     it is its :func:`fault_share`, and it counts in full at contact and not at all from ``distance`` away:

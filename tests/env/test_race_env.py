@@ -223,8 +223,8 @@ def test_reward_terms_on_a_hand_made_transition():
 
 @pytest.mark.parametrize("drones", [154, 512])
 def test_a_term_at_weight_zero_leaves_every_total_bit_for_bit(drones):
-    """With the contact and closing terms at weight 0 the totals equal, bit for bit, one reduction over the terms summed before
-    it existed (for 154 drones a reduction over one more row would round differently)."""
+    """With the contact and closing terms at weight 0 the totals equal, bit for bit, one reduction over the terms
+    summed before they existed (for 154 drones a reduction over one more row would round differently)."""
     from spiral.env import rewards
 
     g = torch.Generator().manual_seed(0)
