@@ -10,8 +10,8 @@ import torch
 from spiral.core.outcome import race_winner
 from spiral.env.observations import nearest_others, relative_to_others
 
-__all__ = ["RaceEvents", "closing_in", "contact_fault", "contact_partners", "fault_share", "gate_distance",
-           "heading", "nearest_distance", "nearest_is_behind", "race_result"]
+__all__ = ["RaceEvents", "at_nearest", "closing_in", "contact_fault", "contact_partners", "fault_share",
+           "gate_distance", "heading", "nearest_distance", "nearest_is_behind", "race_result"]
 
 
 @dataclass(frozen=True)
@@ -67,10 +67,9 @@ def nearest_is_behind(pos: torch.Tensor, out: torch.Tensor, to_gate: torch.Tenso
     """Whether each drone's nearest other racing drone is behind it: offset away from its next gate (``to_gate``,
     (N, 3)); False where there is none."""
     w, d = world_count, drones_per_world
-    p = pos.view(w, d, 3)
-    index, found = nearest_others(p, (out == 0).view(w, d), count=1)
-    offset = torch.gather(p, 1, index.expand(-1, -1, 3)) - p
-    return (found[..., 0] & ((offset * to_gate.view(w, d, 3)).sum(-1) < 0)).flatten()
+    index, found = nearest_others(pos.view(w, d, 3), (out == 0).view(w, d), count=1)
+    offset = at_nearest(pos, index) - pos
+    return (found.flatten() & ((offset * to_gate).sum(-1) < 0))
 
 
 def contact_partners(pos: torch.Tensor, pos_before: torch.Tensor, racing: torch.Tensor, *, world_count: int,
@@ -89,9 +88,9 @@ def contact_fault(pos: torch.Tensor, pos_before: torch.Tensor, vel_before: torch
 
     The other drone is the one :func:`contact_partners` finds; the share is :func:`fault_share`'s.
     """
-    w, d = world_count, drones_per_world
-    index, found, offset = contact_partners(pos, pos_before, racing, world_count=w, drones_per_world=d)
-    share = fault_share(offset, index, vel_before, world_count=w, drones_per_world=d)
+    index, found, offset = contact_partners(pos, pos_before, racing, world_count=world_count,
+                                           drones_per_world=drones_per_world)
+    share = fault_share(offset, vel_before, at_nearest(vel_before, index))
     return torch.where(contact & found.flatten(), share, torch.zeros_like(share))
 
 
@@ -105,32 +104,34 @@ def closing_in(pos: torch.Tensor, vel: torch.Tensor, out: torch.Tensor, *, dista
     r · share · max(0, 1 − d / distance). A drone that runs up on a slower one ahead takes all of it, the one
     ahead none; two drones converging alike half each.
     """
-    w, d = world_count, drones_per_world
-    p = pos.view(w, d, 3)
-    racing = (out == 0).view(w, d)
-    index, found = nearest_others(p, racing, count=1)
-    offset = (torch.gather(p, 1, index.expand(-1, -1, 3)) - p).view(-1, 3)
-    other_vel = torch.gather(vel.view(w, d, 3), 1, index.expand(-1, -1, 3)).view(-1, 3)
+    racing = out == 0
+    index, found = nearest_others(pos.view(world_count, drones_per_world, 3),
+                                  racing.view(world_count, drones_per_world), count=1)
+    offset = at_nearest(pos, index) - pos
+    other_vel = at_nearest(vel, index)
     dist = offset.norm(dim=-1)
     rate = ((vel - other_vel) * offset).sum(-1).clamp(min=0.0) / dist.clamp(min=1e-9)
-    share = fault_share(offset, index, vel, world_count=w, drones_per_world=d)
     near = (1.0 - dist / distance).clamp(min=0.0)
-    value = rate * share * near
-    return torch.where(found.flatten() & racing.flatten(), value, torch.zeros_like(value))
+    value = rate * fault_share(offset, vel, other_vel) * near
+    return torch.where(found.flatten() & racing, value, torch.zeros_like(value))
 
 
-def fault_share(offset: torch.Tensor, index: torch.Tensor, vel_before: torch.Tensor, *, world_count: int,
-                drones_per_world: int) -> torch.Tensor:
-    """How much of a contact each drone flew into (N,), given the other drone's slot ``index`` (W, D, 1) and its
-    ``offset`` (N, 3) one step before, as :func:`contact_partners` returns them.
+def at_nearest(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """Per-drone vectors ``x`` (N, 3, world-major) of each drone's nearest other drone, whose slot ``index`` (W, D, 1)
+    :func:`~spiral.env.observations.nearest_others` found; (N, 3)."""
+    w, d, _ = index.shape
+    return torch.gather(x.view(w, d, 3), 1, index.expand(-1, -1, 3)).view(-1, 3)
 
-    With u the unit offset to the other drone and v the drone's velocity then (``vel_before``), it flew
-    c = max(0, v·u) into the other; its share is c / (c + c_other), half each when neither closed in.
+
+def fault_share(offset: torch.Tensor, vel: torch.Tensor, other_vel: torch.Tensor) -> torch.Tensor:
+    """How much of a contact each drone flew into (N,), given the ``offset`` (N, 3) to the other drone and the two
+    drones' velocities ``vel`` and ``other_vel`` (N, 3), all at one moment (one step before a contact).
+
+    With u the unit offset to the other drone and v the drone's velocity, it flew c = max(0, v·u) into the other;
+    its share is c / (c + c_other), half each when neither closed in.
     """
     u = offset / offset.norm(dim=-1, keepdim=True).clamp(min=1e-9)
-    v = vel_before.view(world_count, drones_per_world, 3)
-    other_vel = torch.gather(v, 1, index.expand(-1, -1, 3)).view(-1, 3)
-    closing = (vel_before * u).sum(-1).clamp(min=0.0)
+    closing = (vel * u).sum(-1).clamp(min=0.0)
     total = closing + (-(other_vel * u).sum(-1)).clamp(min=0.0)
     return torch.where(total > 0, closing / total.clamp(min=1e-9), torch.full_like(total, 0.5))
 

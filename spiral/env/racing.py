@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 
 from spiral.core.policy import Policy
-from spiral.env.events import contact_partners, fault_share
+from spiral.env.events import at_nearest, contact_partners, fault_share
 from spiral.env.race_env import RaceEnv
 from spiral.sim import COLLISION_KINDS
 
@@ -160,10 +160,10 @@ def _note_contacts(env: RaceEnv, racing: torch.Tensor, before: torch.Tensor, vel
     contact = racing & env.crashed & ((env.crash_kind & COLLISION_KINDS["drone"]) != 0)
     if not contact.any():
         return partner, bearing, fault
-    w, d = env.world_count, env.drones_per_world
-    near, found, rel = contact_partners(env.pos, before, racing, world_count=w, drones_per_world=d)
+    near, found, rel = contact_partners(env.pos, before, racing, world_count=env.world_count,
+                                        drones_per_world=env.drones_per_world)
     noted = contact & found.flatten()
-    share = fault_share(rel, near, vel_before, world_count=w, drones_per_world=d)
+    share = fault_share(rel, vel_before, at_nearest(vel_before, near))
     return (torch.where(contact, torch.where(found, near, -1).flatten(), partner),
             torch.where(noted, contact_bearing(rel, vel_before), bearing), torch.where(noted, share, fault))
 
