@@ -157,6 +157,12 @@ class RewardCfg(StrictModel):
         "paper's reward)",
     )
     closing_distance: PosFloat = Field(default=1.0, description="Distance where the closing penalty starts [m]")
+    closing_miss: NonNegFloat = Field(
+        default=0.0,
+        description="With a value > 0 the closing penalty charges collision courses only: it is further scaled by "
+        "max(0, 1 − m/closing_miss), m the distance at which the two drones, held at their velocities, would pass "
+        "each other [m]; a drone that overtakes wide of the one ahead pays nothing. 0 charges every closing in",
+    )
     intervention: NonNegFloat = Field(
         default=0.0,
         description="Weight of the per-step cost of the target shift [m] the training shield at full gain asks for "

@@ -303,6 +303,24 @@ def test_closing_in_charges_the_drone_that_runs_up_on_a_slower_one_and_shares_a_
     assert closing_in(pos, vel, out, distance=1.0, world_count=2, drones_per_world=4)[:2].tolist() == [0.0, 0.0]
 
 
+def test_closing_in_with_a_miss_distance_charges_collision_courses_only():
+    """Three pairs, each drone behind 1 m/s faster than the one ahead: straight behind it, on course to hit, it pays
+    as without a miss distance (0.5 m/s · 0.5 = 0.25 at 0.5 m); 0.6 m behind and 0.2 m aside it would pass 0.2 m
+    from it, a third of a 0.3 m miss distance short of it: a third of what it pays without one; 0.4 m aside it
+    overtakes wide and pays nothing."""
+    pos = torch.tensor([[0.0, 0.0, 1.0], [0.5, 0.0, 1.0], [5.0, 0.0, 1.0], [5.6, 0.2, 1.0],
+                        [9.0, 0.0, 1.0], [9.5, 0.4, 1.0]])
+    vel = torch.tensor([[4.5, 0.0, 0.0], [4.0, 0.0, 0.0], [5.0, 0.0, 0.0], [4.0, 0.0, 0.0],
+                        [5.0, 0.0, 0.0], [4.0, 0.0, 0.0]])
+    out = torch.zeros(6, dtype=torch.int32)
+    every = closing_in(pos, vel, out, distance=1.0, world_count=3, drones_per_world=2)
+    course = closing_in(pos, vel, out, distance=1.0, world_count=3, drones_per_world=2, miss=0.3)
+    rate, near = 0.6 / 0.4**0.5, 1.0 - 0.4**0.5  # the second pair's closing rate and nearness
+    assert every.tolist() == pytest.approx([0.25, 0.0, rate * near, 0.0, every[4].item(), 0.0])
+    assert every[4] > 0
+    assert course.tolist() == pytest.approx([0.25, 0.0, rate * near / 3, 0.0, 0.0, 0.0])
+
+
 def test_closing_penalty_is_weighted_into_the_reward(oval2):
     """Two drones 0.5 m apart on one line, the one behind 1 m/s faster: with weight 2 and a 1 m window it pays
     2 · 1 · 1 · (1 − 0.5) = 1 after the step (the gap shrinks a little), the one ahead nothing."""
