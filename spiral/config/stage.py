@@ -69,6 +69,13 @@ class PromotionCfg(StrictModel):
         "slower); 0: any",
     )
     elo_k: float = Field(default=16.0, gt=0, description="Elo K-factor applied per evaluation (match score)")
+    formats: bool = Field(
+        default=False,
+        description="Also race the learner and the best in a self-match of each other race format of the stage's "
+        "`mix` (`races` races each, the same placements for both): a learner whose success in one of them is more "
+        "than max_success_drop below the best's is not promoted, so that the stage's best races every format it "
+        "trains",
+    )
 
 
 class SelfPlayCfg(StrictModel):

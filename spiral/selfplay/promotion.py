@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -13,12 +13,13 @@ from spiral.config.track import TrackSpec
 from spiral.core.checkpoint import FrozenPolicy, load_policy
 from spiral.core.outcome import race_winner
 from spiral.core.policy import Policy
+from spiral.core.scenario import SCENARIO_DRONES
 from spiral.env.race_env import RaceEnv
 from spiral.env.racing import run_races
 from spiral.selfplay.pool import Pool
 from spiral.train.runner import StageTrainer
 
-__all__ = ["HeadToHead", "PromotionSelector", "elo_update", "head_to_head", "should_promote"]
+__all__ = ["HeadToHead", "PromotionSelector", "elo_update", "head_to_head", "self_match_pair", "should_promote"]
 
 
 @dataclass
@@ -55,7 +56,18 @@ def head_to_head(env: RaceEnv, challenger: Policy, holder: Policy) -> HeadToHead
                       draws=int((winners == -1).sum()), a_success=float(a), b_success=float(b))
 
 
-def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[float, float] | None = None) -> bool:
+def self_match_pair(env: RaceEnv, policy: Policy, other: Policy) -> tuple[float, float]:
+    """Success ratios of ``policy`` and of ``other``, each racing itself in ``env`` (every slot a learner) from the
+    same fresh start placements."""
+    state = env.generator.get_state()
+    mine = run_races(env, policy)
+    env.generator.set_state(state)
+    theirs = run_races(env, other)
+    return float(mine.finished[mine.present].float().mean()), float(theirs.finished[theirs.present].float().mean())
+
+
+def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[float, float] | None = None,
+                   formats: Mapping[str, tuple[float, float]] | None = None) -> bool:
     """Whether the learner (team A of ``result``) replaces the best.
 
     Faster: win rate at least ``min_win_rate`` over at least ``min_races`` races with success not below the best's
@@ -63,8 +75,12 @@ def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[floa
     ``cfg.self_match``, self-match success not below the best's by more than that either). Safer (with
     ``cfg.self_match`` and ``cfg.self_match_gain``): self-match success at least ``self_match_gain`` above the
     best's over at least ``min_races`` races, head-to-head success not below the best's by more than
-    ``max_success_drop`` and win rate at least ``safer_min_win_rate``.
+    ``max_success_drop`` and win rate at least ``safer_min_win_rate``. Either way, given ``formats`` (format →
+    (learner, best) self-match success ratios in the stage's other formats), none of them more than
+    ``max_success_drop`` below the best's.
     """
+    if any(own < best - cfg.max_success_drop for own, best in (formats or {}).values()):
+        return False
     enough = result.races >= cfg.min_races
     as_safe = result.a_success >= result.b_success - cfg.max_success_drop
     faster = enough and as_safe and result.win_rate >= cfg.min_win_rate
@@ -100,12 +116,18 @@ class PromotionSelector:
         self.env = RaceEnv(track, airframe, sim, stage.env, world_count=self.cfg.races, drones_per_world=d,
                            learner_slots=stage.learner_slots(), device=device, seed=seed + 20_000, auto_reset=False)
         self.interval = self.cfg.interval
+        self.format_envs = {
+            fmt: RaceEnv(track, airframe, sim, stage.env, world_count=self.cfg.races,
+                         drones_per_world=SCENARIO_DRONES[fmt], learner_slots=list(range(SCENARIO_DRONES[fmt])),
+                         device=device, seed=seed + 30_000 + i, auto_reset=False)
+            for i, fmt in enumerate(sorted(stage.mix))} if self.cfg.formats else {}
 
     def __call__(self, trainer: StageTrainer, it: int) -> dict[str, float]:
         """Race the learner against the best and in a self-match; promote it when the rule holds."""
         own, best_own = trainer.selection.evaluate_pair(it, self.best)
         learner = trainer.selection.candidate_policy()
         result = head_to_head(self.env, learner, self.best)
+        formats = {fmt: self_match_pair(env, learner, self.best) for fmt, env in self.format_envs.items()}
         trainer.runner.alg.train_mode()
         learner_rating, best_rating = elo_update(self.best_rating, self.best_rating, result.score, self.cfg.elo_k)
         row = {"h2h/win_rate": result.win_rate, "h2h/draws": result.draws / max(result.races, 1),
@@ -113,7 +135,9 @@ class PromotionSelector:
                "h2h/promoted": 0.0, "eval/success": own.success,
                "eval/lap_time": own.lap_time if own.lap_time is not None else float("nan"),
                "eval/best_success": best_own.success}
-        if should_promote(result, self.cfg, (own.success, best_own.success)):
+        for fmt, (mine, theirs) in formats.items():
+            row[f"formats/{fmt}_success"], row[f"formats/{fmt}_best_success"] = mine, theirs
+        if should_promote(result, self.cfg, (own.success, best_own.success), formats):
             path = trainer.save_best(it)
             if self.pool is not None:
                 if self.pool.latest_best is not None:

@@ -70,6 +70,18 @@ def test_promotion_also_needs_a_self_match_no_worse_than_the_best():
     assert should_promote(win, PromotionCfg(self_match=False), (0.70, 0.81))
 
 
+def test_promotion_refuses_a_learner_that_loses_another_format_of_its_stage():
+    """A 2v2 learner that wins its duels but races solo at 0.09 where the best races 0.93 is not promoted, whether
+    it would rise as faster or as safer; within max_success_drop (0.05) of the best in every format it is."""
+    cfg = PromotionCfg(max_success_drop=0.05)
+    win, slower = HeadToHead(64, 40, 20, 4, 0.98, 0.98), HeadToHead(64, 5, 40, 19, 0.98, 0.98)
+    assert should_promote(win, cfg, (0.97, 0.96), {"solo": (0.90, 0.93), "1v1": (0.99, 0.97)})
+    assert not should_promote(win, cfg, (0.97, 0.96), {"solo": (0.09, 0.93), "1v1": (0.99, 0.97)})
+    assert should_promote(slower, cfg, (0.99, 0.90), {"solo": (1.0, 1.0)})
+    assert not should_promote(slower, cfg, (0.99, 0.90), {"solo": (0.80, 1.0)})
+    assert not should_promote(win, cfg.model_copy(update={"self_match": False}), None, {"1v1": (0.50, 0.97)})
+
+
 def test_a_safer_learner_is_promoted_without_winning_the_duel():
     """Promote on a self-match gain of ≥ 0.05 when the duel success holds, even with few wins; not otherwise."""
     slower = HeadToHead(64, 5, 40, 19, 0.72, 0.72)

@@ -303,3 +303,24 @@ def test_a_stage_with_blind_opponents_hides_what_its_layout_shows_of_other_drone
     hidden = other_drone_columns(duel.env.obs)
     assert len(built) == 2 and {o.per_world for o in built} == {1, 2}
     assert all(o.blind == 0.4 and torch.equal(o.unseen, hidden) for o in built)
+
+
+def test_promotion_with_formats_races_the_learner_and_the_best_in_each_other_format_of_the_mix(line2, tmp_path):
+    """With `promotion.formats` a 1v1 stage mixing in solo worlds logs, at each promotion check, the solo success of
+    learner and best (four one-drone races each: a multiple of 1/4), and nothing of it without the option."""
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
+    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "solo", pool_dir=tmp_path / "pool", init_checkpoint=None,
+              progress=False)
+    logged = {}
+    for formats in (True, False):
+        duel = StageSpec.model_validate({
+            "name": "1v1", "scenario": "1v1", "iterations": 1, "mix": {"solo": 0.25},
+            "selfplay": {"promotion": {**PERMISSIVE["promotion"], "formats": formats}}, **COMMON})
+        run_dir = tmp_path / f"duel-{formats}"
+        run_stage(line2, CF2X, SimCfg(), duel, run_dir, pool_dir=tmp_path / f"pool-{formats}",
+                  init_checkpoint=tmp_path / "solo" / "best.pt", progress=False)
+        row = json.loads((run_dir / "train_log.jsonl").read_text().splitlines()[-1])
+        logged[formats] = {k: v for k, v in row.items() if k.startswith("formats/")}
+    assert set(logged[True]) == {"formats/solo_success", "formats/solo_best_success"}
+    assert all(v in (0.0, 0.25, 0.5, 0.75, 1.0) for v in logged[True].values())
+    assert logged[False] == {}
