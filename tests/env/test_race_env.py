@@ -304,10 +304,10 @@ def test_closing_in_charges_the_drone_that_runs_up_on_a_slower_one_and_shares_a_
 
 
 def test_closing_in_with_a_miss_distance_charges_collision_courses_only():
-    """Three pairs, each drone behind 1 m/s faster than the one ahead: straight behind it, on course to hit, it pays
-    as without a miss distance (0.5 m/s · 0.5 = 0.25 at 0.5 m); 0.6 m behind and 0.2 m aside it would pass 0.2 m
-    from it, a third of a 0.3 m miss distance short of it: a third of what it pays without one; 0.4 m aside it
-    overtakes wide and pays nothing."""
+    """Three pairs, each drone behind faster than the one ahead: 0.5 m straight behind it, on course to hit, it
+    pays as without a miss distance (0.5 m/s · 0.5 = 0.25); 0.6 m behind and 0.2 m aside it would pass 0.2 m from
+    it, a third of a 0.3 m miss distance short of it: a third of what it pays without one; 0.5 m behind and 0.4 m
+    aside it overtakes wide and pays nothing, where without a miss distance it pays its full closing rate."""
     pos = torch.tensor([[0.0, 0.0, 1.0], [0.5, 0.0, 1.0], [5.0, 0.0, 1.0], [5.6, 0.2, 1.0],
                         [9.0, 0.0, 1.0], [9.5, 0.4, 1.0]])
     vel = torch.tensor([[4.5, 0.0, 0.0], [4.0, 0.0, 0.0], [5.0, 0.0, 0.0], [4.0, 0.0, 0.0],
@@ -316,8 +316,8 @@ def test_closing_in_with_a_miss_distance_charges_collision_courses_only():
     every = closing_in(pos, vel, out, distance=1.0, world_count=3, drones_per_world=2)
     course = closing_in(pos, vel, out, distance=1.0, world_count=3, drones_per_world=2, miss=0.3)
     rate, near = 0.6 / 0.4**0.5, 1.0 - 0.4**0.5  # the second pair's closing rate and nearness
-    assert every.tolist() == pytest.approx([0.25, 0.0, rate * near, 0.0, every[4].item(), 0.0])
-    assert every[4] > 0
+    wide_rate, wide_near = 0.5 / 0.41**0.5, 1.0 - 0.41**0.5  # the third pair's
+    assert every.tolist() == pytest.approx([0.25, 0.0, rate * near, 0.0, wide_rate * wide_near, 0.0])
     assert course.tolist() == pytest.approx([0.25, 0.0, rate * near / 3, 0.0, 0.0, 0.0])
 
 
