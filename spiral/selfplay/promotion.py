@@ -60,10 +60,15 @@ def self_match_pair(env: RaceEnv, policy: Policy, other: Policy) -> tuple[float,
     """Success ratios of ``policy`` and of ``other``, each racing itself in ``env`` (every slot a learner) from the
     same fresh start placements."""
     state = env.generator.get_state()
-    mine = run_races(env, policy)
+    mine = _self_match_success(env, policy)  # reduced before the next race: run_races' results view env buffers
     env.generator.set_state(state)
-    theirs = run_races(env, other)
-    return float(mine.finished[mine.present].float().mean()), float(theirs.finished[theirs.present].float().mean())
+    return mine, _self_match_success(env, other)
+
+
+def _self_match_success(env: RaceEnv, policy: Policy) -> float:
+    """Share of the drones present in ``env`` that finish a race flown by ``policy``."""
+    res = run_races(env, policy)
+    return float(res.finished[res.present].float().mean())
 
 
 def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[float, float] | None = None,

@@ -10,6 +10,8 @@ from pydantic import ValidationError
 
 from spiral.config import PromotionCfg, SelfPlayCfg, StageSpec
 from spiral.selfplay import HeadToHead, Matchmaker, Pool, elo_update, should_promote
+from spiral.selfplay.promotion import self_match_pair
+from tests.env.test_race_env import make_env, waypoint_policy
 
 
 def test_matchmaking_draws_the_latest_best_with_probability_p():
@@ -163,3 +165,12 @@ def test_opponent_pace_lies_in_zero_to_one_and_needs_relative_targets():
     assert StageSpec.model_validate(spec).selfplay.opponent_pace == 0.3
     with pytest.raises(ValidationError, match=r"selfplay\.opponent_pace"):
         StageSpec.model_validate({**spec, "env": {"action": {"mode": "absolute"}}})
+
+
+def test_a_self_match_pair_scores_each_policy_on_its_own_races(oval2):
+    """The promotion's format check races two policies from the same placements: a scripted lap finishes every race
+    and a drone that dives into the ground none, in either order (the first score is not the second race's)."""
+    env = make_env(oval2, worlds=2, auto_reset=False)
+    lap, dive = waypoint_policy(env), (lambda obs: torch.tensor([[0.0, 0.0, -1.0, 0.0]]).expand(2, 4))
+    assert self_match_pair(env, lap, dive) == (1.0, 0.0)
+    assert self_match_pair(env, dive, lap) == (0.0, 1.0)
