@@ -113,12 +113,12 @@ def closing_in(pos: torch.Tensor, vel: torch.Tensor, out: torch.Tensor, *, dista
                                   racing.view(world_count, drones_per_world), count=1)
     offset = at_nearest(pos, index) - pos
     other_vel = at_nearest(vel, index)
+    rel = vel - other_vel
     dist = offset.norm(dim=-1)
-    rate = ((vel - other_vel) * offset).sum(-1).clamp(min=0.0) / dist.clamp(min=1e-9)
+    rate = (rel * offset).sum(-1).clamp(min=0.0) / dist.clamp(min=1e-9)
     near = (1.0 - dist / distance).clamp(min=0.0)
     value = rate * fault_share(offset, vel, other_vel) * near
     if miss > 0:
-        rel = vel - other_vel
         speed2 = (rel * rel).sum(-1, keepdim=True).clamp(min=1e-9)
         t_closest = (rel * offset).sum(-1, keepdim=True).clamp(min=0.0) / speed2
         passing = (offset - rel * t_closest).norm(dim=-1)

@@ -18,8 +18,9 @@ from spiral.env.race_env import RaceEnv
 from spiral.env.racing import run_races
 from spiral.selfplay.pool import Pool
 from spiral.train.runner import StageTrainer
+from spiral.train.selection import paired_scores
 
-__all__ = ["HeadToHead", "PromotionSelector", "elo_update", "head_to_head", "self_match_pair", "should_promote"]
+__all__ = ["HeadToHead", "PromotionSelector", "elo_update", "head_to_head", "should_promote"]
 
 
 @dataclass
@@ -54,21 +55,6 @@ def head_to_head(env: RaceEnv, challenger: Policy, holder: Policy) -> HeadToHead
     b = res.finished[:, env.opponent_slots].float().mean()
     return HeadToHead(races=len(winners), wins=int((winners == 0).sum()), losses=int((winners == 1).sum()),
                       draws=int((winners == -1).sum()), a_success=float(a), b_success=float(b))
-
-
-def self_match_pair(env: RaceEnv, policy: Policy, other: Policy) -> tuple[float, float]:
-    """Success ratios of ``policy`` and of ``other``, each racing itself in ``env`` (every slot a learner) from the
-    same fresh start placements."""
-    state = env.generator.get_state()
-    mine = _self_match_success(env, policy)  # reduced before the next race: run_races' results view env buffers
-    env.generator.set_state(state)
-    return mine, _self_match_success(env, other)
-
-
-def _self_match_success(env: RaceEnv, policy: Policy) -> float:
-    """Share of the drones present in ``env`` that finish a race flown by ``policy``."""
-    res = run_races(env, policy)
-    return float(res.finished[res.present].float().mean())
 
 
 def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[float, float] | None = None,
@@ -132,7 +118,8 @@ class PromotionSelector:
         own, best_own = trainer.selection.evaluate_pair(it, self.best)
         learner = trainer.selection.candidate_policy()
         result = head_to_head(self.env, learner, self.best)
-        formats = {fmt: self_match_pair(env, learner, self.best) for fmt, env in self.format_envs.items()}
+        formats = {fmt: tuple(score.success for score in paired_scores(env, learner, self.best))
+                   for fmt, env in self.format_envs.items()}
         trainer.runner.alg.train_mode()
         learner_rating, best_rating = elo_update(self.best_rating, self.best_rating, result.score, self.cfg.elo_k)
         row = {"h2h/win_rate": result.win_rate, "h2h/draws": result.draws / max(result.races, 1),

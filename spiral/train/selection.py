@@ -15,7 +15,7 @@ from spiral.env.race_env import RaceEnv
 from spiral.env.racing import run_races
 from spiral.train.averaging import PolicyAverage
 
-__all__ = ["EvalScore", "Selection"]
+__all__ = ["EvalScore", "Selection", "paired_scores", "race_score"]
 
 
 @dataclass(order=True)
@@ -101,21 +101,32 @@ class Selection:
 
     def evaluate(self, iteration: int, policy: Policy | None = None) -> EvalScore:
         """Race ``policy`` (the candidate by default) from seeded start-box placements."""
-        if policy is None:
-            policy = self.candidate_policy()
-        res = run_races(self.eval_env, policy)
+        score = race_score(self.eval_env, self.candidate_policy() if policy is None else policy, iteration)
         self.runner.alg.train_mode()
-        ok = res.finished[res.present]
-        laps = res.lap_time[res.finished]
-        lap = float(laps.mean()) if laps.numel() else math.inf
-        return EvalScore(float(ok.float().mean()), -lap, iteration)
+        return score
 
     def evaluate_pair(self, iteration: int, other: Policy) -> tuple[EvalScore, EvalScore]:
         """Scores of the candidate and of ``other`` from the same fresh start placements.
 
         A paired comparison: the best's score is not the lucky draw that got it promoted.
         """
-        state = self.eval_env.generator.get_state()
-        own = self.evaluate(iteration)
-        self.eval_env.generator.set_state(state)
-        return own, self.evaluate(iteration, other)
+        scores = paired_scores(self.eval_env, self.candidate_policy(), other, iteration)
+        self.runner.alg.train_mode()
+        return scores
+
+
+def race_score(env: RaceEnv, policy: Policy, iteration: int = -1) -> EvalScore:
+    """Success ratio of the drones present and mean lap of those that finished, ``policy`` flying every learner slot
+    of ``env`` from its next seeded placements."""
+    res = run_races(env, policy)  # reduced here: its tensors view the env's buffers, which the next race overwrites
+    laps = res.lap_time[res.finished]
+    lap = float(laps.mean()) if laps.numel() else math.inf
+    return EvalScore(float(res.finished[res.present].float().mean()), -lap, iteration)
+
+
+def paired_scores(env: RaceEnv, policy: Policy, other: Policy, iteration: int = -1) -> tuple[EvalScore, EvalScore]:
+    """:func:`race_score` of ``policy`` and of ``other`` from the same fresh start placements of ``env``."""
+    state = env.generator.get_state()
+    own = race_score(env, policy, iteration)
+    env.generator.set_state(state)
+    return own, race_score(env, other, iteration)

@@ -10,7 +10,7 @@ from pydantic import ValidationError
 
 from spiral.config import PromotionCfg, SelfPlayCfg, StageSpec
 from spiral.selfplay import HeadToHead, Matchmaker, Pool, elo_update, should_promote
-from spiral.selfplay.promotion import self_match_pair
+from spiral.train.selection import paired_scores
 from tests.env.test_race_env import make_env, waypoint_policy
 
 
@@ -172,5 +172,5 @@ def test_a_self_match_pair_scores_each_policy_on_its_own_races(oval2):
     and a drone that dives into the ground none, in either order (the first score is not the second race's)."""
     env = make_env(oval2, worlds=2, auto_reset=False)
     lap, dive = waypoint_policy(env), (lambda obs: torch.tensor([[0.0, 0.0, -1.0, 0.0]]).expand(2, 4))
-    assert self_match_pair(env, lap, dive) == (1.0, 0.0)
-    assert self_match_pair(env, dive, lap) == (0.0, 1.0)
+    assert tuple(score.success for score in paired_scores(env, lap, dive)) == (1.0, 0.0)
+    assert tuple(score.success for score in paired_scores(env, dive, lap)) == (0.0, 1.0)
