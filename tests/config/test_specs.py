@@ -204,6 +204,19 @@ def test_the_shipped_pipeline_trains_every_multi_drone_stage_with_the_bound_loss
         "solo": 0.0, "1v1": 0.5, "2v2": 0.5, "1v1-noselfplay": 0.5, "2v2-noselfplay": 0.5}
 
 
+def test_the_shipped_pipeline_charges_closing_in_both_branches_and_blinds_only_spirals_opponents():
+    """full.yaml: every multi-drone stage of both branches pays for flying into the nearest drone (the same reward for
+    the ablation); only SPIRAL's self-play flies blind opponents; both 2v2 stages (which publish the final policies)
+    promote only a learner that keeps up in every format of their mix."""
+    stages = {s.name: s for s in load_pipeline(ROOT / "pipelines" / "full.yaml")[0].stages}
+    assert {name: s.env.reward.closing for name, s in stages.items()} == {
+        "solo": 0.0, "1v1": 0.5, "2v2": 0.5, "1v1-noselfplay": 0.5, "2v2-noselfplay": 0.5}
+    assert {name: s.selfplay.opponent_blind for name, s in stages.items() if s.scenario != "solo"} == {
+        "1v1": 0.3, "2v2": 0.3, "1v1-noselfplay": 0.0, "2v2-noselfplay": 0.0}
+    assert {name: s.selfplay.promotion.formats for name, s in stages.items() if s.scenario != "solo"} == {
+        "1v1": False, "2v2": True, "1v1-noselfplay": False, "2v2-noselfplay": True}
+
+
 def test_the_shipped_pipeline_flies_the_papers_stack_and_reports_the_filter_as_an_extra_row():
     """No stage of full.yaml puts a separation filter between policy and PID (training or evaluation); the filter
     appears only as the report's extra row."""
