@@ -163,6 +163,12 @@ class RewardCfg(StrictModel):
         "max(0, 1 − m/closing_miss), m the distance at which the two drones, held at their velocities, would pass "
         "each other [m]; a drone that overtakes wide of the one ahead pays nothing. 0 charges every closing in",
     )
+    closing_neighbours: int = Field(
+        default=1, ge=1, le=3,
+        description="How many of the drone's nearest racing drones the closing penalty charges it for, each pair on "
+        "its own terms, summed: 1 the nearest only; in a 2v2 race 3 counts the opponents beside a drone whose team "
+        "mate is nearer",
+    )
     intervention: NonNegFloat = Field(
         default=0.0,
         description="Weight of the per-step cost of the target shift [m] the training shield at full gain asks for "

@@ -95,7 +95,7 @@ def contact_fault(pos: torch.Tensor, pos_before: torch.Tensor, vel_before: torch
 
 
 def closing_in(pos: torch.Tensor, vel: torch.Tensor, out: torch.Tensor, *, distance: float, world_count: int,
-               drones_per_world: int, miss: float = 0.0) -> torch.Tensor:
+               drones_per_world: int, miss: float = 0.0, neighbours: int = 1) -> torch.Tensor:
     """How fast each racing drone closes in on its nearest racing drone, times its share and the nearness (N,)
     [m/s]; 0 for the drones without a racing neighbour and for those out of the race.
 
@@ -107,23 +107,28 @@ def closing_in(pos: torch.Tensor, vel: torch.Tensor, out: torch.Tensor, *, dista
     With ``miss`` > 0 only a collision course counts: held straight, the two relative to each other pass at their
     closest by m = |offset − w t*| (w = v − v_other, t* = (w·offset)/|w|² while they close in), and the value is
     further scaled by max(0, 1 − m / miss). A drone that overtakes wide of the one ahead pays nothing.
+
+    With ``neighbours`` > 1 the value is the sum of the same over that many nearest racing drones (those there are).
     """
     racing = out == 0
     index, found = nearest_others(pos.view(world_count, drones_per_world, 3),
-                                  racing.view(world_count, drones_per_world), count=1)
-    offset = at_nearest(pos, index) - pos
-    other_vel = at_nearest(vel, index)
-    rel = vel - other_vel
-    dist = offset.norm(dim=-1)
-    rate = (rel * offset).sum(-1).clamp(min=0.0) / dist.clamp(min=1e-9)
-    near = (1.0 - dist / distance).clamp(min=0.0)
-    value = rate * fault_share(offset, vel, other_vel) * near
-    if miss > 0:
-        speed2 = (rel * rel).sum(-1, keepdim=True).clamp(min=1e-9)
-        t_closest = (rel * offset).sum(-1, keepdim=True).clamp(min=0.0) / speed2
-        passing = (offset - rel * t_closest).norm(dim=-1)
-        value = value * (1.0 - passing / miss).clamp(min=0.0)
-    return torch.where(found.flatten() & racing, value, torch.zeros_like(value))
+                                  racing.view(world_count, drones_per_world), count=neighbours)
+    total = torch.zeros_like(pos[:, 0])
+    for j in range(neighbours):
+        offset = at_nearest(pos, index[..., j:j + 1]) - pos
+        other_vel = at_nearest(vel, index[..., j:j + 1])
+        rel = vel - other_vel
+        dist = offset.norm(dim=-1)
+        rate = (rel * offset).sum(-1).clamp(min=0.0) / dist.clamp(min=1e-9)
+        near = (1.0 - dist / distance).clamp(min=0.0)
+        value = rate * fault_share(offset, vel, other_vel) * near
+        if miss > 0:
+            speed2 = (rel * rel).sum(-1, keepdim=True).clamp(min=1e-9)
+            t_closest = (rel * offset).sum(-1, keepdim=True).clamp(min=0.0) / speed2
+            passing = (offset - rel * t_closest).norm(dim=-1)
+            value = value * (1.0 - passing / miss).clamp(min=0.0)
+        total = total + torch.where(found[..., j].flatten() & racing, value, torch.zeros_like(value))
+    return total
 
 
 def at_nearest(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:

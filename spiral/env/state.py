@@ -156,7 +156,8 @@ class RaceState:
             race_result=ev.race_result,
             contact_fault=self._contact_fault(ev) if reward.contact > 0 else None,
             closing=closing_in(self.pos, self.vel, self.out, distance=reward.closing_distance, world_count=w,
-                               drones_per_world=d, miss=reward.closing_miss) if reward.closing > 0 else None,
+                               drones_per_world=d, miss=reward.closing_miss,
+                               neighbours=reward.closing_neighbours) if reward.closing > 0 else None,
             intervention=torch.where(racing, self.intervention, 0.0) if self.cfg.shield is not None else None,
         )
 

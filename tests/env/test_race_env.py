@@ -321,6 +321,21 @@ def test_closing_in_with_a_miss_distance_charges_collision_courses_only():
     assert course.tolist() == pytest.approx([0.25, 0.0, rate * near / 3, 0.0, 0.0, 0.0])
 
 
+def test_closing_in_over_three_neighbours_charges_an_opponent_behind_a_nearer_team_mate():
+    """A 2v2 world: drone 0 flies at 4.5 m/s beside its team mate (0.2 m, same velocity) and 0.5 m behind an
+    opponent at 4 m/s. Counting the nearest drone only it pays nothing (its team mate keeps the gap); counting its
+    three nearest it pays for the opponent ahead as a 1v1 drone would (0.5 m/s · 1 · 0.5 = 0.25); its team mate, whose
+    offset to the opponent is (0.5, −0.2) m, pays its own closing rate on it; the opponent and the far drone nothing."""
+    pos = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.2, 1.0], [0.5, 0.0, 1.0], [5.0, 0.0, 1.0]])
+    vel = torch.tensor([[4.5, 0.0, 0.0], [4.5, 0.0, 0.0], [4.0, 0.0, 0.0], [4.0, 0.0, 0.0]])
+    out = torch.zeros(4, dtype=torch.int32)
+    nearest = closing_in(pos, vel, out, distance=1.0, world_count=1, drones_per_world=4)
+    three = closing_in(pos, vel, out, distance=1.0, world_count=1, drones_per_world=4, neighbours=3)
+    d = 0.29**0.5  # team mate to opponent
+    assert nearest.tolist() == pytest.approx([0.0, 0.0, 0.0, 0.0])
+    assert three.tolist() == pytest.approx([0.25, (0.5 * 0.5 / d) * (1.0 - d), 0.0, 0.0])
+
+
 def test_closing_penalty_is_weighted_into_the_reward(oval2):
     """Two drones 0.5 m apart on one line, the one behind 1 m/s faster: with weight 2 and a 1 m window it pays
     2 · 1 · 1 · (1 − 0.5) = 1 after the step (the gap shrinks a little), the one ahead nothing."""
