@@ -369,6 +369,8 @@ def race(
     rec = record_race(load_track(track), scenario, _parse_method(method), opponent, seed=seed, device=device)
     frames = render_race(rec, out, fps=fps)
     typer.echo(f"wrote {out}: {frames} frames, {rec.duration:.2f} s of racing")
+    for line in rec.outcomes():
+        typer.echo(line)
 
 
 @bench_app.command("train")

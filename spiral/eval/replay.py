@@ -75,6 +75,23 @@ class RaceRecording:
         """Drone slots of each team."""
         return TEAMS[self.scenario] if len(self.team_names) > 1 else [list(range(self.pos.shape[1]))]
 
+    def outcomes(self) -> list[str]:
+        """One line per drone: its slot, its team's method and how its race ended (lap time, or the kinds of its
+        crash, or still racing) with the gates it passed."""
+        lines = []
+        for name, slots in zip(self.team_names, self.teams, strict=False):
+            for d in slots:
+                gates = int(self.gates[-1, d])
+                if self.finished[-1, d]:
+                    end = f"finished in {float(self.lap_time[d]):.2f} s"
+                elif self.crashed[-1, d]:
+                    kinds = [k for k, bit in COLLISION_KINDS.items() if int(self.crash_kind[d]) & bit]
+                    end = f"crashed ({', '.join(kinds) or 'unknown'}) after {gates} of {self.passes_needed} gate passes"
+                else:
+                    end = f"still racing after {gates} of {self.passes_needed} gate passes"
+                lines.append(f"drone {d} ({name}): {end}")
+        return lines
+
 
 def record_race(track: TrackSpec, scenario: str, method: tuple[str, str], against: tuple[str, str] | None = None,
                 *, seed: int = 0, device: str = "cpu", airframe: AirframeCfg | None = None,

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from PIL import Image
 
-from spiral.eval.replay import frame_count, record_race, render_race
+from spiral.eval.replay import RaceRecording, frame_count, record_race, render_race
+from spiral.sim import COLLISION_KINDS
 
 
 def test_two_second_race_writes_a_gif_with_the_expected_frame_count(sprint, tiny_checkpoint, tmp_path):
@@ -25,6 +27,26 @@ def test_two_second_race_writes_a_gif_with_the_expected_frame_count(sprint, tiny
             delays.append(gif.info["duration"])
     assert sum(delays[:-1]) == 2000  # real time: 30 intervals of 1/15 s
     assert delays[-1] == 1500  # the final state is held
+
+
+def test_a_recording_tells_how_each_drones_race_ended(sprint):
+    """A hand-made 2v2 recording: a finisher, a drone that hit a gate frame, one that hit a drone and the ground,
+    and one still racing; one line each, by slot, with its team's method."""
+    steps, drones = 3, 4
+    gates = np.array([[0, 0, 0, 0], [3, 1, 2, 1], [7, 2, 2, 4]])
+    finished = np.zeros((steps, drones), bool)
+    finished[2, 0] = True
+    crashed = np.zeros((steps, drones), bool)
+    crashed[1:, 1] = crashed[2, 2] = True
+    kinds = np.array([0, COLLISION_KINDS["gate"], COLLISION_KINDS["drone"] | COLLISION_KINDS["ground"], 0])
+    rec = RaceRecording(sprint, "2v2", ["a", "b"], 0.1, np.zeros((steps, drones, 3)), gates, crashed, finished,
+                        kinds, np.array([4.12, 0.0, 0.0, 0.0]), 7)
+    assert rec.outcomes() == [
+        "drone 0 (a): finished in 4.12 s",
+        "drone 1 (a): crashed (gate) after 2 of 7 gate passes",
+        "drone 2 (b): crashed (ground, drone) after 2 of 7 gate passes",
+        "drone 3 (b): still racing after 4 of 7 gate passes",
+    ]
 
 
 def test_replay_refuses_unknown_formats(sprint, tmp_path):
