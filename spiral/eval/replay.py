@@ -79,7 +79,7 @@ class RaceRecording:
         """One line per drone: its slot, its team's method and how its race ended (lap time, or the kinds of its
         crash, or still racing) with the gates it passed."""
         lines = []
-        for name, slots in zip(self.team_names, self.teams, strict=False):
+        for name, slots in zip(self.team_names, self.teams, strict=True):
             for d in slots:
                 gates = int(self.gates[-1, d])
                 if self.finished[-1, d]:
