@@ -92,14 +92,15 @@ def test_a_policy_against_itself_from_both_sides_wins_exactly_as_often_as_it_los
 
 
 def test_a_one_team_filter_stays_with_its_method_when_the_sides_are_swapped(circuit6):
-    """The method's drones carry the filter in both halves: team A's slots first, team B's in the swapped races."""
+    """The method's drones carry the filter in both halves: team A's slots first, team B's in the swapped races.
+    Seed 6's placements bring the drones close enough for the filter to act (the laps differ with it on either team)."""
     spiral, baseline = load_agent(SPIRAL_1V1), load_agent(NOSELFPLAY_1V1)
     on_a = FlightOverride(separation=SeparationCfg(distance=0.25, horizon_s=0.4, gain=1.5), separation_team="a")
     assert on_a.swapped().separation_team == "b" and on_a.swapped().swapped() == on_a
-    both, _ = cross_play(spiral, baseline, circuit6, "1v1", 4, 5, sides="both", flight=on_a)
-    first, _ = race_agents(circuit6, "1v1", 4, 5, spiral, baseline, flight=on_a)
-    swapped, _ = race_agents(circuit6, "1v1", 4, 5, baseline, spiral, flight=on_a.swapped())
-    unswapped, _ = race_agents(circuit6, "1v1", 4, 5, baseline, spiral, flight=on_a)  # the filter on the baseline
+    both, _ = cross_play(spiral, baseline, circuit6, "1v1", 4, 6, sides="both", flight=on_a)
+    first, _ = race_agents(circuit6, "1v1", 4, 6, spiral, baseline, flight=on_a)
+    swapped, _ = race_agents(circuit6, "1v1", 4, 6, baseline, spiral, flight=on_a.swapped())
+    unswapped, _ = race_agents(circuit6, "1v1", 4, 6, baseline, spiral, flight=on_a)  # the filter on the baseline
     assert bool(both.finished.any()) and not torch.equal(swapped.lap_time, unswapped.lap_time)
     assert torch.equal(both.lap_time[:4], first.lap_time)
     assert torch.equal(both.lap_time[4:], swapped.lap_time.flip(1))
