@@ -10,8 +10,8 @@ import torch
 from spiral.core.outcome import race_winner
 from spiral.env.observations import nearest_others, relative_to_others
 
-__all__ = ["RaceEvents", "at_nearest", "closing_in", "contact_fault", "contact_partners", "fault_share",
-           "gate_distance", "heading", "nearest_distance", "nearest_is_behind", "race_result"]
+__all__ = ["RaceEvents", "at_nearest", "at_neighbours", "closing_in", "contact_fault", "contact_partners",
+           "fault_share", "gate_distance", "heading", "nearest_distance", "nearest_is_behind", "race_result"]
 
 
 @dataclass(frozen=True)
@@ -113,29 +113,33 @@ def closing_in(pos: torch.Tensor, vel: torch.Tensor, out: torch.Tensor, *, dista
     racing = out == 0
     index, found = nearest_others(pos.view(world_count, drones_per_world, 3),
                                   racing.view(world_count, drones_per_world), count=neighbours)
-    total = torch.zeros_like(pos[:, 0])
-    for j in range(neighbours):
-        offset = at_nearest(pos, index[..., j:j + 1]) - pos
-        other_vel = at_nearest(vel, index[..., j:j + 1])
-        rel = vel - other_vel
-        dist = offset.norm(dim=-1)
-        rate = (rel * offset).sum(-1).clamp(min=0.0) / dist.clamp(min=1e-9)
-        near = (1.0 - dist / distance).clamp(min=0.0)
-        value = rate * fault_share(offset, vel, other_vel) * near
-        if miss > 0:
-            speed2 = (rel * rel).sum(-1, keepdim=True).clamp(min=1e-9)
-            t_closest = (rel * offset).sum(-1, keepdim=True).clamp(min=0.0) / speed2
-            passing = (offset - rel * t_closest).norm(dim=-1)
-            value = value * (1.0 - passing / miss).clamp(min=0.0)
-        total = total + torch.where(found[..., j].flatten() & racing, value, torch.zeros_like(value))
-    return total
+    offset = at_neighbours(pos, index) - pos[:, None]  # (N, k, 3)
+    other_vel = at_neighbours(vel, index)
+    rel = vel[:, None] - other_vel
+    dist = offset.norm(dim=-1)
+    rate = (rel * offset).sum(-1).clamp(min=0.0) / dist.clamp(min=1e-9)
+    near = (1.0 - dist / distance).clamp(min=0.0)
+    value = rate * fault_share(offset, vel[:, None], other_vel) * near
+    if miss > 0:
+        speed2 = (rel * rel).sum(-1, keepdim=True).clamp(min=1e-9)
+        t_closest = (rel * offset).sum(-1, keepdim=True).clamp(min=0.0) / speed2
+        passing = (offset - rel * t_closest).norm(dim=-1)
+        value = value * (1.0 - passing / miss).clamp(min=0.0)
+    counted = found.view(-1, neighbours) & racing[:, None]
+    return torch.where(counted, value, torch.zeros_like(value)).sum(-1)
 
 
 def at_nearest(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """Per-drone vectors ``x`` (N, 3, world-major) of each drone's nearest other drone, whose slot ``index`` (W, D, 1)
     :func:`~spiral.env.observations.nearest_others` found; (N, 3)."""
-    w, d, _ = index.shape
-    return torch.gather(x.view(w, d, 3), 1, index.expand(-1, -1, 3)).view(-1, 3)
+    return at_neighbours(x, index).view(-1, 3)
+
+
+def at_neighbours(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """Per-drone vectors ``x`` (N, 3, world-major) of each drone's k nearest other drones, whose slots ``index``
+    (W, D, k) :func:`~spiral.env.observations.nearest_others` found; (N, k, 3)."""
+    w, d, k = index.shape
+    return torch.gather(x.view(w, d, 3), 1, index.reshape(w, d * k, 1).expand(-1, -1, 3)).view(w * d, k, 3)
 
 
 def fault_share(offset: torch.Tensor, vel: torch.Tensor, other_vel: torch.Tensor) -> torch.Tensor:
