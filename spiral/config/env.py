@@ -180,6 +180,13 @@ class RewardCfg(StrictModel):
         "drones, -1 to the other team's drones still racing (start-box races against opponents only; not in the "
         "paper; 0 leaves the paper's reward)",
     )
+    overtake: NonNegFloat = Field(
+        default=0.0,
+        description="Weight of the race position term, in start-box races against opponents: +1 at the step a drone "
+        "passes a drone of the other team, −1 at the step one passes it (places by gates passed, then distance to "
+        "the next gate; drones that crash or finish are not passed). It pays for the place when it changes hands "
+        "instead of at the line, as the race outcome does (not in the paper; 0 leaves the paper's reward)",
+    )
     forfeit: bool = Field(
         default=False,
         description="Charge a drone that crashes while its race is undecided the loss (-1 x win) at once: a crash "

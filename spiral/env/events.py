@@ -11,7 +11,8 @@ from spiral.core.outcome import race_winner
 from spiral.env.observations import nearest_others, relative_to_others
 
 __all__ = ["RaceEvents", "at_nearest", "at_neighbours", "closing_in", "contact_fault", "contact_partners",
-           "fault_share", "gate_distance", "heading", "nearest_distance", "nearest_is_behind", "race_result"]
+           "fault_share", "gate_distance", "heading", "nearest_distance", "nearest_is_behind", "overtakes",
+           "race_result"]
 
 
 @dataclass(frozen=True)
@@ -127,6 +128,29 @@ def closing_in(pos: torch.Tensor, vel: torch.Tensor, out: torch.Tensor, *, dista
         value = value * (1.0 - passing / miss).clamp(min=0.0)
     counted = found.view(-1, neighbours) & racing[:, None]
     return torch.where(counted, value, torch.zeros_like(value)).sum(-1)
+
+
+def overtakes(before: tuple[torch.Tensor, torch.Tensor], after: tuple[torch.Tensor, torch.Tensor],
+              counted: torch.Tensor, race_team: torch.Tensor, *, world_count: int, drones_per_world: int
+              ) -> torch.Tensor:
+    """Places each drone gained on the other race team's drones in one step (N,): how many of them were ahead of it
+    before the step and are not after it, less how many it had behind it and has ahead of it after.
+
+    A place on the track is ``(gates_passed, distance to the next gate)``, before and after the step (each (N,)):
+    more gates passed is ahead, then the nearer to the next gate. Only ``counted`` drones (N,; racing before and
+    after the step) pass and are passed, so a drone gains nothing when the one ahead crashes or finishes.
+    """
+    w, d = world_count, drones_per_world
+    both = counted.view(w, d)
+    rivals = (race_team[:, None] != race_team[None, :])[None] & both[:, :, None] & both[:, None, :]
+
+    def ahead_of_me(place: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+        passed, dist = (x.view(w, d) for x in place)
+        ahead = (passed[:, None, :] > passed[:, :, None]) | (
+            (passed[:, None, :] == passed[:, :, None]) & (dist[:, None, :] < dist[:, :, None]))
+        return (ahead & rivals).sum(-1)  # (W, D): rivals ahead of drone i
+
+    return (ahead_of_me(before) - ahead_of_me(after)).flatten().float()
 
 
 def at_nearest(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:

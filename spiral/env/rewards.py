@@ -44,6 +44,9 @@ class StepOutcome:
     (:func:`~spiral.env.events.closing_in`) [m/s]."""
     intervention: torch.Tensor | None = None
     """Length of the target shift the training shield at full gain asked for this step [m]."""
+    overtakes: torch.Tensor | None = None
+    """Places gained on the other team's racing drones during the step, less places lost
+    (:func:`~spiral.env.events.overtakes`)."""
 
 
 def _reward_progress(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
@@ -100,6 +103,13 @@ def _reward_intervention(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
     return -o.intervention
 
 
+def _reward_overtake(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
+    """+1 per opponent passed, −1 per opponent that passed the drone, in flight (not in the paper)."""
+    if o.overtakes is None:
+        return torch.zeros_like(o.dist_before)
+    return o.overtakes
+
+
 def _reward_lap(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
     """100 / T_lap at the step a lap is completed."""
     done = o.lap_time > 0
@@ -124,6 +134,7 @@ REWARD_TERMS = {
     "intervention": _reward_intervention,
     "lap": _reward_lap,
     "win": _reward_win,
+    "overtake": _reward_overtake,
 }
 """Reward term functions by the name of their weight in ``RewardCfg``."""
 

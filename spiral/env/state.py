@@ -23,6 +23,7 @@ from spiral.env.events import (
     heading,
     nearest_distance,
     nearest_is_behind,
+    overtakes,
 )
 from spiral.env.rewards import REWARD_TERMS, StepOutcome
 from spiral.env.slots import slot_map
@@ -97,6 +98,8 @@ class RaceState:
         self.crash_kind = torch.zeros(n, dtype=torch.int32, device=dev)
         self.before = (self.pos.clone(), self.vel.clone())
         """Positions and velocities before the last control step (kept only with ``reward.contact``)."""
+        self.place_before = (self.gates_passed.clone(), torch.zeros(n, device=dev))
+        """:meth:`track_place` before the last control step (kept only with ``reward.overtake``)."""
         self.episode_length_buf = torch.zeros(self.num_envs, dtype=torch.long, device=dev)
         self.term_sums = {name: torch.zeros(n, device=dev) for name in REWARD_TERMS}
         self.cut_time = torch.full((w,), math.inf, device=dev)
@@ -159,7 +162,21 @@ class RaceState:
                                drones_per_world=d, miss=reward.closing_miss,
                                neighbours=reward.closing_neighbours) if reward.closing > 0 else None,
             intervention=torch.where(racing, self.intervention, 0.0) if self.cfg.shield is not None else None,
+            overtakes=self._overtakes(ev) if reward.overtake > 0 else None,
         )
+
+    def track_place(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Where each drone is in the race: gates passed and distance to the next gate's centre [m] (N,) each."""
+        to_gate = self.gate_center[self.next_gate.long()] - self.pos
+        return self.gates_passed.clone(), to_gate.norm(dim=-1)
+
+    def _overtakes(self, ev: RaceEvents) -> torch.Tensor:
+        """Places each drone gained on the other team during the step, in contested start-box races
+        (:func:`~spiral.env.events.overtakes`)."""
+        contested = self.contested.repeat_interleave(self.drones_per_world)
+        counted = ev.racing & ~ev.crashed_now & ~ev.finished_now & contested
+        return overtakes(self.place_before, self.track_place(), counted, self.race_team,
+                         world_count=self.world_count, drones_per_world=self.drones_per_world)
 
     def _contact_fault(self, ev: RaceEvents) -> torch.Tensor:
         """Each drone's share of the fault for a drone–drone contact this step

@@ -11,7 +11,7 @@ import torch
 from spiral.config import AIRFRAMES, EnvCfg, ObsCfg, RewardCfg, SimCfg, TrackSpec
 from spiral.core.checkpoint import load_policy
 from spiral.env import HISTORY_FEATURES, RaceEnv, compute_rewards, run_races
-from spiral.env.events import closing_in, contact_fault
+from spiral.env.events import closing_in, contact_fault, overtakes
 from spiral.env.observations import HISTORY_FIELDS, OBS_TERMS, other_drone_columns
 from spiral.env.racing import BEARINGS, contact_bearing
 from spiral.env.rewards import StepOutcome
@@ -223,8 +223,8 @@ def test_reward_terms_on_a_hand_made_transition():
 
 @pytest.mark.parametrize("drones", [154, 512])
 def test_a_term_at_weight_zero_leaves_every_total_bit_for_bit(drones):
-    """With the contact and closing terms at weight 0 the totals equal, bit for bit, one reduction over the terms
-    summed before they existed (for 154 drones a reduction over one more row would round differently)."""
+    """With the contact, closing and overtake terms at weight 0 the totals equal, bit for bit, one reduction over the
+    terms summed before they existed (for 154 drones a reduction over one more row would round differently)."""
     from spiral.env import rewards
 
     g = torch.Generator().manual_seed(0)
@@ -236,7 +236,8 @@ def test_a_term_at_weight_zero_leaves_every_total_bit_for_bit(drones):
         race_result=torch.randint(-1, 2, (drones,), generator=g).float())
     total, terms = compute_rewards(outcome, RewardCfg(proximity=0.1, win=3))
     before = torch.stack([terms[name] for name in rewards.SUMMED_AT_ONCE]).sum(0)
-    assert torch.equal(total, before) and set(terms) - set(rewards.SUMMED_AT_ONCE) == {"contact", "closing"}
+    assert torch.equal(total, before) and set(terms) - set(rewards.SUMMED_AT_ONCE) == {
+        "contact", "closing", "overtake"}
 
 
 def test_proximity_penalty_grows_linearly_inside_the_safe_distance(oval2):
@@ -346,6 +347,44 @@ def test_closing_penalty_is_weighted_into_the_reward(oval2):
     env.vel[:2] = torch.tensor([[2.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
     _, rewards, _, _ = env.step(torch.zeros(2, 4))
     assert rewards[1] == 0.0 and -1.1 < float(rewards[0]) < -0.5
+
+
+def test_overtakes_count_places_changing_hands_between_teams_only():
+    """Two worlds of a 2v2 layout (teams {0, 1} and {2, 3}). World 0: drone 0 passes opponent 2 on the way to the
+    same gate and its team mate 1 (a team mate's place does not count); drone 3 passes its gate and stays ahead of
+    everyone. World 1 races 1v1 in slots 0 and 2 (slots 1 and 3 are out): drone 6 passes drone 4."""
+    team = torch.tensor([0, 0, 1, 1])
+    passed_before = torch.tensor([1, 1, 1, 1, 2, 2, 2, 2], dtype=torch.int32)
+    passed_after = torch.tensor([1, 1, 1, 2, 2, 2, 2, 2], dtype=torch.int32)
+    dist_before = torch.tensor([2.0, 1.5, 1.8, 0.1, 1.0, 0.0, 1.2, 0.0])
+    dist_after = torch.tensor([1.0, 1.2, 1.6, 3.0, 0.8, 0.0, 0.7, 0.0])
+    counted = torch.tensor([True, True, True, True, True, False, True, False])
+    got = overtakes((passed_before, dist_before), (passed_after, dist_after), counted, team, world_count=2,
+                    drones_per_world=4)
+    # drone 0: opponents 2 and 3 ahead before, only 3 after: +1; drone 2 lost its place to it: -1; drone 1 had 3
+    # ahead and 2 behind, before and after: 0; drone 3 led throughout: 0. Drone 6: +1, drone 4: -1.
+    assert got.tolist() == [1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0, 0.0]
+
+
+def test_a_pass_in_a_start_box_race_is_paid_to_both_drones_at_the_step_it_happens(oval2):
+    """Two drones of a 1v1 start-box race, side by side 0.5 m before gate 0, one flying 2 m/s faster than the other
+    0.1 m ahead of it: at the step it passes, the overtake term pays it +w and the other −w; the step before and
+    the steps after nothing."""
+    reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, lap=0.0, overtake=1.5)
+    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), auto_reset=False, reward=reward)
+    env.reset()
+    assert bool(env.contested[0])
+    place(env, [[-0.60, -1.15, 1.0], [-0.50, -0.85, 1.0]])
+    paid = []
+    for _ in range(8):
+        env.vel[:2] = torch.tensor([[3.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+        before = env.pos[:2, 0].clone()
+        _, rewards, _, _ = env.step(torch.tensor([[0.3, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]]))
+        paid.append((rewards.tolist(), bool(before[0] < before[1]), bool(env.pos[0, 0] > env.pos[1, 0])))
+    passes = [i for i, (_, was_behind, now_ahead) in enumerate(paid) if was_behind and now_ahead]
+    assert len(passes) == 1
+    for i, (r, _, _) in enumerate(paid):
+        assert r == pytest.approx([1.5, -1.5] if i == passes[0] else [0.0, 0.0], abs=1e-6)
 
 
 def test_contact_fault_takes_the_closing_speed_along_the_offset_before_the_step():
