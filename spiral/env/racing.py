@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 
 from spiral.core.policy import Policy
-from spiral.env.events import at_nearest, contact_partners, fault_share
+from spiral.env.events import at_nearest, contact_partners, fault_share, overtakes
 from spiral.env.race_env import RaceEnv
 from spiral.sim import COLLISION_KINDS
 
@@ -57,6 +57,9 @@ class RaceResults:
     beyond_steps: torch.Tensor | None = None
     """Of those, the steps in which its commanded action lay beyond the range the env clamps to (|a| > 1), per
     action axis (W, D, 4)."""
+    passes: torch.Tensor | None = None
+    """Drones of the other team the drone passed in flight, and those that passed it (W, D, 2), places as the
+    ``overtake`` reward term counts them (:func:`~spiral.env.events.overtakes`)."""
 
     def permuted(self, order: list[int]) -> RaceResults:
         """The same races with the drones reordered: slot ``j`` of the result is slot ``order[j]`` of these.
@@ -86,6 +89,7 @@ class RaceResults:
             contact_fault=None if self.contact_fault is None else self.contact_fault[:, idx],
             racing_steps=None if self.racing_steps is None else self.racing_steps[:, idx],
             beyond_steps=None if self.beyond_steps is None else self.beyond_steps[:, idx],
+            passes=None if self.passes is None else self.passes[:, idx],
         )
 
 
@@ -108,12 +112,17 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
     steps = torch.zeros(env.drone_count, dtype=torch.long, device=env.device)
     beyond = torch.zeros_like(env.commanded, dtype=torch.long)
     passed = env.gates_passed.clone()
+    team = (env.slot_team.cpu() if teams is None else _team_of_slots(teams, d)).to(env.device)
+    passes = torch.zeros(env.drone_count, 2, dtype=torch.long, device=env.device)
     frames = [env.pos.clone()] if record else []
     for _ in range(env.max_episode_length):
-        before, vel_before = env.pos.clone(), env.vel.clone()
+        before, vel_before, place = env.pos.clone(), env.vel.clone(), env.track_place()
         racing = ~(env.finished | env.crashed | env.absent)
         with torch.no_grad():
             obs, _, _, _ = env.step(policy(obs))
+        gained = overtakes(place, env.track_place(), racing & ~(env.finished | env.crashed), team,
+                           world_count=w, drones_per_world=d).long()
+        passes += torch.stack([gained.clamp(min=0), (-gained).clamp(min=0)], dim=-1)
         steps += racing
         beyond += racing[:, None] & (env.commanded.abs() > 1.0)
         distance += (env.pos - before).norm(dim=-1)
@@ -148,6 +157,7 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
         split_time=splits.view(w, d, -1).cpu(),
         racing_steps=grid(steps),
         beyond_steps=beyond.view(w, d, -1).cpu(),
+        passes=passes.view(w, d, 2).cpu(),
     )
 
 
@@ -194,6 +204,7 @@ def concat_results(parts: list[RaceResults]) -> RaceResults:
         split_time=cat_optional("split_time"), contact_bearing=cat_optional("contact_bearing"),
         contact_fault=cat_optional("contact_fault"),
         racing_steps=cat_optional("racing_steps"), beyond_steps=cat_optional("beyond_steps"),
+        passes=cat_optional("passes"),
     )
 
 

@@ -390,4 +390,8 @@ def format_eval(result: dict[str, Any]) -> str:
     if beyond:
         lines.append("commanded action beyond the clamped range, share of racing steps (x / y / z / yaw): " + "; ".join(
             f"{name} {' / '.join(f'{v:.2f}' for v in shares.values())}" for name, shares in beyond.items()))
+    passes = {name: m["passes"] for name, m in result["methods"].items() if m.get("passes") and "win_rate" in m}
+    if passes:
+        lines.append("passes in flight per race, made / suffered: " + "; ".join(
+            f"{name} {p['made_per_race']:.2f} / {p['suffered_per_race']:.2f}" for name, p in passes.items()))
     return "\n".join(lines)

@@ -101,7 +101,18 @@ def summarize_races(res: RaceResults, slots: list[int] | None = None) -> dict[st
         **_crash_details(res, mask),
         **({"split_times": _split_times(res, mask)} if res.split_time is not None else {}),
         **({"action_beyond_range": _beyond_range(res, mask)} if res.beyond_steps is not None else {}),
+        **({"passes": _passes(res, mask, races)} if res.passes is not None else {}),
     }
+
+
+def _passes(res: RaceResults, mask: torch.Tensor, races: int) -> dict[str, float | int]:
+    """Passes in flight between the teams: how many drones of the other team the ``mask`` drones passed (``made``),
+    how many passed them (``suffered``), and both per race."""
+    assert res.passes is not None
+    made, suffered = (int(n) for n in res.passes[mask].sum(dim=0).tolist())
+    per_race = max(races, 1)
+    return {"made": made, "suffered": suffered, "made_per_race": made / per_race,
+            "suffered_per_race": suffered / per_race}
 
 
 def _beyond_range(res: RaceResults, mask: torch.Tensor) -> dict[str, float] | None:

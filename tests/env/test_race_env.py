@@ -677,6 +677,26 @@ def test_race_results_charge_a_contact_to_the_drone_that_flew_into_a_hovering_on
     assert summarize_races(res, [1])["contact_fault"] == {"own": 0, "even": 0, "other": 1, "mean_share": 0.0}
 
 
+def test_race_results_count_a_pass_of_a_hovering_drone_for_both_sides(oval2):
+    """Drone 0 starts 1.4 m before gate 0, behind drone 1, which hovers 0.4 m off the line 1 m before the gate; drone
+    0 flies through the gate and on: it passes drone 1 once and is never passed, drone 1 the other way round."""
+    env = make_env(oval2, worlds=1, drones=2, learners=(0,), auto_reset=False)
+    env.set_opponent_policy(lambda obs: torch.zeros(1, 4))
+    reset = env.reset
+
+    def reset_and_place():
+        reset()
+        place(env, [[-1.4, -1.0, 1.0], [-0.9, -0.6, 1.0]])
+        return env.current_observations()
+
+    env.reset = reset_and_place
+    res = run_races(env, waypoint_policy(env))
+    assert not res.crashed[0].any() and res.gates_passed[0, 0] > 1
+    assert res.passes[0].tolist() == [[1, 0], [0, 1]]
+    summary = summarize_races(res, [0])
+    assert summary["passes"] == {"made": 1, "suffered": 0, "made_per_race": 1.0, "suffered_per_race": 0.0}
+
+
 def test_contact_bearing_splits_ahead_beside_and_behind_at_45_degrees():
     """Another drone within 45° of the direction of travel is ahead, within 45° of the opposite behind, else beside;
     next to a drone that stands still it is beside."""
