@@ -132,15 +132,16 @@ def robustness_markdown(rb: Robustness, sides: str) -> list[str]:
               "finished, its crashes (gate frames / drone contacts), where the other drone was at its drone contacts "
               "(ahead / beside / behind, along its direction of travel one control step before: docs/evaluation.md), "
               "who flew into whom there (its drone closed in at least twice as fast as the other / neither / the "
-              "other did) and, against a team, its win / loss / draw. Mixed teams: 2v2 races whose teams each "
+              "other did), how many drones of the other team its drones passed in flight per race and how many "
+              "passed them, and, against a team, its win / loss / draw. Mixed teams: 2v2 races whose teams each "
               "have one drone of each method."
               + (f" {OWN_FILTER}: the method's drones fly with the opt-in separation filter and the other team's "
                  "without, as a deployment layer would race drones that lack it." if _has_filter_rows(rb) else ""),
               "",
               "| Scenario | Method | Against | Success | Races all home | Crashes gate / drone "
               "| Contacts: other ahead / beside / behind | Contacts: flew in / even / was flown into "
-              "| Win / loss / draw |",
-              "|---|---|---|---|---|---|---|---|---|"]
+              "| Passes per race: made / suffered | Win / loss / draw |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for scenario, by_key in rb.strangers.items():
         for key, rows in by_key.items():
             for label, m in rows.items():
@@ -169,7 +170,7 @@ def _self_cell(m: dict[str, Any] | None) -> str:
 
 def _stranger_cells(m: dict[str, Any] | None) -> str:
     if m is None:
-        return "missing | – | – | – | – | –"
+        return "missing | – | – | – | – | – | –"
     lo, hi = m["success_ci95"]
     crashes = m["crashes"]
     where = m.get("contact_bearing")
@@ -177,6 +178,8 @@ def _stranger_cells(m: dict[str, Any] | None) -> str:
     fault = m.get("contact_fault")
     into = f"{fault['own']} / {fault['even']} / {fault['other']}" if fault else "–"
     races = f"{m['race_success_ratio']:.3f}" if "race_success_ratio" in m else "–"
+    passes = m.get("passes")
+    passed = f"{passes['made_per_race']:.2f} / {passes['suffered_per_race']:.2f}" if passes else "–"
     duel = f"{m['win_rate']:.2f} / {m['loss_rate']:.2f} / {m['draws']:.2f}" if "win_rate" in m else "–"
     return (f"{m['success_ratio']:.3f} [{lo:.2f}, {hi:.2f}] | {races} | {crashes['gate']} / {crashes['drone']} | "
-            f"{bearing} | {into} | {duel}")
+            f"{bearing} | {into} | {passed} | {duel}")

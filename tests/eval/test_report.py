@@ -189,9 +189,12 @@ def test_report_races_the_filter_rows_final_policies_strangers_and_downwash(spri
     assert row.endswith(f"| {duel['loss_rate']:.2f} / {duel['win_rate']:.2f} / {duel['draws']:.2f} |")
     baseline = json.loads((evals / "holdout-cross-1v1-spiral-vs-noselfplay.json").read_text())["methods"]["spiral"][
         "opponent"]  # the baseline's drones, read from the same races
-    where, fault = baseline["contact_bearing"], baseline["contact_fault"]
+    where, fault, passes = baseline["contact_bearing"], baseline["contact_fault"], baseline["passes"]
     assert (f"| {where['ahead']} / {where['beside']} / {where['behind']} | "
-            f"{fault['own']} / {fault['even']} / {fault['other']} |") in row
+            f"{fault['own']} / {fault['even']} / {fault['other']} | "
+            f"{passes['made_per_race']:.2f} / {passes['suffered_per_race']:.2f} |") in row
+    # the baseline's passes made are the passes SPIRAL's drones suffered in the same races
+    assert passes["made"] == duel["passes"]["suffered"] and passes["suffered"] == duel["passes"]["made"]
     mixed = json.loads((evals / "holdout-mixed-2v2-spiral-noselfplay.json").read_text())
     assert mixed["methods"]["spiral"]["slots"] == [0, 2] and mixed["methods"]["noselfplay"]["slots"] == [1, 3]
     assert "| 2v2 | SPIRAL | mixed teams |" in strangers
