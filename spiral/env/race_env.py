@@ -118,10 +118,7 @@ class RaceEnv(RaceState):
         """Simulate one control step; return the gate each drone targeted and its progress distance from before."""
         gate = self.next_gate.long().clone()
         dist_before = self._gate_distance(gate)
-        if self.cfg.reward.contact > 0:  # who flew into whom, for the fault shares of this step's contacts
-            self.before = (self.pos.clone(), self.vel.clone())
-        if self.cfg.reward.overtake > 0:  # who was ahead of whom, for the places changing hands this step
-            self.place_before = self.track_place()
+        self.note_before_step()
         self.world.step()
         return gate, dist_before
 

@@ -120,17 +120,11 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
         racing = ~(env.finished | env.crashed | env.absent)
         with torch.no_grad():
             obs, _, _, _ = env.step(policy(obs))
-        gained = overtakes(place, env.track_place(), racing & ~(env.finished | env.crashed), team,
-                           world_count=w, drones_per_world=d).long()
-        passes += torch.stack([gained.clamp(min=0), (-gained).clamp(min=0)], dim=-1)
+        passes = _note_passes(env, place, racing, team, passes)
         steps += racing
         beyond += racing[:, None] & (env.commanded.abs() > 1.0)
         distance += (env.pos - before).norm(dim=-1)
-        if bool((env.gates_passed != passed).any()):
-            k = torch.arange(env.passes_needed, device=env.device)
-            now = (passed[:, None] <= k) & (env.gates_passed[:, None] > k)
-            splits = torch.where(now, env.pass_time[:, None], splits)
-            passed = env.gates_passed.clone()
+        passed, splits = _note_splits(env, passed, splits)
         partner, bearing, fault = _note_contacts(env, racing, before, vel_before, partner, bearing, fault)
         if record:
             frames.append(env.pos.clone())
@@ -159,6 +153,25 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
         beyond_steps=beyond.view(w, d, -1).cpu(),
         passes=passes.view(w, d, 2).cpu(),
     )
+
+
+def _note_splits(env: RaceEnv, passed: torch.Tensor, splits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The gates passed so far and ``splits`` (N, passes) with the race time of this step's gate passages filled in,
+    given the gates ``passed`` before the step."""
+    if not bool((env.gates_passed != passed).any()):
+        return passed, splits
+    k = torch.arange(env.passes_needed, device=env.device)
+    now = (passed[:, None] <= k) & (env.gates_passed[:, None] > k)
+    return env.gates_passed.clone(), torch.where(now, env.pass_time[:, None], splits)
+
+
+def _note_passes(env: RaceEnv, place: tuple[torch.Tensor, torch.Tensor], racing: torch.Tensor, team: torch.Tensor,
+                 passes: torch.Tensor) -> torch.Tensor:
+    """``passes`` (N, 2) plus the drones of other teams each ``racing`` drone passed and was passed by in this step,
+    from its :meth:`~spiral.env.RaceEnv.track_place` before it (``place``); ``team`` per slot (D,)."""
+    gained = overtakes(place, env.track_place(), racing & ~(env.finished | env.crashed), team,
+                       world_count=env.world_count, drones_per_world=env.drones_per_world).long()
+    return passes + torch.stack([gained.clamp(min=0), (-gained).clamp(min=0)], dim=-1)
 
 
 def _note_contacts(env: RaceEnv, racing: torch.Tensor, before: torch.Tensor, vel_before: torch.Tensor,

@@ -165,14 +165,20 @@ class RaceState:
             overtakes=self._overtakes(ev) if reward.overtake > 0 else None,
         )
 
+    def note_before_step(self) -> None:
+        """Keep what reward terms compare after the step: positions, velocities (``contact``), places (``overtake``)."""
+        if self.cfg.reward.contact > 0:
+            self.before = (self.pos.clone(), self.vel.clone())
+        if self.cfg.reward.overtake > 0:
+            self.place_before = self.track_place()
+
     def track_place(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Where each drone is in the race: gates passed and distance to the next gate's centre [m] (N,) each."""
         to_gate = self.gate_center[self.next_gate.long()] - self.pos
         return self.gates_passed.clone(), to_gate.norm(dim=-1)
 
     def _overtakes(self, ev: RaceEvents) -> torch.Tensor:
-        """Places each drone gained on the other team during the step, in contested start-box races
-        (:func:`~spiral.env.events.overtakes`)."""
+        """Places each drone gained on the other team in the step, in contested races (:func:`overtakes`)."""
         contested = self.contested.repeat_interleave(self.drones_per_world)
         counted = ev.racing & ~ev.crashed_now & ~ev.finished_now & contested
         return overtakes(self.place_before, self.track_place(), counted, self.race_team,
