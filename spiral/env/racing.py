@@ -111,16 +111,16 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
     splits = torch.zeros(env.drone_count, env.passes_needed, device=env.device)
     steps = torch.zeros(env.drone_count, dtype=torch.long, device=env.device)
     beyond = torch.zeros_like(env.commanded, dtype=torch.long)
-    passed = env.gates_passed.clone()
+    passed, place = env.gates_passed.clone(), env.track_place()
     team = (env.slot_team.cpu() if teams is None else _team_of_slots(teams, d)).to(env.device)
     passes = torch.zeros(env.drone_count, 2, dtype=torch.long, device=env.device)
     frames = [env.pos.clone()] if record else []
     for _ in range(env.max_episode_length):
-        before, vel_before, place = env.pos.clone(), env.vel.clone(), env.track_place()
+        before, vel_before = env.pos.clone(), env.vel.clone()
         racing = ~(env.finished | env.crashed | env.absent)
         with torch.no_grad():
             obs, _, _, _ = env.step(policy(obs))
-        passes = _note_passes(env, place, racing, team, passes)
+        passes, place = _note_passes(env, place, racing, team, passes)
         steps += racing
         beyond += racing[:, None] & (env.commanded.abs() > 1.0)
         distance += (env.pos - before).norm(dim=-1)
@@ -147,7 +147,7 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
         crash_partner=grid(partner),
         contact_bearing=grid(bearing),
         contact_fault=grid(fault),
-        team=env.slot_team.cpu() if teams is None else _team_of_slots(teams, d),
+        team=team.cpu(),
         split_time=splits.view(w, d, -1).cpu(),
         racing_steps=grid(steps),
         beyond_steps=beyond.view(w, d, -1).cpu(),
@@ -166,12 +166,14 @@ def _note_splits(env: RaceEnv, passed: torch.Tensor, splits: torch.Tensor) -> tu
 
 
 def _note_passes(env: RaceEnv, place: tuple[torch.Tensor, torch.Tensor], racing: torch.Tensor, team: torch.Tensor,
-                 passes: torch.Tensor) -> torch.Tensor:
+                 passes: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
     """``passes`` (N, 2) plus the drones of other teams each ``racing`` drone passed and was passed by in this step,
-    from its :meth:`~spiral.env.RaceEnv.track_place` before it (``place``); ``team`` per slot (D,)."""
-    gained = overtakes(place, env.track_place(), racing & ~(env.finished | env.crashed), team,
-                       world_count=env.world_count, drones_per_world=env.drones_per_world).long()
-    return passes + torch.stack([gained.clamp(min=0), (-gained).clamp(min=0)], dim=-1)
+    from its :meth:`~spiral.env.RaceEnv.track_place` before it (``place``; ``team`` per slot, (D,)), and the place
+    after the step, which is the next step's place before it."""
+    after = env.track_place()
+    gained = overtakes(place, after, racing & ~(env.finished | env.crashed), team, world_count=env.world_count,
+                       drones_per_world=env.drones_per_world).long()
+    return passes + torch.stack([gained.clamp(min=0), (-gained).clamp(min=0)], dim=-1), after
 
 
 def _note_contacts(env: RaceEnv, racing: torch.Tensor, before: torch.Tensor, vel_before: torch.Tensor,
