@@ -27,7 +27,7 @@ from spiral.core.policy import OpponentPolicy, Policy
 from spiral.core.scenario import SCENARIO_DRONES, TEAMS
 from spiral.env.race_env import RaceEnv
 from spiral.env.racing import RaceResults, concat_results, run_races
-from spiral.eval.metrics import summarize_races
+from spiral.eval.metrics import first_gate_order, summarize_races
 
 SIDES = ("a", "both")
 """Head-to-head protocols: method on team A's slots only, or every placement raced from both sides."""
@@ -312,7 +312,8 @@ def evaluate_methods(track: TrackSpec, methods: dict[str, str | Path], *, scenar
                           "loss_rate": float((winners == 1).float().mean()),
                           "draws": float((winners == -1).float().mean()), "opponent": summarize_races(res, team_b),
                           "win_rate_by_side": {side: float(part.mean()) for side, part in
-                                               zip(("a", "b"), won.split(runs), strict=False)}})
+                                               zip(("a", "b"), won.split(runs), strict=False)},
+                          "first_gate": first_gate_order(res, winners, (team_a, team_b))})
         if isinstance(agent, str) and (opponent is None or isinstance(opponent, str)):
             entry["layout"] = fallback.source
         if planners:
@@ -367,6 +368,10 @@ def evaluate_mixed_teams(track: TrackSpec, methods: dict[str, str | Path], *, ru
     return out
 
 
+def _share(x: float | None) -> str:
+    return "-" if x is None else f"{x:.2f}"
+
+
 def format_eval(result: dict[str, Any]) -> str:
     """A plain-text table of an evaluation result."""
     head = f"{result['track']} {result['scenario']}, {result['runs']} races, seed {result['seed']}"
@@ -394,4 +399,8 @@ def format_eval(result: dict[str, Any]) -> str:
     if passes:
         lines.append("passes in flight per race, made / suffered: " + "; ".join(
             f"{name} {p['made_per_race']:.2f} / {p['suffered_per_race']:.2f}" for name, p in passes.items()))
+    gates = {name: m["first_gate"] for name, m in result["methods"].items() if m.get("first_gate")}
+    if gates:
+        lines.append("first through the lap's first gate, share of races; the team first there won: " + "; ".join(
+            f"{name} {g['led']:.2f}; {_share(g['leader_won'])}" for name, g in gates.items()))
     return "\n".join(lines)

@@ -8,11 +8,12 @@ from typing import Any
 
 import torch
 
+from spiral.core.outcome import race_winner
 from spiral.env.actions import ACTION_AXES
 from spiral.env.racing import BEARINGS, RaceResults
 from spiral.sim import COLLISION_KINDS
 
-__all__ = ["clustered_interval", "lap_statistics", "summarize_races", "wilson_interval"]
+__all__ = ["clustered_interval", "first_gate_order", "lap_statistics", "summarize_races", "wilson_interval"]
 
 
 def wilson_interval(successes: int, trials: int, *, z: float = 1.959964) -> tuple[float, float]:
@@ -63,6 +64,24 @@ def lap_statistics(lap_times: torch.Tensor, finished: torch.Tensor) -> tuple[flo
     if laps.numel() == 0:
         return None, None
     return float(laps.mean()), float(laps.std(unbiased=False))
+
+
+def first_gate_order(res: RaceResults, winners: torch.Tensor, teams: tuple[list[int], list[int]]) -> dict[str, Any]:
+    """How far the order at the lap's first gate decides a team race: the share of races whose first drone through
+    it was team A's (``led``; −1 races, where nobody passed it, count as not led), and of the races with a winner and
+    a first drone through the gate, the share the team that led there won (``leader_won``), and team A's win rate
+    when it led there and when the other team did (``won_when_led``, ``won_when_behind``; None without such races).
+    ``winners`` as :func:`~spiral.core.outcome.race_winner` gives them (0: team A, 1: team B, −1: none)."""
+    assert res.split_time is not None
+    first = res.split_time[..., 0]
+    leader = race_winner(first > 0, first, teams)
+
+    def share(hit: torch.Tensor, of: torch.Tensor) -> float | None:
+        return float(hit[of].float().mean()) if of.any() else None
+
+    decided = (leader >= 0) & (winners >= 0)
+    return {"led": float((leader == 0).float().mean()), "leader_won": share(leader == winners, decided),
+            "won_when_led": share(winners == 0, leader == 0), "won_when_behind": share(winners == 0, leader == 1)}
 
 
 def summarize_races(res: RaceResults, slots: list[int] | None = None) -> dict[str, Any]:

@@ -5,8 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
+from spiral.core.outcome import race_winner
 from spiral.env.racing import RaceResults
-from spiral.eval.metrics import lap_statistics, summarize_races, wilson_interval
+from spiral.eval.metrics import first_gate_order, lap_statistics, summarize_races, wilson_interval
 
 
 @pytest.mark.parametrize(("k", "n", "expected"), [
@@ -101,3 +102,25 @@ def test_action_beyond_range_is_a_share_of_the_counted_drones_racing_steps():
     assert summarize_races(res)["action_beyond_range"] == {"x": 0.5, "y": 0.0, "z": 0.0, "yaw": 0.25}
     assert summarize_races(res, [0])["action_beyond_range"] == {"x": 0.5, "y": 0.0, "z": 0.0, "yaw": 1.0}
     assert "action_beyond_range" not in summarize_races(hand_results([[True, False]]))
+
+
+def test_first_gate_order_says_how_often_the_team_first_through_the_first_gate_won():
+    """Five 2v2 races (teams [0, 2] and [1, 3]), first-gate times by hand: A's second drone leads and A wins; B leads
+    and wins; B leads and A wins from behind; A leads, then both teams crash (no winner); nobody reaches the gate.
+    A led 2 of 5; of the 2 races A led it won 1, of the 2 B led 1; of the 3 decided races with a gate leader the
+    leader won 2."""
+    split = torch.zeros(5, 4, 7)
+    split[:, :, 0] = torch.tensor([[0.6, 0.5, 0.4, 0.7], [0.6, 0.5, 0.0, 0.7], [0.6, 0.4, 0.9, 0.5],
+                                   [0.3, 0.5, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    finished = torch.tensor([[False, False, True, True], [False, True, False, False], [True, False, False, True],
+                             [False, False, False, False], [False, False, False, False]])
+    lap = torch.tensor([[0.0, 0.0, 4.0, 4.2], [0.0, 4.1, 0.0, 0.0], [4.0, 0.0, 0.0, 4.3], [0.0] * 4, [0.0] * 4])
+    res = hand_results(finished.tolist())
+    res.split_time = split
+    teams = ([0, 2], [1, 3])
+    winners = race_winner(finished, lap, teams)
+    assert winners.tolist() == [0, 1, 0, -1, -1]
+    order = first_gate_order(res, winners, teams)
+    assert order == pytest.approx({"led": 2 / 5, "leader_won": 2 / 3, "won_when_led": 1 / 2, "won_when_behind": 1 / 2})
+    nobody = first_gate_order(res, torch.full((5,), -1), teams)
+    assert nobody["leader_won"] is None and nobody["won_when_led"] == 0.0

@@ -80,7 +80,8 @@ def test_both_sides_race_each_placement_again_with_the_methods_swapped(circuit6)
 
 
 def test_a_policy_against_itself_from_both_sides_wins_exactly_as_often_as_it_loses(circuit6):
-    """Each placement raced twice by the same two drones, swapped: every win of one side is a loss of the other."""
+    """Each placement raced twice by the same two drones, swapped: every win of one side is a loss of the other, and
+    the lead at the first gate is one side's in one race of each pair."""
     data = evaluate_methods(circuit6, {"me": SPIRAL_1V1}, scenario="1v1", runs=4, seed=2,
                             against=("me", SPIRAL_1V1))
     entry = data["methods"]["me"]
@@ -89,6 +90,7 @@ def test_a_policy_against_itself_from_both_sides_wins_exactly_as_often_as_it_los
     by_side = entry["win_rate_by_side"]
     assert (by_side["a"] + by_side["b"]) / 2 == pytest.approx(entry["win_rate"])
     assert entry["success_ratio"] == entry["opponent"]["success_ratio"]
+    assert entry["first_gate"]["led"] == 0.5  # the drone first through the first gate leads on one side of each pair
 
 
 def test_a_one_team_filter_stays_with_its_method_when_the_sides_are_swapped(circuit6):
