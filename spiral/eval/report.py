@@ -371,7 +371,8 @@ def _held_out_section(held: dict[str, Any], seed: int, sides: str) -> list[str]:
              f"The tables above race from the protocol's placements (seed {seed}); a setting chosen by comparing "
              f"those figures is biased towards them. The same learned policies from {held['runs']} other placements "
              f"(seed {held['seed']}): self-match success with its 95% interval, races all home and lap time; SPIRAL "
-             f"({side}) against PPO No Selfplay: win / loss / draw, and the share of SPIRAL's drones that finished.",
+             f"({side}) against PPO No Selfplay: win / loss / draw, the share of SPIRAL's drones that finished, and "
+             "its win rate in the races the other team led through the lap's first gate (from behind).",
              "", "| Scenario | PPO Selfplay (SPIRAL) | PPO No Selfplay | SPIRAL vs No Selfplay |", "|---|---|---|---|"]
     for scenario in SCENARIOS:
         cells = []
@@ -388,9 +389,14 @@ def _held_out_section(held: dict[str, Any], seed: int, sides: str) -> list[str]:
                          + ("no finished lap" if lap is None else f"{lap:.2f} s"))
         d = held[scenario]["duel"]
         cells.append("–" if d is None else f"{d['win_rate']:.2f} / {d['loss_rate']:.2f} / {d['draws']:.2f}; "
-                     f"home {d['success_ratio']:.3f}")
+                     f"home {d['success_ratio']:.3f}" + _from_behind(d))
         lines.append(f"| {scenario} | " + " | ".join(cells) + " |")
     return [*lines, ""]
+
+
+def _from_behind(duel: dict[str, Any]) -> str:
+    won = duel.get("first_gate", {}).get("won_when_behind")
+    return "" if won is None else f"; from behind {won:.2f}"
 
 
 def _cross_section(matrices: dict[str, Any]) -> list[str]:

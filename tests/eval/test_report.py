@@ -122,8 +122,9 @@ def test_report_races_the_learned_policies_again_from_held_out_placements(sprint
     row = next(line for line in section.splitlines() if line.startswith("| 1v1 |"))
     lo, hi = spiral["success_ci95"]
     assert row.split(" | ")[1].startswith(f"{spiral['success_ratio']:.3f} [{lo:.2f}, {hi:.2f}]")
+    behind = duel["first_gate"]["won_when_behind"]  # None when the other team never led through the first gate
     assert row.endswith(f"| {duel['win_rate']:.2f} / {duel['loss_rate']:.2f} / {duel['draws']:.2f}; "
-                        f"home {duel['success_ratio']:.3f} |")
+                        f"home {duel['success_ratio']:.3f}{'' if behind is None else f'; from behind {behind:.2f}'} |")
     assert "| 2v2 | missing |" in section and section.split("| 2v2 |")[1].split("\n")[0].endswith("| – |")
     assert "(seed 7)" in section and "protocol's placements (seed 0)" in section
 
