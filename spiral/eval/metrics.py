@@ -68,10 +68,10 @@ def lap_statistics(lap_times: torch.Tensor, finished: torch.Tensor) -> tuple[flo
 
 def first_gate_order(res: RaceResults, winners: torch.Tensor, teams: tuple[list[int], list[int]]) -> dict[str, Any]:
     """How far the order at the lap's first gate decides a team race: the share of races whose first drone through
-    it was team A's (``led``; −1 races, where nobody passed it, count as not led), and of the races with a winner and
-    a first drone through the gate, the share the team that led there won (``leader_won``), and team A's win rate
-    when it led there and when the other team did (``won_when_led``, ``won_when_behind``; None without such races).
-    ``winners`` as :func:`~spiral.core.outcome.race_winner` gives them (0: team A, 1: team B, −1: none)."""
+    it was team A's (``led``; a race in which no drone passed it counts as not led), of the races with a winner and a
+    drone through the gate the share that the team first there won (``leader_won``), and team A's win rate in the
+    races it led there and in those the other team led (``won_when_led``, ``won_when_behind``; None without such
+    races). ``winners`` as :func:`~spiral.core.outcome.race_winner` gives them (0: team A, 1: team B, −1: none)."""
     assert res.split_time is not None
     first = res.split_time[..., 0]
     leader = race_winner(first > 0, first, teams)
