@@ -368,10 +368,6 @@ def evaluate_mixed_teams(track: TrackSpec, methods: dict[str, str | Path], *, ru
     return out
 
 
-def _share(x: float | None) -> str:
-    return "-" if x is None else f"{x:.2f}"
-
-
 def format_eval(result: dict[str, Any]) -> str:
     """A plain-text table of an evaluation result."""
     head = f"{result['track']} {result['scenario']}, {result['runs']} races, seed {result['seed']}"
@@ -402,5 +398,6 @@ def format_eval(result: dict[str, Any]) -> str:
     gates = {name: m["first_gate"] for name, m in result["methods"].items() if m.get("first_gate")}
     if gates:
         lines.append("first through the lap's first gate, share of races; the team first there won: " + "; ".join(
-            f"{name} {g['led']:.2f}; {_share(g['leader_won'])}" for name, g in gates.items()))
+            f"{name} {g['led']:.2f}; " + ("-" if g["leader_won"] is None else f"{g['leader_won']:.2f}")
+            for name, g in gates.items()))
     return "\n".join(lines)
