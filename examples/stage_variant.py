@@ -9,8 +9,10 @@ multi-drone stage copies the pool next to the init checkpoint (if any) into ``OU
 stage races ``--opponent CKPT`` (in the pipeline the best of its ``selfplay.opponent_from`` stage), else its init.
 ``--pool-from DIR`` (repeatable) adds every member of another stage's pool folder, e.g. the 1v1 pool of a run with
 another seed, as frozen opponents the learner's pool draws from beside its own (its own latest best stays the latest
-best; promotion still races the stage's own best). The 50-race self-match evaluation (seed 0, as in the pipeline's
-eval step) is printed and written to ``OUT/summary.json``.
+best; promotion still races the stage's own best). ``--first-opponent CKPT`` makes CKPT the pool's first member, the
+one ``selfplay.p_first`` draws, e.g. an exploiter: a no-self-play stage trained against the init policy
+(``--opponent``). The 50-race self-match evaluation (seed 0, as in the pipeline's eval step) is printed and written to
+``OUT/summary.json``.
 """
 
 from __future__ import annotations
@@ -49,6 +51,22 @@ def add_foreign_members(pool: Pool, sources: list[Path], init: Path) -> None:
         for m in Pool(source).members:
             pool.add(source / m.file, stage=m.stage + tag, iteration=m.iteration, evaluation=m.evaluation,
                      rating=m.rating)
+    keep_latest(pool, own, init)
+
+
+def put_first(pool: Pool, checkpoint: Path, init: Path) -> None:
+    """Make ``checkpoint`` the pool's first member (stage ``first``; a rerun into the same folder finds it there and
+    adds nothing). A new pool then gets the init policy; either way the pool's own latest best stays its latest best."""
+    if any(m.stage == "first" for m in pool.members):
+        return
+    own = pool.latest_best
+    pool.add(checkpoint, stage="first", iteration=0, evaluation={})
+    pool.members.insert(0, pool.members.pop())
+    keep_latest(pool, own, init)
+
+
+def keep_latest(pool: Pool, own: str | None, init: Path) -> None:
+    """Restore the pool's latest best ``own`` after other members joined it; a pool that had none gets ``init``."""
     if own is None:
         pool.add(init, stage="init", iteration=0, evaluation={})
     else:
@@ -68,6 +86,8 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets")
     parser.add_argument("--pool-from", action="append", default=[], type=Path, metavar="DIR",
                         help="another pool folder whose members join the learner's opponents (multi-drone stages)")
+    parser.add_argument("--first-opponent", type=Path, metavar="CKPT",
+                        help="a checkpoint that becomes the pool's first member, the one selfplay.p_first draws")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
 
@@ -88,10 +108,14 @@ def main() -> None:
     init = None if args.init == "none" else Path(args.init)
     if init is not None and not pool.exists() and (init.parent / "pool").is_dir():
         shutil.copytree(init.parent / "pool", pool)
+    if (args.pool_from or args.first_opponent) and (init is None or stage.scenario == "solo"
+                                                    or stage.selfplay.mode != "pool"):
+        parser.error("--pool-from and --first-opponent need a self-play stage (selfplay.mode: pool) and an init "
+                     "checkpoint")
     if args.pool_from:
-        if init is None or stage.scenario == "solo" or stage.selfplay.mode != "pool":
-            parser.error("--pool-from needs a self-play stage (selfplay.mode: pool) and an init checkpoint")
         add_foreign_members(Pool(pool), args.pool_from, init)
+    if args.first_opponent:
+        put_first(Pool(pool), args.first_opponent, init)
     start = time.perf_counter()
     result = run_stage(track, resolve_airframe(spec.airframe), spec.sim, stage, args.out, pool_dir=pool,
                        init_checkpoint=init, opponent_checkpoint=args.opponent, device=args.device,

@@ -65,6 +65,7 @@ def test_stage_variant_trains_an_overridden_stage_and_evaluates_it(script_env, m
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == summary
 
     # --pool-from: the first variant's pool joins a second variant's opponents beside its own line
+    from spiral.core.files import file_sha256
     from spiral.selfplay.pool import Pool
 
     foreign = Pool(out / "pool").members
@@ -83,6 +84,20 @@ def test_stage_variant_trains_an_overridden_stage_and_evaluates_it(script_env, m
     monkeypatch.setattr(sys, "argv", argv)  # a rerun into the same folder copies nothing twice
     runpy.run_path(str(EXAMPLES / "stage_variant.py"), run_name="__main__")
     assert len(Pool(second / "pool").members) == len(pool.members)
+
+    # --first-opponent: a checkpoint goes in front of the pool copied beside the init policy (the member p_first draws)
+    first = script_env / "variant-3"
+    init_pool, solo_sha = Pool(out / "pool"), file_sha256(script_env / "solo" / "best.pt")
+    argv = ["stage_variant.py", str(pipeline), "1v1", str(out / "best.pt"), str(first),
+            "--first-opponent", str(script_env / "solo" / "best.pt"), "--set", "iterations=1"]
+    for _ in range(2):  # the rerun into the same folder adds nothing
+        monkeypatch.setattr(sys, "argv", argv)
+        runpy.run_path(str(EXAMPLES / "stage_variant.py"), run_name="__main__")
+        pool = Pool(first / "pool")
+        assert pool.members[0].stage == "first" and pool.members[0].sha256 == solo_sha
+        assert [m.sha256 for m in pool.members[1:1 + len(init_pool.members)]] == [m.sha256 for m in init_pool.members]
+        assert [m.stage for m in pool.members].count("first") == 1
+        assert pool.member(pool.latest_best).stage != "first"
 
 
 def test_separation_probe_races_a_policy_with_each_filter_setting(script_env, policy_checkpoint, monkeypatch, capsys):
