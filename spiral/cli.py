@@ -405,26 +405,45 @@ def bench_ppo(
     iterations: Annotated[int, typer.Option("--iterations", min=1, help="Profiled PPO iterations")] = 3,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
     sim_threads: SimThreads = 1,
+    checkpoints_dir: CkptDir = Path("checkpoints"),
+    init: Annotated[Path | None, typer.Option("--init", help="Multi-drone stage: the checkpoint it starts from "
+                                              "(default: the published best of the stage it starts from)")] = None,
+    pool: Annotated[Path | None, typer.Option("--pool", help="Self-play stage: the pool it races, copied (default: "
+                                              "the published pool, if any)")] = None,
     json_out: JsonOut = None,
 ) -> None:
-    """Profile PPO iterations of one stage: the rollout by env hook, the update by part, against the matmul limit."""
+    """Profile PPO iterations of one stage: the rollout by env hook, the update by part, against the matmul limit.
+
+    A multi-drone stage races what it races in the pipeline, from the published checkpoints: its init stage's best,
+    the pool (self-play) or the frozen opponent's best (no self-play)."""
     from spiral.config.airframe import resolve_airframe
     from spiral.config.load import load_pipeline
     from spiral.train.profile import profile_iteration
 
     _use_sim_threads(sim_threads)
     spec, track = load_pipeline(pipeline)
-    found = [s for s in spec.stages if s.name == stage]
-    if not found:
-        raise ValueError(f"--stage: {pipeline} has no stage named {stage!r} (stages: "
-                         f"{', '.join(s.name for s in spec.stages)})")
-    spec_stage = found[0] if worlds is None else found[0].model_copy(update={"worlds": worlds})
+    names = [s.name for s in spec.stages]
+    if stage not in names:
+        raise ValueError(f"--stage: {pipeline} has no stage named {stage!r} (stages: {', '.join(names)})")
+    index = names.index(stage)
+    spec_stage = spec.stages[index] if worlds is None else spec.stages[index].model_copy(update={"worlds": worlds})
+    published, frozen = checkpoints_dir / spec.name, None
+    if spec_stage.scenario != "solo":
+        init = init or published / str(spec.init_stage(index)) / "best.pt"
+        if spec_stage.selfplay.mode == "pool":
+            pool = pool or (published / "pool" if (published / "pool").is_dir() else None)
+        elif spec_stage.selfplay.opponent_from:
+            frozen = published / spec_stage.selfplay.opponent_from / "best.pt"
+        for option, path in (("--init", init), ("--pool", pool), ("the frozen opponent", frozen)):
+            if path is not None and not path.exists():
+                raise ValueError(f"{option}: {path} does not exist (train the pipeline, or pass another)")
     r = profile_iteration(track, resolve_airframe(spec.airframe, source=str(pipeline)), spec.sim, spec_stage,
-                          iterations=iterations, device=device, seed=spec.seed)
+                          iterations=iterations, device=device, seed=spec.seed, init_checkpoint=init, pool_dir=pool,
+                          opponent_checkpoint=frozen)
     rollout = ", ".join(f"{k} {1e3 * v:.0f}" for k, v in r["rollout_parts_s"].items())
     parts = ", ".join(f"{k} {100 * v:.0f}%" for k, v in r["update_parts_share"].items())
-    typer.echo(f"{r['samples_per_iteration']} samples per iteration ({r['worlds']} worlds, {r['obs_dim']} inputs, "
-               f"{r['torch_threads']} torch threads)\n"
+    typer.echo(f"{r['samples_per_iteration']} samples per iteration ({r['worlds']} worlds, {r['learner_drones']} "
+               f"learner drones, {r['obs_dim']} inputs, {r['torch_threads']} torch threads)\n"
                f"rollout {r['rollout_s']:.3f} s: {rollout} [ms]\n"
                f"update {r['update_s']:.3f} s ({r['update_cpu_s']:.3f} CPU-s): {parts}\n"
                f"update {r['update_samples_per_s']:.0f} samples/s; matmul limit {r['matmul_limit_samples_per_s']:.0f}"

@@ -108,6 +108,9 @@ def test_bench_ppo_profiles_a_smoke_stage_and_names_an_unknown_stage(tmp_path):
     assert data["worlds"] == 4 and data["samples_per_iteration"] == 4 * 8
     bad = runner.invoke(app, ["bench", "ppo", smoke, "--stage", "nope"])
     assert bad.exit_code == 1 and "Error: --stage:" in bad.output and "no stage named 'nope'" in bad.output
+    missing = runner.invoke(app, ["bench", "ppo", smoke, "--stage", "1v1", "--checkpoints-dir", str(tmp_path)])
+    assert missing.exit_code == 1 and f"--init: {tmp_path / 'smoke' / 'solo' / 'best.pt'} does not exist" in \
+        missing.output
 
 
 def test_sim_threads_option_sets_the_simulators_thread_count_and_refuses_zero(monkeypatch):

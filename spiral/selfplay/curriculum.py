@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import shutil
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +23,7 @@ from spiral.selfplay.pool import INITIAL_RATING, Pool
 from spiral.selfplay.promotion import PromotionSelector
 from spiral.train.runner import StageTrainer, TrainResult
 
-__all__ = ["run_stage"]
+__all__ = ["StageOpponents", "run_stage", "stage_opponents"]
 
 
 def run_stage(
@@ -58,28 +59,54 @@ def run_stage(
         raise ValueError(f"stage {stage.name!r}: an opponent checkpoint is for frozen opponents; pool mode races "
                          "the pool")
     best_path = _first_best(run_dir, init_checkpoint)
+    pool = Pool(pool_dir, log=log) if stage.selfplay.mode == "pool" else None
+    opponents = stage_opponents(stage, pool, init_checkpoint, opponent_checkpoint, device=device, seed=seed)
+    selector = PromotionSelector(stage, track, airframe, sim, best_path=best_path, pool=pool,
+                                 best_rating=opponents.best_rating, device=device, seed=seed,
+                                 on_promote=opponents.add if pool is not None else None, log=log)
+    trainer = StageTrainer(track, airframe, sim, stage, run_dir, device=device, seed=seed,
+                           init_checkpoint=init_checkpoint, opponent=opponents.worlds, selector=selector,
+                           selection_interval=selector.interval, log=log, progress=progress)
+    return trainer.train()
+
+
+@dataclass
+class StageOpponents:
+    """The opponents of a multi-drone stage's training worlds: one list of policies and one matchmaker, shared by
+    every format's worlds."""
+
+    members: list[FrozenPolicy]
+    matchmaker: Matchmaker
+    worlds: dict[str, PoolOpponents]
+    """The opponents of each part of the training worlds that has opponent slots (``StageTrainer``'s ``opponent``)."""
+    best_rating: float
+    """The rating of the latest best (the initial policy's in a new pool)."""
+    device: str
+
+    def add(self, path: Path) -> None:
+        """Race ``path``'s policy too (a promoted learner), as the latest best."""
+        self.members.append(load_policy(path, device=self.device))
+        self.matchmaker.add_member()
+
+
+def stage_opponents(stage: StageSpec, pool: Pool | None, init_checkpoint: Path, opponent_checkpoint: Path | None = None,
+                    *, device: str = "cpu", seed: int = 0) -> StageOpponents:
+    """The opponents ``stage`` trains against: ``pool``'s members in pool mode (a new pool first receives
+    ``init_checkpoint``), else ``opponent_checkpoint``'s policy (``init_checkpoint``'s when None).
+
+    Raises:
+        ValueError: no policy of the stage's observation layout in the pool.
+    """
     init_meta = load_checkpoint(init_checkpoint)["spiral"]
     generator = torch.Generator(device=device).manual_seed(seed + 30_000)
-    pool = Pool(pool_dir, log=log) if stage.selfplay.mode == "pool" else None
     members, latest, best_rating = _opponent_policies(stage, pool, init_meta, init_checkpoint, opponent_checkpoint,
                                                       device=device)
     if not members:
-        raise ValueError(f"stage {stage.name!r}: no usable policy in the pool {pool_dir}")
+        raise ValueError(f"stage {stage.name!r}: no usable policy in the pool {pool.root if pool else None}")
     matchmaker = Matchmaker(len(members), latest=latest, p_latest=stage.selfplay.p_latest,
                             p_first=stage.selfplay.p_first, mode=stage.selfplay.sampling, device=device)
-    opponents = _world_opponents(stage, members, matchmaker, generator)
-
-    def add_opponent(path: Path) -> None:
-        members.append(load_policy(path, device=device))
-        matchmaker.add_member()
-
-    selector = PromotionSelector(stage, track, airframe, sim, best_path=best_path, pool=pool, best_rating=best_rating,
-                                 device=device, seed=seed, on_promote=add_opponent if pool is not None else None,
-                                 log=log)
-    trainer = StageTrainer(track, airframe, sim, stage, run_dir, device=device, seed=seed,
-                           init_checkpoint=init_checkpoint, opponent=opponents, selector=selector,
-                           selection_interval=selector.interval, log=log, progress=progress)
-    return trainer.train()
+    return StageOpponents(members, matchmaker, _world_opponents(stage, members, matchmaker, generator), best_rating,
+                          device)
 
 
 def _world_opponents(stage: StageSpec, members: list[FrozenPolicy], matchmaker: Matchmaker,

@@ -64,9 +64,15 @@ class PoolOpponents:
             if self.live is None:
                 raise RuntimeError("mirror worlds need the learner's policy: set PoolOpponents.live")
             actions[mirror_row] = self.live(obs[mirror_row])
-        for m in torch.unique(member_of_row[~mirror_row]).tolist():
-            rows = (member_of_row == m) & ~mirror_row
-            actions[rows] = self.policies[m](obs[rows])
+        # each member's rows in ascending order (a stable sort by member), so that each network sees the same
+        # batch as it would through a mask of its rows
+        pooled = torch.nonzero(~mirror_row).squeeze(1)
+        members = member_of_row[pooled]
+        policy_obs = obs["policy"]
+        counts = torch.bincount(members, minlength=len(self.policies)).tolist()
+        for m, rows in enumerate(pooled[torch.argsort(members, stable=True)].split(counts)):
+            if len(rows):
+                actions[rows] = self.policies[m].actions(policy_obs[rows])
         if self.pace > 0:  # on the action range the env keeps: a policy's mean may lie beyond it
             actions[:, :3] = actions[:, :3].clamp(-1.0, 1.0) * self.action_scale.view(-1, 1)
         if self.offset > 0:

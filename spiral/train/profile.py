@@ -11,6 +11,7 @@ rate at which the same update would run if it did nothing but the plain matrix p
 from __future__ import annotations
 
 import contextlib
+import shutil
 import tempfile
 import time
 from collections import defaultdict
@@ -25,6 +26,10 @@ from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
+from spiral.env.mixed import MixedRaceEnv
+from spiral.selfplay.curriculum import stage_opponents
+from spiral.selfplay.opponents import PoolOpponents
+from spiral.selfplay.pool import Pool
 from spiral.train.runner import StageTrainer
 
 __all__ = ["ENV_HOOKS", "linear_layers", "matmul_seconds", "profile_iteration", "timed_methods",
@@ -85,7 +90,8 @@ def matmul_seconds(layers: list[tuple[int, int]], first: set[int], batch: int, *
 
 @contextlib.contextmanager
 def timed_methods(obj: Any, names: tuple[str, ...], totals: dict[str, float]) -> Iterator[None]:
-    """Accumulate the wall time of ``obj``'s methods ``names`` into ``totals`` while the context is open."""
+    """Accumulate the wall time of ``obj``'s methods ``names`` into ``totals`` while the context is open (``obj`` an
+    instance, or a class to time the methods of all its instances)."""
     def wrap(name: str, fn: Callable[..., Any]) -> Callable[..., Any]:
         def timed(*args: Any, **kwargs: Any) -> Any:
             t0 = time.perf_counter()
@@ -95,20 +101,36 @@ def timed_methods(obj: Any, names: tuple[str, ...], totals: dict[str, float]) ->
                 totals[name] += time.perf_counter() - t0
         return timed
 
+    own = {name: vars(obj)[name] for name in names if name in vars(obj)}  # a class's own methods: put back after
     for name in names:
         setattr(obj, name, wrap(name, getattr(obj, name)))
     try:
         yield
     finally:
         for name in names:
-            delattr(obj, name)
+            if name in own:
+                setattr(obj, name, own[name])
+            else:
+                delattr(obj, name)
 
 
-def _rollout(trainer: StageTrainer, obs: Any, totals: dict[str, float]) -> Any:
-    """One rollout of :meth:`StageTrainer.collect`, with the policy's and the env's parts timed."""
-    with timed_methods(trainer.runner.alg, ("act", "process_env_step", "compute_returns"), totals), \
-            timed_methods(trainer.env, ENV_HOOKS, totals):
-        return trainer.collect(obs)[0]
+def _rollout(trainer: StageTrainer, obs: Any, totals: dict[str, float],
+             opponents: dict[str, PoolOpponents]) -> Any:
+    """One rollout of :meth:`StageTrainer.collect`, with the policy's and the env's parts timed (the hooks of every
+    part of a mixed env, and the opponents' policies apart from the ``apply_actions`` hook that calls them)."""
+    parts = trainer.env.parts.values() if isinstance(trainer.env, MixedRaceEnv) else [trainer.env]
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(timed_methods(trainer.runner.alg, ("act", "process_env_step", "compute_returns"), totals))
+        for env in parts:
+            stack.enter_context(timed_methods(env, ENV_HOOKS, totals))
+        inside: dict[str, float] = defaultdict(float)
+        if opponents:  # a call looks __call__ up on the class
+            stack.enter_context(timed_methods(PoolOpponents, ("__call__",), inside))
+        obs = trainer.collect(obs)[0]
+    if inside:
+        totals["opponents"] += inside["__call__"]
+        totals["apply_actions"] -= inside["__call__"]
+    return obs
 
 
 def _update_parts(trace: torch.profiler.profile) -> dict[str, float]:
@@ -157,26 +179,45 @@ def _traced_update(alg: Any) -> torch.profiler.profile:
 
 
 def profile_iteration(track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, stage: StageSpec, *,
-                      iterations: int = 3, device: str = "cpu", seed: int = 0) -> dict[str, Any]:
-    """Profile ``iterations`` PPO iterations of ``stage`` after one warm-up iteration (times are per iteration)."""
+                      iterations: int = 3, device: str = "cpu", seed: int = 0, init_checkpoint: Path | None = None,
+                      pool_dir: Path | None = None, opponent_checkpoint: Path | None = None) -> dict[str, Any]:
+    """Profile ``iterations`` PPO iterations of ``stage`` after one warm-up iteration (times are per iteration).
+
+    A multi-drone stage starts from ``init_checkpoint`` and races what it would race in a pipeline: in pool mode a
+    copy of the pool in ``pool_dir`` (left untouched; a new pool of the initial policy when None), in frozen mode
+    ``opponent_checkpoint``'s policy (the initial policy's when None).
+    """
     with tempfile.TemporaryDirectory() as tmp:
-        trainer = StageTrainer(track, airframe, sim, stage, Path(tmp), device=device, seed=seed, progress=False,
-                               selector=lambda trainer, it: {})
+        opponents: dict[str, PoolOpponents] = {}
+        if stage.scenario != "solo":
+            if init_checkpoint is None:
+                raise ValueError(f"stage {stage.name!r}: profiling a {stage.scenario} stage needs the checkpoint it "
+                                 "starts from")
+            pool = None
+            if stage.selfplay.mode == "pool":
+                if pool_dir is not None:
+                    shutil.copytree(pool_dir, Path(tmp) / "pool")
+                pool = Pool(Path(tmp) / "pool", log=lambda _: None)
+            opponents = stage_opponents(stage, pool, init_checkpoint, opponent_checkpoint, device=device,
+                                        seed=seed).worlds
+        trainer = StageTrainer(track, airframe, sim, stage, Path(tmp) / "run", device=device, seed=seed,
+                               init_checkpoint=init_checkpoint, opponent=opponents or None, progress=False,
+                               selector=lambda trainer, it: {}, log=lambda _: None)
         alg = trainer.runner.alg
         alg.train_mode()
         obs = trainer.vec_env.get_observations().to(device)
-        obs = _rollout(trainer, obs, defaultdict(float))
+        obs = _rollout(trainer, obs, defaultdict(float), opponents)
         alg.update()
         rollout: dict[str, float] = defaultdict(float)
         rollout_s = update_s = update_cpu_s = 0.0
         for _ in range(iterations):
             t0 = time.perf_counter()
-            obs = _rollout(trainer, obs, rollout)
+            obs = _rollout(trainer, obs, rollout, opponents)
             rollout_s += time.perf_counter() - t0
             t0, c0 = time.perf_counter(), time.process_time()
             alg.update()
             update_s, update_cpu_s = update_s + time.perf_counter() - t0, update_cpu_s + time.process_time() - c0
-        obs = _rollout(trainer, obs, defaultdict(float))
+        obs = _rollout(trainer, obs, defaultdict(float), opponents)
         parts = _update_parts(_traced_update(alg))
     ppo, samples = stage.ppo, stage.ppo.num_steps_per_env * trainer.env.num_envs
     layers, first = linear_layers(alg.actor, alg.critic), _first_layers(alg.actor, alg.critic)
@@ -187,7 +228,8 @@ def profile_iteration(track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, stag
     update_s, update_cpu_s = update_s / iterations, update_cpu_s / iterations
     traced = sum(parts.values())
     return {
-        "stage": stage.name, "device": device, "torch_threads": torch.get_num_threads(), "worlds": trainer.env.num_envs,
+        "stage": stage.name, "device": device, "torch_threads": torch.get_num_threads(), "worlds": stage.worlds,
+        "learner_drones": trainer.env.num_envs,
         "obs_dim": trainer.env.obs_dim, "samples_per_iteration": samples, "mini_batch": mini_batch,
         "epochs": ppo.num_learning_epochs, "layers": layers, "update_flops": flops, "matmul_dtype": str(dtype),
         "rollout_s": rollout_s / iterations, "rollout_parts_s": {k: v / iterations for k, v in rollout.items()},

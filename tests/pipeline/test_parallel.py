@@ -14,6 +14,7 @@ from spiral.train import StageTrainer
 
 FOLLOWER = """
 import sys, time, torch
+from pathlib import Path
 from spiral.pipeline.workers import follow_thread_share
 follow_thread_share(Path(sys.argv[1]), 1)
 print(torch.get_num_threads(), flush=True)

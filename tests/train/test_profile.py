@@ -13,6 +13,7 @@ import pytest
 from torch import nn
 
 from spiral.config import AIRFRAMES, SimCfg, StageSpec
+from spiral.selfplay import Pool, PoolOpponents, run_stage
 from spiral.train.profile import (
     ENV_HOOKS,
     linear_layers,
@@ -63,6 +64,51 @@ def test_the_matmul_limit_of_a_mixed_precision_update_is_timed_in_bfloat16(line2
     r = profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), stage, iterations=1)
     assert r["matmul_dtype"] == "torch.bfloat16"
     assert r["update_over_matmul_limit"] == pytest.approx(r["update_s"] / r["matmul_s"])
+
+
+TINY_PPO = {"num_steps_per_env": 4, "actor_hidden_dims": [16], "critic_hidden_dims": [16]}
+
+
+def test_a_profiled_self_play_stage_races_a_copy_of_the_pool_and_times_the_opponents_apart(line2, tmp_path):
+    """A 1v1 stage with 2v2 worlds mixed in: the hooks of both parts and the pool members' policies are timed (the
+    opponents apart from the hook that calls them), the pool folder is left as it was, and a multi-drone stage
+    without the checkpoint it starts from is refused."""
+    solo = StageSpec.model_validate({"name": "solo", "worlds": 4, "iterations": 1, "env": {"obs": {"history_len": 1}},
+                                     "ppo": TINY_PPO, "selection": {"interval": 1, "races": 2}})
+    run_stage(line2, AIRFRAMES["cf2x"], SimCfg(), solo, tmp_path / "solo", pool_dir=tmp_path / "unused",
+              init_checkpoint=None, progress=False)
+    init = tmp_path / "solo" / "best.pt"
+    pool = Pool(tmp_path / "pool", log=lambda _: None)
+    pool.add(init, stage="solo", iteration=0, evaluation={})
+    before = {p.name: p.read_bytes() for p in (tmp_path / "pool").iterdir()}
+    duel = StageSpec.model_validate({
+        "name": "1v1", "scenario": "1v1", "worlds": 8, "iterations": 4, "env": {"obs": {"history_len": 1}},
+        "mix": {"2v2": 0.5}, "ppo": TINY_PPO, "selection": {"races": 2}, "selfplay": {"p_self": 0.5}})
+    r = profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), duel, iterations=1, init_checkpoint=init,
+                          pool_dir=tmp_path / "pool")
+    assert set(r["rollout_parts_s"]) == {*ENV_HOOKS, "act", "process_env_step", "compute_returns", "opponents"}
+    assert r["rollout_parts_s"]["opponents"] > 0 and r["rollout_parts_s"]["apply_actions"] > 0
+    assert sum(r["rollout_parts_s"].values()) <= r["rollout_s"]
+    assert r["samples_per_iteration"] == (4 + 2 * 4) * 4  # 4 duels and 4 team races with 2 learner drones each
+    assert {p.name: p.read_bytes() for p in (tmp_path / "pool").iterdir()} == before
+    assert vars(PoolOpponents)["__call__"].__name__ == "__call__"  # not the timing wrapper
+    frozen = duel.model_copy(update={"selfplay": duel.selfplay.model_copy(update={"mode": "frozen"})})
+    r = profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), frozen, iterations=1, init_checkpoint=init)
+    assert r["rollout_parts_s"]["opponents"] > 0
+    with pytest.raises(ValueError, match="needs the checkpoint it starts from"):
+        profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), duel, iterations=1)
+
+
+def test_timed_methods_put_a_classs_own_method_back():
+    """Timing a class's method times every instance's calls; afterwards the class has its own method again."""
+    class Thing:
+        def double(self, x):
+            return 2 * x
+
+    original, totals = Thing.double, {"double": 0.0}
+    with timed_methods(Thing, ("double",), totals):
+        assert Thing().double(2) == 4
+    assert totals["double"] > 0 and Thing.double is original
 
 
 def test_timed_methods_add_up_calls_and_leave_the_object_as_it_was():

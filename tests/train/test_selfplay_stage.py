@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import shutil
 
@@ -171,6 +172,33 @@ def test_mirror_worlds_race_the_live_policy_and_stay_out_of_matchmaking(solo_pol
     assert mm.races.item() == int(pooled.sum()) and mm.losses.item() == int(pooled.sum())
 
 
+def test_each_pool_member_acts_on_the_batch_of_its_rows_exactly_as_rsl_rls_actor_does(solo_policy):
+    """Every member's network sees the rows that a mask of its worlds selects, in the same order, so the actions equal
+    those of rsl-rl's own actor forward on that masked batch to the bit (training reproduces checkpoints exactly)."""
+    members = [solo_policy, load_policy_copy(solo_policy, scale=0.5), load_policy_copy(solo_policy, scale=2.0)]
+    gen = torch.Generator().manual_seed(3)
+    opponents = PoolOpponents(members, Matchmaker(3, latest=2, p_latest=0.2), world_count=300, per_world=3,
+                              generator=gen, p_self=0.3)
+    opponents.live = lambda obs: torch.full((obs.batch_size[0], 4), 0.25)
+    dim = solo_policy.obs_layout["obs_dim"]
+    obs = TensorDict({"policy": torch.randn(900, dim), "critic": torch.randn(900, dim + 3)}, batch_size=[900])
+    actions = opponents(obs)
+    member, mirror = opponents.assignment.repeat_interleave(3), opponents.mirror.repeat_interleave(3)
+    assert (actions[mirror] == 0.25).all()
+    for m, policy in enumerate(members):
+        rows = (member == m) & ~mirror
+        assert 0 < int(rows.sum()) < 900
+        assert torch.equal(actions[rows], policy.actor(obs[rows]))
+
+
+def load_policy_copy(policy: FrozenPolicy, *, scale: float) -> FrozenPolicy:
+    """Another member: ``policy`` with its last layer's weights scaled."""
+    clone = copy.deepcopy(policy)
+    with torch.no_grad():
+        clone.actor.mlp[-1].weight.mul_(scale)
+    return clone
+
+
 @pytest.mark.parametrize("mirror_actions", ["mean", "sampled"])
 def test_mirror_copies_fly_the_learners_mean_or_sampled_action(line2, tmp_path, mirror_actions):
     """Mirror opponents run the live actor: its mean action, or a draw with the learner's own action noise."""
@@ -250,9 +278,15 @@ def test_blind_opponents_read_rows_without_the_unseen_entries_for_their_episode(
     unseen[3:7] = True
     read: list[torch.Tensor] = []
 
-    def member(obs: TensorDict) -> torch.Tensor:
-        read.append(obs["policy"].clone())
-        return torch.zeros(obs.batch_size[0], 4)
+    class Member:  # a pool member (FrozenPolicy's two entry points) that records what it reads
+        def actions(self, policy_obs: torch.Tensor) -> torch.Tensor:
+            read.append(policy_obs.clone())
+            return torch.zeros(policy_obs.shape[0], 4)
+
+        def __call__(self, obs: TensorDict) -> torch.Tensor:
+            return self.actions(obs["policy"])
+
+    member = Member()
 
     x = torch.randn(2 * worlds, dim)
     obs = TensorDict({"policy": x.clone(), "critic": x.clone()}, batch_size=[2 * worlds])
