@@ -8,8 +8,7 @@ import signal
 import sys
 from pathlib import Path
 
-import torch
-
+from spiral.core.threads import take_share
 from spiral.pipeline.runner import PipelineRunner
 from spiral.pipeline.step import PipelineError
 
@@ -24,19 +23,19 @@ def follow_thread_share(path: Path, threads: int) -> bool:
     count applies from the next operation on. ``path`` is written only after the handler is in place: the parent
     signals a worker whose file exists, never one that a signal would still end.
     """
-    torch.set_num_threads(threads)
+    take_share(threads)
     if not hasattr(signal, "SIGUSR1"):
         return False
 
-    def take_share(*_: object) -> None:
+    def on_signal(*_: object) -> None:
         try:
             count = int(path.read_text())
         except (OSError, ValueError):  # a file being replaced, or not ours: keep the current count
             return
         if count >= 1:
-            torch.set_num_threads(count)
+            take_share(count)  # deferred while code holds a count of its own (spiral.core.threads.pinned)
 
-    signal.signal(signal.SIGUSR1, take_share)
+    signal.signal(signal.SIGUSR1, on_signal)
     tmp = path.with_suffix(".tmp")
     tmp.write_text(str(threads))
     tmp.replace(path)
@@ -58,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--accept-code-changes", action="store_true")
     args = parser.parse_args(argv)
     if args.threads_file is None:
-        torch.set_num_threads(args.threads)
+        take_share(args.threads)
     else:
         follow_thread_share(args.threads_file, args.threads)
     runner = PipelineRunner(args.pipeline, runs_dir=args.runs_dir, checkpoints_dir=args.checkpoints_dir,

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from spiral.config import AIRFRAMES, SimCfg, StageSpec
+from spiral.core import threads
 from spiral.pipeline.parallel import StepProcess, rebalance_threads, set_worker_threads, thread_share
 from spiral.train import StageTrainer
 
@@ -57,6 +58,29 @@ def test_a_worker_that_does_not_follow_thread_changes_yet_is_not_signalled(tmp_p
         assert proc.threads == 1 and worker.poll() is None  # SIGUSR1's default action would have ended it
     finally:
         worker.kill()
+
+
+def test_a_share_given_while_a_count_is_pinned_applies_when_the_pin_ends(monkeypatch):
+    """The report holds one thread while planner processes take the cores: a share that arrives meanwhile waits for
+    the pin to end; outside a worker (no share given) a pin restores the count from before."""
+    monkeypatch.setattr(threads, "_share", None)
+    monkeypatch.setattr(threads, "_pins", [])
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        with threads.pinned(1):
+            assert torch.get_num_threads() == 1
+        assert torch.get_num_threads() == 2
+        threads.take_share(1)
+        with threads.pinned(1):
+            threads.take_share(3)
+            assert torch.get_num_threads() == 1
+            with threads.pinned(2):
+                assert torch.get_num_threads() == 2
+            assert torch.get_num_threads() == 1
+        assert torch.get_num_threads() == 3
+    finally:
+        torch.set_num_threads(before)
 
 
 def test_raising_the_torch_threads_in_the_middle_of_a_stage_trains_the_same_policy(oval2, tmp_path):
