@@ -7,7 +7,6 @@
 - :mod:`spiral.core.files`: atomic writes and checksums.
 - :mod:`spiral.core.checkpoint`: the checkpoint format, frozen policies and loading them.
 - :mod:`spiral.core.inputs`: inputs a stored policy never saw vary, and silencing them.
-- :mod:`spiral.core.threads`: the process's torch thread count (a pipeline worker's share, a count held for a block).
 
 The package imports none of its modules, so ``spiral.config`` (and through it ``spiral.sim``) reads the scenario
 table without loading torch; import each name from its module.

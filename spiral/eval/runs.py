@@ -234,23 +234,25 @@ def crosses_in_workers(ev: Evaluations, pairings: list[tuple[str, tuple[str, str
     if jobs <= 1 or len(pairings) <= 1:
         yield
         return
-    from spiral.core import threads
+    import torch
 
     quiet = copy.copy(ev)
     quiet.log = print
     context = multiprocessing.get_context("spawn")
     pool = concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=context)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the workers take the cores: this process's races must not oversubscribe them
     try:
-        with threads.pinned(1):  # the workers take the cores: this process's races must not oversubscribe them
-            futures = []
-            for scenario, a, b in pairings:
-                ev.log(f"report: running {ev.prefix}cross-{scenario}-{a[0]}-vs-{b[0]} in a worker process")
-                futures.append(pool.submit(_cross_in_worker, (quiet, (scenario, a, b))))
-            yield
-            for future in futures:
-                future.result()
+        futures = []
+        for scenario, a, b in pairings:
+            ev.log(f"report: running {ev.prefix}cross-{scenario}-{a[0]}-vs-{b[0]} in a worker process")
+            futures.append(pool.submit(_cross_in_worker, (quiet, (scenario, a, b))))
+        yield
+        for future in futures:
+            future.result()
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+        torch.set_num_threads(threads)
 
 
 def _cross_in_worker(job: tuple[Evaluations, tuple[str, tuple[str, str], tuple[str, str]]]) -> None:

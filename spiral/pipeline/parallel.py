@@ -2,14 +2,10 @@
 
 The parent holds the pipeline lock and schedules: a step starts once every step it depends on has finished, at
 most N at a time, training steps first. Each worker process runs one step exactly as the sequential runner would
-(same folder, fingerprint, resume and manifest), with its torch threads set to its share of the CPU cores:
-``cores // k`` (at least one) while k workers run, so the workers never oversubscribe the CPU (torch's thread pools
-slow down many times over when they do). When a step ends and nothing can start in its place, the workers still
-running take up the freed cores: the parent writes each one's new share to ``<run>/logs/<step>.threads`` and
-signals it (SIGUSR1; the worker sets its torch threads between two Python operations), and a step that starts
-later takes them back the same way. The thread count does not change what a step computes (torch's CPU kernels
-give the same results on one thread or several; ``tests/pipeline/test_parallel.py`` trains with a switch).
-Worker output is relayed line by line, prefixed with the step's name, and kept in ``<run>/logs/<step>.log``.
+(same folder, fingerprint, resume and manifest), with its torch threads set to its share of the CPU cores: all of
+them when it is the only step that can run (nothing else can become ready before it ends), ``cores // N``
+otherwise, so the workers never oversubscribe the CPU (torch's thread pools slow down many times over when they
+do). Worker output is relayed line by line, prefixed with the step's name, and kept in ``<run>/logs/<step>.log``.
 
 A failed step lets the running ones finish (their work is kept) and starts nothing new; the error names the
 step, its log and the command that resumes. An interrupt stops the workers; training resumes from checkpoints.
@@ -18,7 +14,6 @@ step, its log and the command that resumes. An interrupt stops the workers; trai
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 import threading
@@ -29,14 +24,14 @@ from typing import IO
 
 from spiral.pipeline.step import PipelineError, Step
 
-__all__ = ["StepProcess", "rebalance_threads", "run_parallel", "thread_share"]
+__all__ = ["StepProcess", "run_parallel", "thread_share"]
 
 POLL_S = 0.2
 
 
-def thread_share(cores: int, workers: int) -> int:
-    """Torch threads for each of ``workers`` running workers: an equal share of the cores, at least one."""
-    return max(1, cores // max(workers, 1))
+def thread_share(cores: int, jobs: int, alone: bool) -> int:
+    """Torch threads for a worker: every core when it runs alone, else an equal share of at least one."""
+    return max(1, cores if alone else cores // jobs)
 
 
 @dataclass
@@ -47,35 +42,6 @@ class StepProcess:
     process: subprocess.Popen
     relay: threading.Thread
     log_path: Path
-    threads: int
-    """The torch threads the worker was last given."""
-    threads_file: Path
-    """Where the parent writes the worker's thread share; the worker creates it once it follows changes."""
-
-
-def set_worker_threads(proc: StepProcess, threads: int) -> bool:
-    """Give a running worker ``threads`` torch threads; False if it does not follow changes yet (try again later).
-
-    The worker creates its threads file once its SIGUSR1 handler is in place (:func:`spiral.pipeline.workers.
-    follow_thread_share`), so a signal never reaches it before it can take it: until then nothing is sent.
-    """
-    if not hasattr(signal, "SIGUSR1") or not proc.threads_file.exists() or proc.process.poll() is not None:
-        return False
-    tmp = proc.threads_file.with_suffix(".tmp")
-    tmp.write_text(str(threads))
-    tmp.replace(proc.threads_file)
-    proc.process.send_signal(signal.SIGUSR1)
-    proc.threads = threads
-    return True
-
-
-def rebalance_threads(running: dict[str, StepProcess], cores: int, log) -> None:
-    """Give every running worker its share of the cores (:func:`thread_share`) where it has another."""
-    share = thread_share(cores, len(running))
-    for name, proc in running.items():
-        if proc.threads != share and set_worker_threads(proc, share):
-            log(f"step '{name}' now runs on {share} torch thread{'s' if share > 1 else ''} "
-                f"({len(running)} step{'s' if len(running) > 1 else ''} running)")
 
 
 def _relay(stream: IO[str], log_file: Path, prefix: str, log) -> None:
@@ -104,18 +70,16 @@ def run_parallel(runner, todo: list[Step], fresh: set[str], jobs: int, *, cores:
         while running or (pending and not failed):
             ready = [] if failed else [s for s in pending if all(i not in names or i in done for i in s.inputs)]
             ready.sort(key=lambda s: not s.resumable)  # training first: the long steps set the wall time
-            starting = ready[: jobs - len(running)]
-            share = thread_share(cores, len(running) + len(starting))
-            for step in starting:
-                running[step.name] = _spawn(runner, step, step.name in fresh, share, log_dir)
+            for step in ready[: jobs - len(running)]:
+                alone = not running and len(ready) == 1
+                running[step.name] = _spawn(runner, step, step.name in fresh,
+                                            thread_share(cores, jobs, alone), log_dir)
                 pending.remove(step)
-            rebalance_threads(running, cores, runner.log)
             time.sleep(POLL_S)
             for name, proc in list(running.items()):
                 if proc.process.poll() is None:
                     continue
                 proc.relay.join()
-                proc.threads_file.unlink(missing_ok=True)
                 del running[name]
                 if proc.process.returncode == 0:
                     done.append(name)
@@ -143,9 +107,6 @@ def _spawn(runner, step: Step, fresh: bool, threads: int, log_dir: Path) -> Step
         cmd.append("--fresh")
     if runner.accept_code_changes:
         cmd.append("--accept-code-changes")
-    threads_file = log_dir / f"{step.dirname}.threads"
-    threads_file.unlink(missing_ok=True)  # the worker creates it when it follows thread changes
-    cmd += ["--threads-file", str(threads_file)]
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
            "PYTHONUNBUFFERED": "1"}
     log_path = log_dir / f"{step.dirname}.log"
@@ -155,4 +116,4 @@ def _spawn(runner, step: Step, fresh: bool, threads: int, log_dir: Path) -> Step
     relay.start()
     runner.log(f"step '{step.name}' started in a worker ({threads} torch thread{'s' if threads > 1 else ''}; "
                f"output also in {log_path})")
-    return StepProcess(step, process, relay, log_path, threads, threads_file)
+    return StepProcess(step, process, relay, log_path)
