@@ -162,3 +162,15 @@ def test_ppo_update_variants_script_times_every_variant_on_the_smoke_pipeline(tm
     times = json.loads(out.read_text())["update_s"]
     assert set(times) == {"float32 rsl_rl", "float32 gather_once", "bfloat16 rsl_rl", "bfloat16 gather_once"}
     assert all(len(v) == 2 and min(v) > 0 for v in times.values())
+
+
+def test_pool_opponents_script_times_both_implementations_and_finds_the_same_actions(tmp_path):
+    """Three members of the published pool, a few worlds: both implementations timed in each repeat, actions equal."""
+    root = Path(__file__).resolve().parents[2]
+    out = tmp_path / "opponents.json"
+    subprocess.run([sys.executable, str(root / "benchmarks" / "pool_opponents.py"), "--members", "3", "--worlds", "16",
+                    "--per-world", "2", "--repeats", "2", "--calls", "2", "--json", str(out)],
+                   check=True, capture_output=True, text=True, cwd=root)
+    r = json.loads(out.read_text())
+    assert r["members"] == 3 and r["same_actions"] is True
+    assert all(len(v) == 2 and min(v) > 0 for v in r["seconds_per_call"].values())
