@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import json
 import sys
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
@@ -418,6 +419,7 @@ def bench_ppo(
     the pool (self-play) or the frozen opponent's best (no self-play)."""
     from spiral.config.airframe import resolve_airframe
     from spiral.config.load import load_pipeline
+    from spiral.selfplay.curriculum import published_opponents
     from spiral.train.profile import profile_iteration
 
     _use_sim_threads(sim_threads)
@@ -437,9 +439,13 @@ def bench_ppo(
         for option, path in (("--init", init), ("--pool", pool), ("the frozen opponent", frozen)):
             if path is not None and not path.exists():
                 raise ValueError(f"{option}: {path} does not exist (train the pipeline, or pass another)")
-    r = profile_iteration(track, resolve_airframe(spec.airframe, source=str(pipeline)), spec.sim, spec_stage,
-                          iterations=iterations, device=device, seed=spec.seed, init_checkpoint=init, pool_dir=pool,
-                          opponent_checkpoint=frozen)
+    with tempfile.TemporaryDirectory() as scratch:
+        opponents = None if spec_stage.scenario == "solo" else published_opponents(
+            spec_stage, init, Path(scratch), pool_dir=pool, opponent_checkpoint=frozen, device=device,
+            seed=spec.seed).worlds
+        r = profile_iteration(track, resolve_airframe(spec.airframe, source=str(pipeline)), spec.sim, spec_stage,
+                              iterations=iterations, device=device, seed=spec.seed, init_checkpoint=init,
+                              opponents=opponents)
     rollout = ", ".join(f"{k} {1e3 * v:.0f}" for k, v in r["rollout_parts_s"].items())
     parts = ", ".join(f"{k} {100 * v:.0f}%" for k, v in r["update_parts_share"].items())
     typer.echo(f"{r['samples_per_iteration']} samples per iteration ({r['worlds']} worlds, {r['learner_drones']} "

@@ -23,7 +23,7 @@ from spiral.selfplay.pool import INITIAL_RATING, Pool
 from spiral.selfplay.promotion import PromotionSelector
 from spiral.train.runner import StageTrainer, TrainResult
 
-__all__ = ["StageOpponents", "run_stage", "stage_opponents"]
+__all__ = ["StageOpponents", "published_opponents", "run_stage", "stage_opponents"]
 
 
 def run_stage(
@@ -107,6 +107,19 @@ def stage_opponents(stage: StageSpec, pool: Pool | None, init_checkpoint: Path, 
                             p_first=stage.selfplay.p_first, mode=stage.selfplay.sampling, device=device)
     return StageOpponents(members, matchmaker, _world_opponents(stage, members, matchmaker, generator), best_rating,
                           device)
+
+
+def published_opponents(stage: StageSpec, init_checkpoint: Path, scratch: Path, *, pool_dir: Path | None = None,
+                        opponent_checkpoint: Path | None = None, device: str = "cpu", seed: int = 0) -> StageOpponents:
+    """The opponents ``stage`` trains against in a pipeline, from published checkpoints, leaving them untouched: in
+    pool mode a copy of ``pool_dir`` in ``scratch`` (a new pool there of the initial policy when None), in frozen
+    mode ``opponent_checkpoint``'s policy (the initial policy's when None). For measuring a stage (the profile)."""
+    pool = None
+    if stage.selfplay.mode == "pool":
+        if pool_dir is not None:
+            shutil.copytree(pool_dir, scratch / "pool")
+        pool = Pool(scratch / "pool", log=lambda _: None)
+    return stage_opponents(stage, pool, init_checkpoint, opponent_checkpoint, device=device, seed=seed)
 
 
 def _world_opponents(stage: StageSpec, members: list[FrozenPolicy], matchmaker: Matchmaker,

@@ -13,7 +13,6 @@ here.
 from __future__ import annotations
 
 import contextlib
-import shutil
 import tempfile
 import time
 from collections import defaultdict
@@ -28,10 +27,8 @@ from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
+from spiral.core.policy import OpponentPolicy
 from spiral.env.mixed import MixedRaceEnv
-from spiral.selfplay.curriculum import stage_opponents
-from spiral.selfplay.opponents import PoolOpponents
-from spiral.selfplay.pool import Pool
 from spiral.train.runner import StageTrainer
 
 __all__ = ["ENV_HOOKS", "linear_layers", "matmul_seconds", "profile_iteration", "timed_methods",
@@ -117,7 +114,7 @@ def timed_methods(obj: Any, names: tuple[str, ...], totals: dict[str, float]) ->
 
 
 def _rollout(trainer: StageTrainer, obs: Any, totals: dict[str, float],
-             opponents: dict[str, PoolOpponents]) -> Any:
+             opponents: dict[str, OpponentPolicy]) -> Any:
     """One rollout of :meth:`StageTrainer.collect`, with the policy's and the env's parts timed (the hooks of every
     part of a mixed env, and the opponents' policies apart from the ``apply_actions`` hook that calls them)."""
     parts = trainer.env.parts.values() if isinstance(trainer.env, MixedRaceEnv) else [trainer.env]
@@ -126,8 +123,8 @@ def _rollout(trainer: StageTrainer, obs: Any, totals: dict[str, float],
         for env in parts:
             stack.enter_context(timed_methods(env, ENV_HOOKS, totals))
         inside: dict[str, float] = defaultdict(float)
-        if opponents:  # a call looks __call__ up on the class
-            stack.enter_context(timed_methods(PoolOpponents, ("__call__",), inside))
+        for kind in {type(policy) for policy in opponents.values()}:  # a call looks __call__ up on the class
+            stack.enter_context(timed_methods(kind, ("__call__",), inside))
         obs = trainer.collect(obs)[0]
     if inside:
         totals["opponents"] += inside["__call__"]
@@ -182,27 +179,18 @@ def _traced_update(alg: Any) -> torch.profiler.profile:
 
 def profile_iteration(track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, stage: StageSpec, *,
                       iterations: int = 3, device: str = "cpu", seed: int = 0, init_checkpoint: Path | None = None,
-                      pool_dir: Path | None = None, opponent_checkpoint: Path | None = None) -> dict[str, Any]:
+                      opponents: dict[str, OpponentPolicy] | None = None) -> dict[str, Any]:
     """Profile ``iterations`` PPO iterations of ``stage`` after one warm-up iteration (times are per iteration).
 
-    A multi-drone stage starts from ``init_checkpoint`` and races what it would race in a pipeline: in pool mode a
-    copy of the pool in ``pool_dir`` (left untouched; a new pool of the initial policy when None), in frozen mode
-    ``opponent_checkpoint``'s policy (the initial policy's when None).
+    A multi-drone stage starts from ``init_checkpoint`` and races ``opponents`` (per part of its worlds, as
+    ``StageTrainer`` takes them; :func:`spiral.selfplay.curriculum.published_opponents` builds a pipeline's).
     """
+    opponents = opponents or {}
+    if stage.scenario != "solo" and (init_checkpoint is None or not opponents):
+        raise ValueError(f"stage {stage.name!r}: profiling a {stage.scenario} stage needs the checkpoint it starts "
+                         "from and its opponents")
     with tempfile.TemporaryDirectory() as tmp:
-        opponents: dict[str, PoolOpponents] = {}
-        if stage.scenario != "solo":
-            if init_checkpoint is None:
-                raise ValueError(f"stage {stage.name!r}: profiling a {stage.scenario} stage needs the checkpoint it "
-                                 "starts from")
-            pool = None
-            if stage.selfplay.mode == "pool":
-                if pool_dir is not None:
-                    shutil.copytree(pool_dir, Path(tmp) / "pool")
-                pool = Pool(Path(tmp) / "pool", log=lambda _: None)
-            opponents = stage_opponents(stage, pool, init_checkpoint, opponent_checkpoint, device=device,
-                                        seed=seed).worlds
-        trainer = StageTrainer(track, airframe, sim, stage, Path(tmp) / "run", device=device, seed=seed,
+        trainer = StageTrainer(track, airframe, sim, stage, Path(tmp), device=device, seed=seed,
                                init_checkpoint=init_checkpoint, opponent=opponents or None, progress=False,
                                selector=lambda trainer, it: {}, log=lambda _: None)
         alg = trainer.runner.alg

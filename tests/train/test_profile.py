@@ -14,6 +14,7 @@ from torch import nn
 
 from spiral.config import AIRFRAMES, SimCfg, StageSpec
 from spiral.selfplay import Pool, PoolOpponents, run_stage
+from spiral.selfplay.curriculum import published_opponents
 from spiral.train.profile import (
     ENV_HOOKS,
     linear_layers,
@@ -71,8 +72,8 @@ TINY_PPO = {"num_steps_per_env": 4, "actor_hidden_dims": [16], "critic_hidden_di
 
 def test_a_profiled_self_play_stage_races_a_copy_of_the_pool_and_times_the_opponents_apart(line2, tmp_path):
     """A 1v1 stage with 2v2 worlds mixed in: the hooks of both parts and the pool members' policies are timed (the
-    opponents apart from the hook that calls them), the pool folder is left as it was, and a multi-drone stage
-    without the checkpoint it starts from is refused."""
+    opponents apart from the hook that calls them), the published pool folder is left as it was, and a multi-drone
+    stage without the checkpoint it starts from and its opponents is refused."""
     solo = StageSpec.model_validate({"name": "solo", "worlds": 4, "iterations": 1, "env": {"obs": {"history_len": 1}},
                                      "ppo": TINY_PPO, "selection": {"interval": 1, "races": 2}})
     run_stage(line2, AIRFRAMES["cf2x"], SimCfg(), solo, tmp_path / "solo", pool_dir=tmp_path / "unused",
@@ -84,8 +85,10 @@ def test_a_profiled_self_play_stage_races_a_copy_of_the_pool_and_times_the_oppon
     duel = StageSpec.model_validate({
         "name": "1v1", "scenario": "1v1", "worlds": 8, "iterations": 4, "env": {"obs": {"history_len": 1}},
         "mix": {"2v2": 0.5}, "ppo": TINY_PPO, "selection": {"races": 2}, "selfplay": {"p_self": 0.5}})
+    (tmp_path / "scratch").mkdir()
+    opponents = published_opponents(duel, init, tmp_path / "scratch", pool_dir=tmp_path / "pool").worlds
     r = profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), duel, iterations=1, init_checkpoint=init,
-                          pool_dir=tmp_path / "pool")
+                          opponents=opponents)
     assert set(r["rollout_parts_s"]) == {*ENV_HOOKS, "act", "process_env_step", "compute_returns", "opponents"}
     assert r["rollout_parts_s"]["opponents"] > 0 and r["rollout_parts_s"]["apply_actions"] > 0
     assert sum(r["rollout_parts_s"].values()) <= r["rollout_s"]
@@ -93,9 +96,12 @@ def test_a_profiled_self_play_stage_races_a_copy_of_the_pool_and_times_the_oppon
     assert {p.name: p.read_bytes() for p in (tmp_path / "pool").iterdir()} == before
     assert vars(PoolOpponents)["__call__"].__name__ == "__call__"  # not the timing wrapper
     frozen = duel.model_copy(update={"selfplay": duel.selfplay.model_copy(update={"mode": "frozen"})})
-    r = profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), frozen, iterations=1, init_checkpoint=init)
+    (tmp_path / "scratch2").mkdir()
+    opponents = published_opponents(frozen, init, tmp_path / "scratch2").worlds
+    r = profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), frozen, iterations=1, init_checkpoint=init,
+                          opponents=opponents)
     assert r["rollout_parts_s"]["opponents"] > 0
-    with pytest.raises(ValueError, match="needs the checkpoint it starts from"):
+    with pytest.raises(ValueError, match="needs the checkpoint it starts from and its opponents"):
         profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), duel, iterations=1)
 
 
