@@ -13,7 +13,7 @@ from typing import Annotated, Any, TypeVar
 import typer
 from pydantic import ValidationError
 
-from spiral.config import KINDS, SpecError, load_pipeline, load_spec, load_track
+from spiral.config import KINDS, PipelineSpec, SpecError, load_pipeline, load_spec, load_track
 from spiral.config.errors import format_validation_error
 
 __all__ = ["app", "main"]
@@ -419,6 +419,7 @@ def bench_ppo(
     the pool (self-play) or the frozen opponent's best (no self-play)."""
     from spiral.config.airframe import resolve_airframe
     from spiral.config.load import load_pipeline
+    from spiral.pipeline.graph import PipelinePlan
     from spiral.selfplay.curriculum import published_opponents
     from spiral.train.profile import profile_iteration
 
@@ -429,16 +430,10 @@ def bench_ppo(
         raise ValueError(f"--stage: {pipeline} has no stage named {stage!r} (stages: {', '.join(names)})")
     index = names.index(stage)
     spec_stage = spec.stages[index] if worlds is None else spec.stages[index].model_copy(update={"worlds": worlds})
-    published, frozen = checkpoints_dir / spec.name, None
+    frozen = None
     if spec_stage.scenario != "solo":
-        init = init or published / str(spec.init_stage(index)) / "best.pt"
-        if spec_stage.selfplay.mode == "pool":
-            pool = pool or (published / "pool" if (published / "pool").is_dir() else None)
-        elif spec_stage.selfplay.opponent_from:
-            frozen = published / spec_stage.selfplay.opponent_from / "best.pt"
-        for option, path in (("--init", init), ("--pool", pool), ("the frozen opponent", frozen)):
-            if path is not None and not path.exists():
-                raise ValueError(f"{option}: {path} does not exist (train the pipeline, or pass another)")
+        published = PipelinePlan(spec, track, pipeline, Path("runs"), checkpoints_dir).publish_root
+        init, pool, frozen = _published_inputs(spec, index, published, init, pool)
     with tempfile.TemporaryDirectory() as scratch:
         opponents = None if spec_stage.scenario == "solo" else published_opponents(
             spec_stage, init, Path(scratch), pool_dir=pool, opponent_checkpoint=frozen, device=device,
@@ -457,6 +452,23 @@ def bench_ppo(
                f" update / limit {r['update_over_matmul_limit']:.2f}"
                f" (CPU time {r['update_over_matmul_limit_cpu']:.2f})")
     _write_json(json_out, r)
+
+
+def _published_inputs(spec: PipelineSpec, index: int, published: Path, init: Path | None,
+                      pool: Path | None) -> tuple[Path, Path | None, Path | None]:
+    """What multi-drone stage ``index`` starts from and races, from the policies published under ``published``:
+    ``init`` (default: the best of the stage it starts from), in pool mode ``pool`` (default: the published pool, if
+    any), in frozen mode the best of the stage its opponent comes from."""
+    stage, frozen = spec.stages[index], None
+    init = init or published / str(spec.init_stage(index)) / "best.pt"
+    if stage.selfplay.mode == "pool":
+        pool = pool or (published / "pool" if (published / "pool").is_dir() else None)
+    elif stage.selfplay.opponent_from:
+        frozen = published / stage.selfplay.opponent_from / "best.pt"
+    for option, path in (("--init", init), ("--pool", pool), ("the frozen opponent", frozen)):
+        if path is not None and not path.exists():
+            raise ValueError(f"{option}: {path} does not exist (train the pipeline, or pass another)")
+    return init, pool, frozen
 
 
 def main() -> None:
