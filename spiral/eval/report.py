@@ -31,13 +31,15 @@ from spiral.eval.runs import (
     StageRun,
     crosses_in_workers,
     find_stages,
+    one_torch_thread,
     read_train_log,
     run_protocol,
     run_setup,
     track_of_run,
 )
 
-__all__ = ["APPROACHES", "PAPER", "StageRun", "build_report", "find_stages", "read_train_log", "track_of_run"]
+__all__ = ["APPROACHES", "PAPER", "SCENARIOS", "StageRun", "build_report", "find_stages", "race_learned_policies",
+           "race_planner_pairing", "read_train_log", "track_of_run"]
 
 APPROACHES: dict[str, str] = {"spiral": "PPO Selfplay (SPIRAL)", "se-ibr": "SE-IBR (Baseline)",
                               "noselfplay": "PPO No Selfplay"}
@@ -93,17 +95,10 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
     Returns:
         The path of ``results.md``.
     """
-    check_sides(sides)
     run_root, out_dir = Path(run_root), Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    stages = find_stages(run_root)
-    runs, seed = run_protocol(stages, runs, seed)
-    if holdout is not None and holdout[1] == seed:
-        raise ValueError(f"holdout seed {seed} is the evaluation's own seed: held-out placements need another")
-    stage_airframe, sim = run_setup(stages)
-    airframe = airframe or stage_airframe
-    ev = Evaluations(run_root, track, out_dir, stages, runs=runs, seed=seed, device=device, se_ibr=se_ibr,
-                      airframe=airframe, sim=sim, log=log, sides=sides)
+    ev = _protocol(run_root, track, out_dir, runs=runs, seed=seed, device=device, se_ibr=se_ibr, airframe=airframe,
+                   holdout=holdout, sides=sides, log=log)
+    stages, runs, seed, airframe = ev.stages, ev.runs, ev.seed, ev.airframe
     table = {s: [ev.self_match(s, key) for key in APPROACHES] for s in SCENARIOS}
     held_ev = None if holdout is None else ev.held_out(*holdout)
     planner_pairings = _se_ibr_pairings(table) if se_ibr and (cross_play or robustness) else []
@@ -118,6 +113,56 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
                      held=held, sides=sides, filtered=filtered, separation=separation)
     (out_dir / "results.md").write_text(_with_robustness(text, rb, sides))
     return out_dir / "results.md"
+
+
+def race_learned_policies(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int | None = None,
+                          seed: int | None = None, device: str = "cpu", cross_play: bool = True,
+                          airframe: AirframeCfg | None = None, holdout: tuple[int, int] | None = None,
+                          sides: str = "both", separation: SeparationCfg | None = None, robustness: bool = True,
+                          log: Callable[[str], None] = print) -> Path:
+    """Race, on one torch thread, what :func:`build_report` races among the learned policies (cross-play, held-out,
+    filter and robustness races), caching it under ``out_dir/evals``, where a later report of ``run_root`` finds it
+    (arguments as :func:`build_report`'s). A pipeline runs it as a step of its own, beside the planner's pairings.
+    Returns that cache folder."""
+    ev = _protocol(Path(run_root), track, Path(out_dir), runs=runs, seed=seed, device=device, se_ibr=False,
+                   airframe=airframe, holdout=holdout, sides=sides, log=log)
+    with one_torch_thread():
+        table = {s: [ev.self_match(s, key) for key in APPROACHES if key in MODE_OF] for s in SCENARIOS}
+        _race_learned(ev, None if holdout is None else ev.held_out(*holdout), table, ev.stages,
+                      cross_play=cross_play, separation=separation, robustness=robustness)
+    return ev.cache
+
+
+def race_planner_pairing(run_root: Path, track: TrackSpec, out_dir: Path, scenario: str, key: str, *,
+                         runs: int | None = None, seed: int | None = None, device: str = "cpu",
+                         airframe: AirframeCfg | None = None, sides: str = "both",
+                         log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Race, on one torch thread, learned approach ``key``'s head-to-head pairing with SE-IBR in ``scenario`` as
+    :func:`build_report` races it, caching it under ``out_dir/evals`` (arguments as :func:`build_report`'s). A
+    pipeline runs each pairing as a step of its own as soon as the stage it races has trained. Returns the approach's
+    entry (with SE-IBR's under ``opponent``)."""
+    ev = _protocol(Path(run_root), track, Path(out_dir), runs=runs, seed=seed, device=device, se_ibr=True,
+                   airframe=airframe, holdout=None, sides=sides, log=log)
+    agent = ev.agent(scenario, key)
+    if agent is None:
+        raise FileNotFoundError(f"{run_root}: no best.pt of a {MODE_OF[key]}-mode {scenario} stage")
+    with one_torch_thread():
+        return ev.cross(scenario, (key, agent), ("se-ibr", SE_IBR))
+
+
+def _protocol(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int | None, seed: int | None, device: str,
+              se_ibr: bool, airframe: AirframeCfg | None, holdout: tuple[int, int] | None, sides: str,
+              log: Callable[[str], None]) -> Evaluations:
+    """The run folder's evaluations with the report's races, seed, airframe and simulator, cached in ``out_dir``."""
+    check_sides(sides)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stages = find_stages(run_root)
+    runs, seed = run_protocol(stages, runs, seed)
+    if holdout is not None and holdout[1] == seed:
+        raise ValueError(f"holdout seed {seed} is the evaluation's own seed: held-out placements need another")
+    stage_airframe, sim = run_setup(stages)
+    return Evaluations(run_root, track, out_dir, stages, runs=runs, seed=seed, device=device, se_ibr=se_ibr,
+                       airframe=airframe or stage_airframe, sim=sim, log=log, sides=sides)
 
 
 def _race_learned(ev: Evaluations, held_ev: Evaluations | None, table: dict, stages: list[StageRun], *,

@@ -13,7 +13,7 @@ import contextlib
 import copy
 import json
 import multiprocessing
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,9 +29,11 @@ __all__ = [
     "Evaluations",
     "RowResult",
     "StageRun",
+    "approach_stage",
     "crosses_in_workers",
     "find_stages",
     "load_json",
+    "one_torch_thread",
     "read_train_log",
     "run_protocol",
     "run_setup",
@@ -71,6 +73,29 @@ class RowResult:
     metrics: dict[str, Any] | None = None
     source: str = ""
     note: str = ""
+
+
+def approach_stage(stages: Iterable[tuple[str, str, str]], scenario: str, key: str) -> str | None:
+    """Name of the stage whose best policy races as approach ``key`` in ``scenario``, among ``stages`` given as
+    ``(name, scenario, self-play mode)``: the one of the approach's mode in that scenario, one named like the scenario
+    (``1v1``, ``1v1-noselfplay``) winning a tie, else the first by name."""
+    found = sorted((name not in (scenario, f"{scenario}-noselfplay"), name)
+                   for name, stage_scenario, mode in stages if stage_scenario == scenario and mode == MODE_OF[key])
+    return found[0][1] if found else None
+
+
+@contextlib.contextmanager
+def one_torch_thread() -> Iterator[None]:
+    """Run the body on one torch thread (and restore the count after): races give the same numbers whatever else
+    runs beside them."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 def find_stages(run_root: Path) -> list[StageRun]:
@@ -125,9 +150,8 @@ class Evaluations:
 
     def stage_for(self, scenario: str, key: str) -> StageRun | None:
         """The stage of approach ``key`` in ``scenario``; one named like the scenario wins a tie."""
-        found = [s for s in self.stages if s.scenario == scenario and s.mode == MODE_OF[key]]
-        found.sort(key=lambda s: (s.name not in (scenario, f"{scenario}-noselfplay"), s.name))
-        return found[0] if found else None
+        name = approach_stage(((s.name, s.scenario, s.mode) for s in self.stages), scenario, key)
+        return next((s for s in self.stages if s.name == name), None)
 
     def agent(self, scenario: str, key: str) -> str | None:
         """Checkpoint (or ``se-ibr``) of approach ``key`` in ``scenario``, if it exists."""
@@ -173,9 +197,12 @@ class Evaluations:
               variant: str = "") -> dict[str, Any]:
         """Team ``a`` (key, agent) against team ``b``: the method entry of the evaluation JSON (with the opponent
         team's metrics under ``opponent``)."""
-        tag = f"cross-{scenario}-{a[0]}-vs-{b[0]}" + (f"-{variant}" if variant else "")
-        data, _ = self._run(tag, scenario, {a[0]: a[1]}, b, flight=flight)
+        data, _ = self._run(_cross_tag(scenario, a, b, variant), scenario, {a[0]: a[1]}, b, flight=flight)
         return data["methods"][a[0]]
+
+    def has_cross(self, scenario: str, a: tuple[str, str], b: tuple[str, str]) -> bool:
+        """Whether :meth:`cross` would find the pairing raced (in this cache or another step's of the run folder)."""
+        return self._cached(_cross_tag(scenario, a, b, ""), self._inputs(scenario, {a[0]: a[1]}, b)) is not None
 
     def mixed(self, a: tuple[str, str], b: tuple[str, str]) -> dict[str, Any]:
         """2v2 races in mixed teams (one drone of ``a`` and one of ``b`` per team): each method's entry."""
@@ -195,20 +222,34 @@ class Evaluations:
                     return entry, str(path)
         return None
 
-    def _run(self, tag: str, scenario: str, methods: dict[str, str], against: tuple[str, str] | None, *,
-             flight: FlightOverride | None = None, mixed: bool = False) -> tuple[dict[str, Any], Path]:
-        """Run ``spiral eval`` for ``methods`` (optionally against a team, or in mixed teams) unless a matching
-        cache exists."""
+    def _inputs(self, scenario: str, methods: dict[str, str], against: tuple[str, str] | None, *,
+                flight: FlightOverride | None = None, mixed: bool = False) -> dict[str, Any]:
+        """What an evaluation's numbers depend on, as its JSON records them under ``inputs``."""
         agents = [*methods.values(), *([against[1]] if against else [])]
         inputs = {"track": self.track.model_dump(mode="json"), "scenario": scenario, "runs": self.runs,
                   "seed": self.seed, "agents": [a if a == SE_IBR else _checksum(Path(a)) for a in agents],
                   **({"sides": self.sides} if against else {}), **({"mixed": True} if mixed else {}),
                   **({"flight": flight.to_json()} if flight is not None and flight.to_json() else {})}
-        inputs = json.loads(json.dumps(inputs))  # compare as read back: tuples become lists
-        path = self.cache / f"{self.prefix}{tag}.json"
-        cached = load_json(path)
-        if cached is not None and cached.get("inputs") == inputs:
-            return cached, path
+        return json.loads(json.dumps(inputs))  # compare as read back: tuples become lists
+
+    def _cached(self, tag: str, inputs: dict[str, Any]) -> tuple[dict[str, Any], Path] | None:
+        """The evaluation ``tag`` raced with ``inputs``: from this cache, else from another step's cache in the run
+        folder (``runs/<pipeline>/<step>/evals/``, where a pipeline races the report's evaluations ahead of it)."""
+        name = f"{self.prefix}{tag}.json"
+        for path in [self.cache / name, *sorted(self.run_root.glob(f"*/evals/{name}"))]:
+            cached = load_json(path)
+            if cached is not None and cached.get("inputs") == inputs:
+                return cached, path
+        return None
+
+    def _run(self, tag: str, scenario: str, methods: dict[str, str], against: tuple[str, str] | None, *,
+             flight: FlightOverride | None = None, mixed: bool = False) -> tuple[dict[str, Any], Path]:
+        """Run ``spiral eval`` for ``methods`` (optionally against a team, or in mixed teams) unless a matching
+        cache exists."""
+        inputs = self._inputs(scenario, methods, against, flight=flight, mixed=mixed)
+        found = self._cached(tag, inputs)
+        if found is not None:
+            return found
         self.log(f"report: running {self.prefix}{tag} ({self.runs} races, seed {self.seed})")
         if mixed:
             data = evaluate_mixed_teams(self.track, methods, runs=self.runs, seed=self.seed, device=self.device,
@@ -218,49 +259,49 @@ class Evaluations:
                                     device=self.device, against=against, airframe=self.airframe, sim=self.sim,
                                     sides=self.sides, flight=flight)
         data["inputs"] = inputs
+        path = self.cache / f"{self.prefix}{tag}.json"
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(data, indent=2) + "\n")
         return data, path
 
 
+def _cross_tag(scenario: str, a: tuple[str, str], b: tuple[str, str], variant: str) -> str:
+    return f"cross-{scenario}-{a[0]}-vs-{b[0]}" + (f"-{variant}" if variant else "")
+
+
 @contextlib.contextmanager
 def crosses_in_workers(ev: Evaluations, pairings: list[tuple[str, tuple[str, str], tuple[str, str]]], *,
                        jobs: int) -> Iterator[None]:
-    """Race the head-to-head ``pairings`` (scenario, team a, team b) missing from ``ev``'s cache in up to ``jobs``
+    """Race the head-to-head ``pairings`` (scenario, team a, team b) that ``ev`` does not find raced in up to ``jobs``
     processes (one torch thread each) while the body of the ``with`` runs (on one torch thread), and wait for them
     at its end, so that the report's own calls find them cached. Used for the planner's pairings, which take minutes
-    each: the body races what needs no planner meanwhile. With ``jobs`` ≤ 1 or a single pairing nothing runs in a
+    each: the body races what needs no planner meanwhile. With ``jobs`` ≤ 1 or nothing to race nothing runs in a
     worker."""
-    if jobs <= 1 or len(pairings) <= 1:
+    missing = [p for p in pairings if not ev.has_cross(*p)]
+    if jobs <= 1 or not missing:
         yield
         return
-    import torch
-
     quiet = copy.copy(ev)
     quiet.log = print
     context = multiprocessing.get_context("spawn")
     pool = concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=context)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # the workers take the cores: this process's races must not oversubscribe them
     try:
-        futures = []
-        for scenario, a, b in pairings:
-            ev.log(f"report: running {ev.prefix}cross-{scenario}-{a[0]}-vs-{b[0]} in a worker process")
-            futures.append(pool.submit(_cross_in_worker, (quiet, (scenario, a, b))))
-        yield
-        for future in futures:
-            future.result()
+        with one_torch_thread():  # the workers take the cores: this process's races must not oversubscribe them
+            futures = []
+            for scenario, a, b in missing:
+                ev.log(f"report: running {ev.prefix}{_cross_tag(scenario, a, b, '')} in a worker process")
+                futures.append(pool.submit(_cross_in_worker, (quiet, (scenario, a, b))))
+            yield
+            for future in futures:
+                future.result()
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
-        torch.set_num_threads(threads)
 
 
 def _cross_in_worker(job: tuple[Evaluations, tuple[str, tuple[str, str], tuple[str, str]]]) -> None:
-    import torch
-
-    torch.set_num_threads(1)
     ev, (scenario, a, b) = job
-    ev.cross(scenario, a, b)
+    with one_torch_thread():
+        ev.cross(scenario, a, b)
 
 
 def load_json(path: Path) -> dict[str, Any] | None:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,19 +16,11 @@ from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
 from spiral.core.files import atomic_write_bytes
 from spiral.eval.evaluate import evaluate_methods
+from spiral.pipeline.report_steps import PLANNER_STEP, report_steps
 from spiral.pipeline.step import Step, StepContext
 from spiral.selfplay.curriculum import run_stage
 
 __all__ = ["PLANNER_STEP", "PipelinePlan", "select_steps"]
-
-PLANNER_STEP = "eval:se-ibr"
-"""The step that races SE-IBR's self-matches (with ``report.se_ibr``)."""
-REPORT_JOBS = os.cpu_count() or 1
-"""Processes in which the report races the planner's head-to-head pairings: one per core (the report is the
-pipeline's last step; only instant promotion steps may run beside it)."""
-
-PLANNER_SCENARIOS = ("1v1", "2v2")
-
 
 @dataclass
 class PipelinePlan:
@@ -68,14 +59,7 @@ class PipelinePlan:
                            {"stage": stage.name, "dest": str(self.publish_root / stage.name),
                             "publish_as": stage.publish_as})
             steps += [train, evaluate, promote]
-        if self.spec.report.enabled and self.spec.report.se_ibr:
-            # needs no trained policy: first in the list, so that --jobs runs it beside the first training step
-            steps.insert(0, Step(PLANNER_STEP, self._planner_fn(), [], self._planner_section()))
-        if self.spec.report.enabled:
-            inputs = [s.name for s in steps if not s.name.startswith("promote:")]
-            steps.append(Step("report", self._report_fn(), inputs,
-                              {"report": self.spec.report, **self.spec.evaluation.model_dump()}))
-        return steps
+        return report_steps(self, steps)
 
     def _last_pool_stage(self) -> str | None:
         """The last self-play stage: its pool is the one published to ``checkpoints/<name>/pool``."""
@@ -118,44 +102,6 @@ class PipelinePlan:
             m = result["methods"]["spiral"]
             ctx.log(f"eval:{stage.name}: success {m['success_ratio']:.2f}, lap {m['lap_time_mean']}")
             return {"eval": out}, {"success_ratio": m["success_ratio"], "lap_time_mean": m["lap_time_mean"]}
-        return run
-
-    def _planner_section(self) -> dict[str, Any]:
-        return {"scenarios": list(PLANNER_SCENARIOS), **self.spec.evaluation.model_dump(include={"runs", "seed"}),
-                "track": self.track, "sim": self.spec.sim,
-                "airframe": resolve_airframe(self.spec.airframe, source=str(self.source))}
-
-    def _planner_fn(self):
-        """SE-IBR's self-matches in 1v1 and 2v2 with the protocol's races, one eval JSON per scenario (the report
-        finds them), flown through the default action mapping with no separation filter: the paper's stack."""
-        def run(ctx: StepContext) -> tuple[dict[str, Path], dict[str, Any]]:
-            ev, outputs, info = self.spec.evaluation, {}, {}
-            airframe = resolve_airframe(self.spec.airframe, source=str(self.source))
-            for scenario in PLANNER_SCENARIOS:
-                result = evaluate_methods(self.track, {"se-ibr": "se-ibr"}, scenario=scenario, runs=ev.runs,
-                                          seed=ev.seed, device=self.spec.device, airframe=airframe,
-                                          sim=self.spec.sim)
-                out = ctx.step_dir / f"eval-{scenario}.json"
-                atomic_write_bytes(out, json.dumps(result, indent=2).encode())
-                m = result["methods"]["se-ibr"]
-                ctx.log(f"{PLANNER_STEP} {scenario}: success {m['success_ratio']:.2f}, lap {m['lap_time_mean']}")
-                outputs[f"eval_{scenario}"], info[scenario] = out, m["success_ratio"]
-            return outputs, info
-        return run
-
-    def _report_fn(self):
-        def run(ctx: StepContext) -> tuple[dict[str, Path], dict[str, Any]]:
-            from spiral.eval.report import build_report
-
-            cfg, ev = self.spec.report, self.spec.evaluation
-            results = build_report(self.run_root, self.track, ctx.step_dir, runs=ev.runs, seed=ev.seed,
-                                   device=self.spec.device, se_ibr=cfg.se_ibr, cross_play=cfg.cross_play,
-                                   holdout=(ev.holdout_runs, ev.holdout_seed) if ev.holdout_runs else None,
-                                   sides=ev.sides, separation=cfg.separation, robustness=cfg.robustness,
-                                   airframe=resolve_airframe(self.spec.airframe), jobs=REPORT_JOBS,
-                                   command=f"spiral run {self.source}", log=ctx.log)
-            ctx.log(f"report: {results}")
-            return {"results": results, "csv": results.with_name("results.csv")}, {}
         return run
 
     def _promote_fn(self, stage: StageSpec):

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from spiral.config import AIRFRAMES, SeparationCfg, SimCfg, TrackSpec
-from spiral.eval.report import _flight_stack, build_report, find_stages
+from spiral.eval.report import _flight_stack, build_report, find_stages, race_learned_policies, race_planner_pairing
 from spiral.eval.runs import Evaluations, crosses_in_workers, run_setup
 from tests.eval.conftest import tiny_stage
 
@@ -232,6 +232,41 @@ def test_report_races_se_ibr_in_both_tables_and_prints_its_planning_cost(sprint,
     cached = json.loads((tmp_path / "out" / "evals" / "self-2v2-se-ibr.json").read_text())
     cost = cached["methods"]["se-ibr"]["planning"]
     assert cost["plans"] > 0 and 0 < cost["plan_ms_median"] <= cost["plan_ms_p95"]
+
+
+def test_a_report_finds_what_steps_raced_ahead_in_the_run_folder_and_writes_the_same(sprint, tiny_checkpoint,
+                                                                                      tmp_path):
+    """The races among learned policies and each planner pairing, raced ahead into folders of their own in the run
+    folder (as a pipeline's steps race them), are found by the report: it races nothing and writes the results.md of
+    a report that raced everything itself."""
+    stages = (*STAGES, ("1v1-noselfplay", "1v1", "frozen"), ("2v2", "2v2", "pool"))
+    options = {"bound_steps": 8, "holdout": (2, 5), "separation": SeparationCfg(distance=0.25, horizon_s=0.4, gain=1.5)}
+    reference_root, root = tmp_path / "alone" / "tiny", tmp_path / "runs" / "tiny"
+    for folder in (reference_root, root):
+        fake_run(folder, sprint, tiny_checkpoint, stages=stages)
+    reference = build_report(reference_root, sprint, reference_root / "report", se_ibr=True, jobs=2,
+                             log=lambda _: None, **options).read_text()
+    for scenario in ("1v1", "2v2"):  # the planner's self-matches, as the pipeline's eval:se-ibr step writes them
+        (root / "eval-se-ibr").mkdir(exist_ok=True)
+        shutil.copyfile(reference_root / "report" / "evals" / f"self-{scenario}-se-ibr.json",
+                        root / "eval-se-ibr" / f"eval-{scenario}.json")
+    race_learned_policies(root, sprint, root / "eval-report", holdout=(2, 5), separation=options["separation"],
+                          log=lambda _: None)
+    for name, scenario, mode in stages:
+        key = "spiral" if mode == "pool" else "noselfplay"
+        entry = race_planner_pairing(root, sprint, root / f"eval-se-ibr-vs-{name}", scenario, key, log=lambda _: None)
+        assert {"win_rate", "opponent"} <= set(entry)
+    logs: list[str] = []
+    md = build_report(root, sprint, root / "report", se_ibr=True, jobs=2, log=logs.append, **options).read_text()
+    assert not [line for line in logs if line.startswith("report: running")]
+    # the same report but for its list of sources: each number now read from the folder it was raced in
+    head, sources = md.split("## Sources")
+    assert head.replace(str(root), "RUN") == reference.split("## Sources")[0].replace(str(reference_root), "RUN")
+    found = [Path(line.strip("- `")) for line in sources.strip().splitlines()]
+    assert {path.parent.parent.name for path in found if path.parent.name == "evals"} == {"eval-report"}
+    assert all(path.is_file() and root in path.parents for path in found)
+    with pytest.raises(FileNotFoundError, match=r"no best\.pt of a pool-mode 1v1 stage"):
+        race_planner_pairing(tmp_path / "alone", sprint, tmp_path / "x", "1v1", "spiral", log=lambda _: None)
 
 
 def _evaluations(root: Path, track: TrackSpec, out: Path, logs: list[str]) -> Evaluations:

@@ -231,7 +231,8 @@ def test_failed_parallel_step_keeps_the_work_of_the_steps_running_beside_it(tmp_
 
 
 def test_held_out_check_and_head_to_head_sides_are_the_reports_alone(tmp_path):
-    """Adding a held-out check or changing the head-to-head sides leaves trained and evaluated stages complete."""
+    """Adding a held-out check or changing the head-to-head sides leaves trained and evaluated stages complete: only
+    the report and its races run again."""
     path = write_pipeline(tmp_path)
     data = yaml.safe_load(path.read_text())
     data["report"] = {"enabled": True, "cross_play": False}
@@ -241,23 +242,39 @@ def test_held_out_check_and_head_to_head_sides_are_the_reports_alone(tmp_path):
         data["evaluation"] = {**data.get("evaluation", {}), **change}
         path.write_text(yaml.safe_dump(data))
         before, after = runner._fingerprints(), runner_for(path, tmp_path)._fingerprints()
-        assert list(after) == ["train:solo", "eval:solo", "promote:solo", "report"]
-        assert [name for name in after if after[name] != before[name]] == ["report"]
+        assert list(after) == ["train:solo", "eval:solo", "promote:solo", "eval:report", "report"]
+        assert [name for name in after if after[name] != before[name]] == ["eval:report", "report"]
         runner = runner_for(path, tmp_path)
 
 
-def test_planner_self_matches_are_a_step_without_inputs_that_the_report_waits_for(tmp_path):
-    """With report.se_ibr the planner's self-matches are one step that needs no trained policy (so --jobs runs it
-    beside the first training step), listed first; the report takes it as an input."""
+def test_the_planners_races_are_steps_that_wait_only_for_what_they_race_and_the_report_races_nothing(tmp_path):
+    """With report.se_ibr the planner's self-matches are a step that needs no trained policy (listed first, so that
+    --jobs runs it beside the first training step), each of its head-to-head pairings a step that needs the one stage
+    it races, and the report's races among learned policies a step that needs every stage but no planner; the report
+    step takes them all as inputs and finds everything raced."""
     data = yaml.safe_load((ROOT / "pipelines" / "smoke.yaml").read_text())
     data = json.loads(json.dumps({k: v for k, v in data.items() if not k.startswith("x-")}))
     data["track"] = str(ROOT / "tracks" / "oval4.yaml")
-    data["report"] = {"se_ibr": True}
+    data["report"] = {"se_ibr": True, "robustness": False}
+    data["evaluation"] = {"runs": 1, "seed": 0}
     path = tmp_path / "p.yaml"
     path.write_text(yaml.safe_dump(data))
-    steps = runner_for(path, tmp_path).steps
-    assert steps[0].name == "eval:se-ibr" and steps[0].inputs == [] and steps[0].dirname == "eval-se-ibr"
-    assert "eval:se-ibr" in steps[-1].inputs and steps[-1].name == "report"
+    logs: list[str] = []
+    runner = runner_for(path, tmp_path, logs)
+    steps = {s.name: s for s in runner.steps}
+    assert runner.steps[0].name == "eval:se-ibr" and steps["eval:se-ibr"].inputs == []
+    stages = ["solo", "1v1", "2v2", "1v1-noselfplay", "2v2-noselfplay"]
+    pairings = {name: s.inputs for name, s in steps.items() if name.startswith("eval:se-ibr-vs-")}
+    assert pairings == {f"eval:se-ibr-vs-{stage}": [f"train:{stage}"] for stage in stages[1:]}
+    assert steps["eval:report"].inputs == [f"{kind}:{stage}" for stage in stages for kind in ("train", "eval")]
+    assert set(steps["report"].inputs) == {"eval:se-ibr", *pairings, *steps["eval:report"].inputs, "eval:report"}
+    assert runner.steps[-1].name == "report"
+
+    runner.run()
+    report_logs = logs[logs.index("step 'report' running"):]
+    assert not [line for line in report_logs if line.startswith("report: running")]
+    cached = tmp_path / "runs" / "smoke" / "eval-se-ibr-vs-2v2" / "evals" / "cross-2v2-spiral-vs-se-ibr.json"
+    assert json.loads(cached.read_text())["inputs"]["runs"] == 1
     data["report"] = {"se_ibr": False}
     path.write_text(yaml.safe_dump(data))
-    assert "eval:se-ibr" not in [s.name for s in runner_for(path, tmp_path).steps]
+    assert not [name for name in (s.name for s in runner_for(path, tmp_path).steps) if name.startswith("eval:se-ibr")]

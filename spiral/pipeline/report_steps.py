@@ -1,0 +1,142 @@
+"""The steps of a pipeline's report: the planner's races, the report's races among learned policies, and the report.
+
+Each races as soon as what it needs exists, so that ``spiral run --jobs N`` runs them beside the training steps that
+are still going: the planner's self-matches (``eval:se-ibr``) need no trained policy, each of its head-to-head
+pairings with a learned approach (``eval:se-ibr-vs-<stage>``) needs that stage's best policy, and the races among
+learned policies (``eval:report``) need every stage. They race on one torch thread each and cache their results under
+``runs/<pipeline>/<step>/evals/``, where the ``report`` step finds them: what it writes is the same as if it had raced
+everything itself.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any, Protocol
+
+from spiral.config.airframe import resolve_airframe
+from spiral.config.pipeline import PipelineSpec
+from spiral.config.track import TrackSpec
+from spiral.core.files import atomic_write_bytes
+from spiral.eval.evaluate import evaluate_methods
+from spiral.eval.report import SCENARIOS, build_report, race_learned_policies, race_planner_pairing
+from spiral.eval.runs import MODE_OF, approach_stage, one_torch_thread
+from spiral.pipeline.step import Step, StepContext
+
+__all__ = ["LEARNED_STEP", "PLANNER_STEP", "report_steps"]
+
+PLANNER_STEP = "eval:se-ibr"
+"""The step that races SE-IBR's self-matches (with ``report.se_ibr``)."""
+LEARNED_STEP = "eval:report"
+"""The step that races what the report races among learned policies."""
+REPORT_JOBS = os.cpu_count() or 1
+"""Processes in which the report races planner pairings that no step raced (a step run alone with ``--only``)."""
+
+
+class PipelinePlan(Protocol):
+    """What the report's steps read of a pipeline's plan (:class:`spiral.pipeline.graph.PipelinePlan`)."""
+
+    spec: PipelineSpec
+    track: TrackSpec
+    source: Path
+
+    @property
+    def run_root(self) -> Path: ...
+
+
+def report_steps(plan: PipelinePlan, steps: list[Step]) -> list[Step]:
+    """``steps`` (the stages' train, eval and promote steps) with the report's steps added: the planner's
+    self-matches first (``--jobs`` runs them beside the first training step), its pairings, the report's races among
+    learned policies and the report last."""
+    report = plan.spec.report
+    if not report.enabled:
+        return steps
+    out = list(steps)
+    if report.se_ibr:
+        out.insert(0, Step(PLANNER_STEP, _planner_fn(plan), [], _planner_section(plan)))
+        if report.cross_play or report.robustness:
+            out += _pairing_steps(plan)
+    section = {"report": report, **plan.spec.evaluation.model_dump()}
+    stage_steps = [s.name for s in steps if not s.name.startswith("promote:")]
+    out.append(Step(LEARNED_STEP, _learned_fn(plan), stage_steps, section))
+    out.append(Step("report", _report_fn(plan), [s.name for s in out if not s.name.startswith("promote:")], section))
+    return out
+
+
+def _planner_section(plan: PipelinePlan) -> dict[str, Any]:
+    return {"scenarios": list(SCENARIOS), **plan.spec.evaluation.model_dump(include={"runs", "seed"}),
+            "track": plan.track, "sim": plan.spec.sim,
+            "airframe": resolve_airframe(plan.spec.airframe, source=str(plan.source))}
+
+
+def _planner_fn(plan: PipelinePlan):
+    """SE-IBR's self-matches in 1v1 and 2v2 with the protocol's races, one eval JSON per scenario (the report
+    finds them), flown through the default action mapping with no separation filter: the paper's stack."""
+    def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
+        ev, outputs, info = plan.spec.evaluation, {}, {}
+        airframe = resolve_airframe(plan.spec.airframe, source=str(plan.source))
+        for scenario in SCENARIOS:
+            result = evaluate_methods(plan.track, {"se-ibr": "se-ibr"}, scenario=scenario, runs=ev.runs,
+                                      seed=ev.seed, device=plan.spec.device, airframe=airframe, sim=plan.spec.sim)
+            out = ctx.step_dir / f"eval-{scenario}.json"
+            atomic_write_bytes(out, json.dumps(result, indent=2).encode())
+            m = result["methods"]["se-ibr"]
+            ctx.log(f"{PLANNER_STEP} {scenario}: success {m['success_ratio']:.2f}, lap {m['lap_time_mean']}")
+            outputs[f"eval_{scenario}"], info[scenario] = out, m["success_ratio"]
+        return outputs, info
+    return run
+
+
+def _pairing_steps(plan: PipelinePlan) -> list[Step]:
+    """One step per learned approach and scenario that a stage of the pipeline trains: its pairing with SE-IBR."""
+    stages = [(s.name, s.scenario, s.selfplay.mode) for s in plan.spec.stages]
+    out = []
+    for scenario in SCENARIOS:
+        for key in MODE_OF:
+            stage = approach_stage(stages, scenario, key)
+            if stage is None:
+                continue
+            section = {"scenario": scenario, "approach": key, "against": "se-ibr",
+                       **plan.spec.evaluation.model_dump(include={"runs", "seed", "sides"})}
+            out.append(Step(f"{PLANNER_STEP}-vs-{stage}", _pairing_fn(plan, scenario, key), [f"train:{stage}"],
+                            section))
+    return out
+
+
+def _pairing_fn(plan: PipelinePlan, scenario: str, key: str):
+    def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
+        ev = plan.spec.evaluation
+        entry = race_planner_pairing(plan.run_root, plan.track, ctx.step_dir, scenario, key, runs=ev.runs,
+                                     seed=ev.seed, device=plan.spec.device, sides=ev.sides,
+                                     airframe=resolve_airframe(plan.spec.airframe), log=ctx.log)
+        ctx.log(f"{ctx.step_dir.name}: win rate {entry['win_rate']:.2f} against SE-IBR")
+        return {}, {"win_rate": entry["win_rate"], "success_ratio": entry["success_ratio"]}
+    return run
+
+
+def _learned_fn(plan: PipelinePlan):
+    def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
+        cfg, ev = plan.spec.report, plan.spec.evaluation
+        race_learned_policies(plan.run_root, plan.track, ctx.step_dir, runs=ev.runs, seed=ev.seed,
+                              device=plan.spec.device, cross_play=cfg.cross_play,
+                              holdout=(ev.holdout_runs, ev.holdout_seed) if ev.holdout_runs else None,
+                              sides=ev.sides, separation=cfg.separation, robustness=cfg.robustness,
+                              airframe=resolve_airframe(plan.spec.airframe), log=ctx.log)
+        return {}, {}
+    return run
+
+
+def _report_fn(plan: PipelinePlan):
+    def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
+        cfg, ev = plan.spec.report, plan.spec.evaluation
+        with one_torch_thread():  # all is raced by the steps before; anything left races as they race it
+            results = build_report(plan.run_root, plan.track, ctx.step_dir, runs=ev.runs, seed=ev.seed,
+                                   device=plan.spec.device, se_ibr=cfg.se_ibr, cross_play=cfg.cross_play,
+                                   holdout=(ev.holdout_runs, ev.holdout_seed) if ev.holdout_runs else None,
+                                   sides=ev.sides, separation=cfg.separation, robustness=cfg.robustness,
+                                   airframe=resolve_airframe(plan.spec.airframe), jobs=REPORT_JOBS,
+                                   command=f"spiral run {plan.source}", log=ctx.log)
+        ctx.log(f"report: {results}")
+        return {"results": results, "csv": results.with_name("results.csv")}, {}
+    return run
