@@ -99,18 +99,18 @@ def _pairing_steps(plan: PipelinePlan) -> list[Step]:
                 continue
             section = {"scenario": scenario, "approach": key, "against": "se-ibr",
                        **plan.spec.evaluation.model_dump(include={"runs", "seed", "sides"})}
-            out.append(Step(f"{PLANNER_STEP}-vs-{stage}", _pairing_fn(plan, scenario, key), [f"train:{stage}"],
-                            section))
+            name = f"{PLANNER_STEP}-vs-{stage}"
+            out.append(Step(name, _pairing_fn(plan, name, scenario, key), [f"train:{stage}"], section))
     return out
 
 
-def _pairing_fn(plan: PipelinePlan, scenario: str, key: str):
+def _pairing_fn(plan: PipelinePlan, name: str, scenario: str, key: str):
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
         ev = plan.spec.evaluation
         entry = race_planner_pairing(plan.run_root, plan.track, ctx.step_dir, scenario, key, runs=ev.runs,
                                      seed=ev.seed, device=plan.spec.device, sides=ev.sides,
                                      airframe=resolve_airframe(plan.spec.airframe), log=ctx.log)
-        ctx.log(f"{ctx.step_dir.name}: win rate {entry['win_rate']:.2f} against SE-IBR")
+        ctx.log(f"{name}: win rate {entry['win_rate']:.2f}, success {entry['success_ratio']:.2f} against SE-IBR")
         return {}, {"win_rate": entry["win_rate"], "success_ratio": entry["success_ratio"]}
     return run
 
