@@ -168,9 +168,11 @@ def status(pipeline: Path, json_out: JsonOut = None, runs_dir: RunsDir = Path("r
 
     runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir,
                             accept_code_changes=accept_code_changes)
-    for s in runner.status():
+    steps = runner.status()
+    width = max((len(s.name) for s in steps), default=0)
+    for s in steps:
         extra = "; ".join(x for x in (s.reason, s.detail) if x)
-        typer.echo(f"{s.name:<28} {s.status}{f' ({extra})' if extra else ''}")
+        typer.echo(f"{s.name:<{width}}  {s.status}{f' ({extra})' if extra else ''}")
     _write_json(json_out, runner.describe())
 
 

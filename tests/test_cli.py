@@ -133,3 +133,17 @@ def test_sim_threads_option_sets_the_simulators_thread_count_and_refuses_zero(mo
     assert World.cpu_threads == 2 and shares and set(shares) == {2}
     bad = runner.invoke(app, ["bench", "ppo", smoke, "--sim-threads", "0"])
     assert bad.exit_code == 2 and "--sim-threads" in bad.output
+
+
+def test_status_lines_up_every_steps_state_after_the_longest_step_name(tmp_path):
+    """With the planner's pairing steps (the longest names), each state still starts in one column."""
+    smoke = (ROOT / "pipelines" / "smoke.yaml").read_text().replace("../tracks/", str(ROOT / "tracks") + "/")
+    path = tmp_path / "smoke.yaml"
+    path.write_text(smoke + "report: {se_ibr: true}\n")
+    result = runner.invoke(app, ["status", str(path), "--runs-dir", str(tmp_path / "runs"),
+                                 "--checkpoints-dir", str(tmp_path / "ckpt")])
+    assert result.exit_code == 0, result.output
+    lines = [line for line in result.output.splitlines() if line.endswith("missing")]
+    names = [line.split()[0] for line in lines]
+    assert "eval:se-ibr-vs-2v2-noselfplay" in names and names[-1] == "report"
+    assert len({line.index("missing") for line in lines}) == 1
