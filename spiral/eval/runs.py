@@ -21,7 +21,7 @@ from typing import Any
 from spiral.config.airframe import AIRFRAMES, AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
-from spiral.core.files import file_sha256
+from spiral.core.files import atomic_write_bytes, file_sha256
 from spiral.eval.evaluate import SE_IBR, FlightOverride, evaluate_methods, evaluate_mixed_teams
 
 __all__ = [
@@ -260,8 +260,7 @@ class Evaluations:
                                     sides=self.sides, flight=flight)
         data["inputs"] = inputs
         path = self.cache / f"{self.prefix}{tag}.json"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(data, indent=2) + "\n")
+        atomic_write_bytes(path, (json.dumps(data, indent=2) + "\n").encode())  # other steps may be reading the run
         return data, path
 
 
