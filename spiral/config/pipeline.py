@@ -45,10 +45,11 @@ class EvaluationCfg(StrictModel):
 
 
 class ReportCfg(StrictModel):
-    """The pipeline's final report step (``runs/<name>/report/results.md`` and figures)."""
+    """The pipeline's report (``runs/<name>/report/results.md`` and figures) and the steps that race for it."""
 
-    enabled: bool = Field(default=True, description="Add the report step")
-    se_ibr: bool = Field(default=False, description="Race the SE-IBR planner for the tables (minutes on a CPU)")
+    enabled: bool = Field(default=True, description="Add the report and its races (`eval:report`, `report`)")
+    se_ibr: bool = Field(default=False, description="Race the SE-IBR planner for the tables in steps of its own "
+                         "(`eval:se-ibr`, `eval:se-ibr-vs-<stage>`; minutes each on a CPU)")
     cross_play: bool = Field(default=True, description="Cross-play win-rate matrices")
     separation: SeparationCfg | None = Field(
         default=None,
