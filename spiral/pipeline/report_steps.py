@@ -115,28 +115,28 @@ def _pairing_fn(plan: PipelinePlan, name: str, scenario: str, key: str):
     return run
 
 
+def _report_options(plan: PipelinePlan) -> dict[str, Any]:
+    """The arguments that :func:`build_report` and :func:`race_learned_policies` take alike, from the pipeline."""
+    cfg, ev = plan.spec.report, plan.spec.evaluation
+    return {"runs": ev.runs, "seed": ev.seed, "device": plan.spec.device, "cross_play": cfg.cross_play,
+            "holdout": (ev.holdout_runs, ev.holdout_seed) if ev.holdout_runs else None, "sides": ev.sides,
+            "separation": cfg.separation, "robustness": cfg.robustness,
+            "airframe": resolve_airframe(plan.spec.airframe)}
+
+
 def _learned_fn(plan: PipelinePlan):
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
-        cfg, ev = plan.spec.report, plan.spec.evaluation
-        race_learned_policies(plan.run_root, plan.track, ctx.step_dir, runs=ev.runs, seed=ev.seed,
-                              device=plan.spec.device, cross_play=cfg.cross_play,
-                              holdout=(ev.holdout_runs, ev.holdout_seed) if ev.holdout_runs else None,
-                              sides=ev.sides, separation=cfg.separation, robustness=cfg.robustness,
-                              airframe=resolve_airframe(plan.spec.airframe), log=ctx.log)
+        race_learned_policies(plan.run_root, plan.track, ctx.step_dir, log=ctx.log, **_report_options(plan))
         return {}, {}
     return run
 
 
 def _report_fn(plan: PipelinePlan):
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
-        cfg, ev = plan.spec.report, plan.spec.evaluation
         with one_torch_thread():  # all is raced by the steps before; anything left races as they race it
-            results = build_report(plan.run_root, plan.track, ctx.step_dir, runs=ev.runs, seed=ev.seed,
-                                   device=plan.spec.device, se_ibr=cfg.se_ibr, cross_play=cfg.cross_play,
-                                   holdout=(ev.holdout_runs, ev.holdout_seed) if ev.holdout_runs else None,
-                                   sides=ev.sides, separation=cfg.separation, robustness=cfg.robustness,
-                                   airframe=resolve_airframe(plan.spec.airframe), jobs=REPORT_JOBS,
-                                   command=f"spiral run {plan.source}", log=ctx.log)
+            results = build_report(plan.run_root, plan.track, ctx.step_dir, se_ibr=plan.spec.report.se_ibr,
+                                   jobs=REPORT_JOBS, command=f"spiral run {plan.source}", log=ctx.log,
+                                   **_report_options(plan))
         ctx.log(f"report: {results}")
         return {"results": results, "csv": results.with_name("results.csv")}, {}
     return run
