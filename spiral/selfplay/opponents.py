@@ -70,9 +70,10 @@ class PoolOpponents:
         members = member_of_row[pooled]
         policy_obs = obs["policy"]
         counts = torch.bincount(members, minlength=len(self.policies)).tolist()
-        for m, rows in enumerate(pooled[torch.argsort(members, stable=True)].split(counts)):
-            if len(rows):
-                actions[rows] = self.policies[m].actions(policy_obs[rows])
+        order = pooled[torch.argsort(members, stable=True)]
+        acted = [self.policies[m].actions(policy_obs[rows]) for m, rows in enumerate(order.split(counts)) if len(rows)]
+        if acted:
+            actions[order] = torch.cat(acted)
         if self.pace > 0:  # on the action range the env keeps: a policy's mean may lie beyond it
             actions[:, :3] = actions[:, :3].clamp(-1.0, 1.0) * self.action_scale.view(-1, 1)
         if self.offset > 0:
