@@ -150,9 +150,9 @@ def test_noise_range_must_not_be_empty():
         PPOCfg(min_noise_std=0.2, max_noise_std=0.1)
 
 
-def test_frozen_policy_acts_as_its_actor_modules_to_the_bit_after_a_reload_too(oval2, tmp_path):
+def test_frozen_policy_acts_as_its_actor_modules_to_the_bit_after_a_reload_or_a_cast_too(oval2, tmp_path):
     """A frozen policy's direct forward pass gives what the actor's modules give, for any number of rows, and
-    follows weights loaded into it afterwards."""
+    follows weights loaded into it or cast afterwards."""
     StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(4), tmp_path, seed=3, progress=False).train()
     policy, other = load_policy(tmp_path / "best.pt"), load_policy(tmp_path / "ckpt" / "model_1.pt")
     obs = torch.randn(200, policy.obs_layout["obs_dim"])
@@ -162,3 +162,5 @@ def test_frozen_policy_acts_as_its_actor_modules_to_the_bit_after_a_reload_too(o
     assert not torch.equal(policy.actions(obs), other.actions(obs))
     policy.load_state_dict(other.state_dict())
     assert torch.equal(policy.actions(obs), other.actions(obs))
+    policy.double()
+    assert torch.equal(policy.actions(obs.double()), actor.mlp(actor.obs_normalizer(obs.double())))
