@@ -10,7 +10,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from spiral.config.airframe import resolve_airframe
+from spiral.config.airframe import AirframeCfg, resolve_airframe
 from spiral.config.pipeline import PipelineSpec
 from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
@@ -42,6 +42,11 @@ class PipelinePlan:
         """Folder of this pipeline's promoted policies."""
         return self.checkpoints_dir / self.spec.name
 
+    @property
+    def airframe(self) -> AirframeCfg:
+        """The pipeline's airframe with its overrides applied (an error names the pipeline file)."""
+        return resolve_airframe(self.spec.airframe, source=str(self.source))
+
     def steps(self) -> list[Step]:
         """Every step in dependency order."""
         steps: list[Step] = []
@@ -69,7 +74,7 @@ class PipelinePlan:
     def _train_section(self, stage: StageSpec) -> dict[str, Any]:
         """The training step's spec: models, which its fingerprint hashes by the fields that differ from defaults."""
         return {"stage": stage, "track": self.track,
-                "airframe": resolve_airframe(self.spec.airframe, source=str(self.source)),
+                "airframe": self.airframe,
                 "sim": self.spec.sim, "device": self.spec.device,
                 "seed": stage.seed if stage.seed is not None else self.spec.seed}
 
@@ -82,7 +87,7 @@ class PipelinePlan:
             pool_dir = ctx.step_dir / "pool"
             if init is not None and not pool_dir.exists() and (init.parent / "pool").is_dir():
                 shutil.copytree(init.parent / "pool", pool_dir)  # the pool carries over from stage to stage
-            result = run_stage(self.track, resolve_airframe(self.spec.airframe), self.spec.sim, stage, ctx.step_dir,
+            result = run_stage(self.track, self.airframe, self.spec.sim, stage, ctx.step_dir,
                                pool_dir=pool_dir, init_checkpoint=init, opponent_checkpoint=frozen,
                                device=self.spec.device, seed=section["seed"], log=ctx.log, progress=ctx.progress)
             info = {"iterations": result.iterations, "wall_time_s": result.wall_time_s, "env_steps": result.env_steps,

@@ -15,7 +15,7 @@ import os
 from pathlib import Path
 from typing import Any, Protocol
 
-from spiral.config.airframe import resolve_airframe
+from spiral.config.airframe import AirframeCfg
 from spiral.config.pipeline import PipelineSpec
 from spiral.config.track import TrackSpec
 from spiral.core.files import atomic_write_bytes
@@ -34,7 +34,7 @@ REPORT_JOBS = os.cpu_count() or 1
 """Processes in which the report races planner pairings that no step raced (a step run alone with ``--only``)."""
 
 
-class PipelinePlan(Protocol):
+class PlanView(Protocol):
     """What the report's steps read of a pipeline's plan (:class:`spiral.pipeline.graph.PipelinePlan`)."""
 
     spec: PipelineSpec
@@ -44,8 +44,11 @@ class PipelinePlan(Protocol):
     @property
     def run_root(self) -> Path: ...
 
+    @property
+    def airframe(self) -> AirframeCfg: ...
 
-def report_steps(plan: PipelinePlan, steps: list[Step]) -> list[Step]:
+
+def report_steps(plan: PlanView, steps: list[Step]) -> list[Step]:
     """``steps`` (the stages' train, eval and promote steps) with the report's steps added: the planner's
     self-matches first (``--jobs`` runs them beside the first training step), its pairings, the report's races among
     learned policies and the report last."""
@@ -64,21 +67,21 @@ def report_steps(plan: PipelinePlan, steps: list[Step]) -> list[Step]:
     return out
 
 
-def _planner_section(plan: PipelinePlan) -> dict[str, Any]:
+def _planner_section(plan: PlanView) -> dict[str, Any]:
     return {"scenarios": list(SCENARIOS), **plan.spec.evaluation.model_dump(include={"runs", "seed"}),
             "track": plan.track, "sim": plan.spec.sim,
-            "airframe": resolve_airframe(plan.spec.airframe, source=str(plan.source))}
+            "airframe": plan.airframe}
 
 
-def _planner_fn(plan: PipelinePlan):
+def _planner_fn(plan: PlanView):
     """SE-IBR's self-matches in 1v1 and 2v2 with the protocol's races, one eval JSON per scenario (the report
     finds them), flown through the default action mapping with no separation filter: the paper's stack."""
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
         ev, outputs, info = plan.spec.evaluation, {}, {}
-        airframe = resolve_airframe(plan.spec.airframe, source=str(plan.source))
         for scenario in SCENARIOS:
             result = evaluate_methods(plan.track, {"se-ibr": "se-ibr"}, scenario=scenario, runs=ev.runs,
-                                      seed=ev.seed, device=plan.spec.device, airframe=airframe, sim=plan.spec.sim)
+                                      seed=ev.seed, device=plan.spec.device, airframe=plan.airframe,
+                                      sim=plan.spec.sim)
             out = ctx.step_dir / f"eval-{scenario}.json"
             atomic_write_bytes(out, json.dumps(result, indent=2).encode())
             m = result["methods"]["se-ibr"]
@@ -88,7 +91,7 @@ def _planner_fn(plan: PipelinePlan):
     return run
 
 
-def _pairing_steps(plan: PipelinePlan) -> list[Step]:
+def _pairing_steps(plan: PlanView) -> list[Step]:
     """One step per learned approach and scenario that a stage of the pipeline trains: its pairing with SE-IBR."""
     stages = [(s.name, s.scenario, s.selfplay.mode) for s in plan.spec.stages]
     out = []
@@ -104,34 +107,34 @@ def _pairing_steps(plan: PipelinePlan) -> list[Step]:
     return out
 
 
-def _pairing_fn(plan: PipelinePlan, name: str, scenario: str, key: str):
+def _pairing_fn(plan: PlanView, name: str, scenario: str, key: str):
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
         ev = plan.spec.evaluation
         entry = race_planner_pairing(plan.run_root, plan.track, ctx.step_dir, scenario, key, runs=ev.runs,
                                      seed=ev.seed, device=plan.spec.device, sides=ev.sides,
-                                     airframe=resolve_airframe(plan.spec.airframe), log=ctx.log)
+                                     airframe=plan.airframe, log=ctx.log)
         ctx.log(f"{name}: win rate {entry['win_rate']:.2f}, success {entry['success_ratio']:.2f} against SE-IBR")
         return {}, {"win_rate": entry["win_rate"], "success_ratio": entry["success_ratio"]}
     return run
 
 
-def _report_options(plan: PipelinePlan) -> dict[str, Any]:
+def _report_options(plan: PlanView) -> dict[str, Any]:
     """The arguments that :func:`build_report` and :func:`race_learned_policies` take alike, from the pipeline."""
     cfg, ev = plan.spec.report, plan.spec.evaluation
     return {"runs": ev.runs, "seed": ev.seed, "device": plan.spec.device, "cross_play": cfg.cross_play,
             "holdout": (ev.holdout_runs, ev.holdout_seed) if ev.holdout_runs else None, "sides": ev.sides,
             "separation": cfg.separation, "robustness": cfg.robustness,
-            "airframe": resolve_airframe(plan.spec.airframe)}
+            "airframe": plan.airframe}
 
 
-def _learned_fn(plan: PipelinePlan):
+def _learned_fn(plan: PlanView):
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
         race_learned_policies(plan.run_root, plan.track, ctx.step_dir, log=ctx.log, **_report_options(plan))
         return {}, {}
     return run
 
 
-def _report_fn(plan: PipelinePlan):
+def _report_fn(plan: PlanView):
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
         with one_torch_thread():  # all is raced by the steps before; anything left races as they race it
             results = build_report(plan.run_root, plan.track, ctx.step_dir, se_ibr=plan.spec.report.se_ibr,
