@@ -274,6 +274,24 @@ def bench_sim(
     _write_json(json_out, result)
 
 
+@bench_app.command("kernels")
+@handles_errors
+def bench_kernels(
+    worlds: Annotated[int, typer.Option("--worlds", min=1, help="Worlds")] = 4096,
+    drones: Annotated[int, typer.Option("--drones", min=1, help="Drones per world")] = 4,
+    device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
+    launches: Annotated[int, typer.Option("--launches", min=1, help="Launches per timed repeat")] = 30,
+    repeats: Annotated[int, typer.Option("--repeats", min=1, help="Timed repeats (the best is kept)")] = 9,
+    json_out: JsonOut = None,
+) -> None:
+    """Where a simulator control step's time goes: each kernel timed alone, beside the whole step."""
+    from spiral.sim.bench import format_kernel_table, kernel_profile
+
+    result = kernel_profile(worlds, drones, device=device, launches=launches, repeats=repeats)
+    typer.echo(format_kernel_table(result))
+    _write_json(json_out, result)
+
+
 @app.command("export")
 @handles_errors
 def export(

@@ -113,6 +113,18 @@ def test_bench_ppo_profiles_a_smoke_stage_and_names_an_unknown_stage(tmp_path):
         missing.output
 
 
+def test_bench_kernels_prints_a_row_per_kernel_and_writes_the_json(tmp_path):
+    """`spiral bench kernels` at a tiny size: a table row per kernel of a control step, the same numbers as JSON."""
+    out = tmp_path / "kernels.json"
+    result = runner.invoke(app, ["bench", "kernels", "--worlds", "2", "--drones", "2", "--launches", "2",
+                                 "--repeats", "1", "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    data = json.loads(out.read_text())
+    assert (data["worlds"], data["drones"], data["launches"]) == (2, 2, 2)
+    assert [f"`{r['kernel']}`" in result.output for r in data["kernels"]] == [True] * 6
+    assert "2 worlds × 2 drones" in result.output
+
+
 def test_sim_threads_option_sets_the_simulators_thread_count_and_refuses_zero(monkeypatch):
     """--sim-threads 2 reaches World.cpu_threads before the profiled worlds are built; 0 is a usage error."""
     from spiral.sim import World

@@ -28,8 +28,8 @@ from spiral.config.track import TrackSpec
 from spiral.sim.reference import ReferenceSim
 from spiral.sim.world import World
 
-__all__ = ["format_bench_table", "machine_info", "run_sim_bench", "run_sim_bench_two_process", "time_world",
-           "two_process_worker"]
+__all__ = ["format_bench_table", "format_kernel_table", "kernel_profile", "machine_info", "run_sim_bench",
+           "run_sim_bench_two_process", "time_world", "two_process_worker"]
 
 TARGET_REDRAW_STEPS = 10
 """Control steps between two draws of the random targets (about 0.2 s at 48 Hz)."""
@@ -253,6 +253,90 @@ def time_world(world_count: int, drones: int, *, device: str = "cpu", steps: int
         "mean_speed_m_s": round(float(np.linalg.norm(world.state.vel.numpy(), axis=1).mean()), 3),
         "settings": _bench_settings(track, airframe, _bench_cfg(), repeats=repeats, seed=seed),
     }
+
+
+def kernel_profile(world_count: int, drones: int, *, device: str = "cpu", launches: int = 30, repeats: int = 9,
+                   seed: int = 0, track: TrackSpec | None = None) -> dict[str, Any]:
+    """Where a control step's time goes: each kernel of :meth:`World.step` timed alone, on the state of a world
+    that :func:`time_world` would time (same track, settings, starts and targets, after the warm-up steps).
+
+    Each kernel's recorded launch runs ``launches`` times in a row from the same state (restored before every
+    repeat, crash flags cleared), best of ``repeats``; then ``launches`` whole control steps are timed the same way
+    (crash flags cleared before each, as :func:`time_world` does), so that the rows can be compared with their sum.
+    Wall clock (synchronised on the device) and process CPU time.
+    """
+    wp.init()
+    track, airframe = track if track is not None else load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"]
+    world, targets_wp, *_ = _make_world(track, airframe, world_count, drones, device, seed)
+    _time_warp(world, targets_wp, WARMUP_STEPS, 0)
+    mutable = [a for a in (*vars(world.state).values(), *vars(world.race).values(), world.integral, world.heading,
+                           world.rpy, world.ext_force) if isinstance(a, wp.array)]
+    snapshot = [wp.clone(a) for a in mutable]
+
+    def restore() -> None:
+        for a, saved in zip(mutable, snapshot, strict=True):
+            wp.copy(a, saved)
+        world.race.crashed.zero_()
+
+    def best_of(run: Any, count: int) -> tuple[float, float]:
+        times = []
+        for _ in range(repeats):
+            restore()
+            wp.synchronize_device(world.device)
+            start, cpu = time.perf_counter(), time.process_time()
+            for _ in range(count):
+                run()
+            wp.synchronize_device(world.device)
+            times.append((time.perf_counter() - start, time.process_time() - cpu))
+        return min(t[0] for t in times) / count, min(t[1] for t in times) / count
+
+    restore()
+    recorded = world._simulate(record=True)  # one control step's launches, arguments packed
+    order: dict[str, list] = {}
+    for cmd in recorded:
+        order.setdefault(cmd.kernel.key, []).append(cmd)
+    n = world.drone_count
+    rows = []
+    for key, cmds in order.items():
+        wall, cpu = best_of(cmds[0].launch, launches)
+        rows.append({"kernel": key, "launches_per_step": len(cmds), "wall_ms_per_launch": 1e3 * wall,
+                     "cpu_ms_per_launch": 1e3 * cpu, "cpu_ns_per_drone": 1e9 * cpu / n,
+                     "cpu_ms_per_step": 1e3 * cpu * len(cmds)})
+    wall, cpu = best_of(lambda: (world.race.crashed.zero_(), world.step()), launches)
+    restore()
+    return {
+        "worlds": world_count,
+        "drones": drones,
+        "device": world.device,
+        "launches": launches,
+        "repeats": repeats,
+        "kernels": rows,
+        "step_wall_ms": 1e3 * wall,
+        "step_cpu_ms": 1e3 * cpu,
+        "kernels_cpu_ms": sum(r["cpu_ms_per_step"] for r in rows),
+        "machine": machine_info(),
+        "settings": _bench_settings(track, airframe, _bench_cfg(), repeats=repeats, seed=seed),
+    }
+
+
+def format_kernel_table(result: dict[str, Any]) -> str:
+    """Markdown table of a :func:`kernel_profile` result, with the whole control step under it."""
+    m, n = result["machine"], result["worlds"] * result["drones"]
+    lines = [
+        f"device {result['device']} · {m['cpu']} · {m['cores']} cores · Warp {m['warp']} · load {m['load_avg_1min']}"
+        f" · {result['worlds']} worlds × {result['drones']} drones",
+        "",
+        "| kernel | launches per control step | CPU per launch | per drone | per control step |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for r in result["kernels"]:
+        lines.append(f"| `{r['kernel']}` | {r['launches_per_step']} | {r['cpu_ms_per_launch']:.3f} ms | "
+                     f"{r['cpu_ns_per_drone']:.1f} ns | {r['cpu_ms_per_step']:.2f} ms |")
+    step = result["step_cpu_ms"]
+    lines += ["", f"Kernels {result['kernels_cpu_ms']:.2f} ms of a control step's {step:.2f} ms CPU time "
+                  f"({n / step / 1e3:.3f} M drone-ctrl-steps per CPU-s); the rest is launching them and clearing "
+                  f"the step's event flags."]
+    return "\n".join(lines)
 
 
 def two_process_worker(world_count: int, drones: int, device: str, steps: int, seed: int, repeats: int) -> None:

@@ -9,7 +9,14 @@ from pathlib import Path
 
 import pytest
 
-from spiral.sim.bench import format_bench_table, run_sim_bench, run_sim_bench_two_process, time_world
+from spiral.sim.bench import (
+    format_bench_table,
+    format_kernel_table,
+    kernel_profile,
+    run_sim_bench,
+    run_sim_bench_two_process,
+    time_world,
+)
 
 
 def test_bench_rows_and_table(kernels, gate_track):
@@ -60,3 +67,21 @@ def test_crazyflow_peer_script_runs_spiral_half(tmp_path):
     assert row["cpu_threads"] == 2
     assert row["drone_ctrl_steps_per_s"] > 0 and row["drone_substeps_per_s"] > 0
     assert row["settings"]["physics_hz"] == 240 and row["settings"]["ctrl_hz"] == 48
+
+
+def test_kernel_profile_times_every_kernel_of_a_control_step_as_often_as_it_runs(kernels, gate_track):
+    """One row per kernel of World.step, in launch order, with its launches per control step (the per-substep
+    kernels once per substep) and a CPU time; the rows' sum is reported beside the whole step's time."""
+    result = kernel_profile(2, 2, launches=2, repeats=1, track=gate_track)
+    counts = {r["kernel"]: r["launches_per_step"] for r in result["kernels"]}
+    assert counts == {"command_heading": 1, "control_and_integrate": 5, "detect_collisions_and_gate_passes": 5,
+                      "apply_contacts": 5, "advance_clocks": 1, "euler_angles": 1}
+    assert list(counts)[:2] == ["command_heading", "control_and_integrate"]
+    for r in result["kernels"]:
+        assert r["cpu_ms_per_step"] == pytest.approx(r["cpu_ms_per_launch"] * r["launches_per_step"])
+        assert r["wall_ms_per_launch"] > 0
+    assert result["kernels_cpu_ms"] == pytest.approx(sum(r["cpu_ms_per_step"] for r in result["kernels"]))
+    assert result["step_wall_ms"] > 0 and result["settings"]["substeps"] == 5
+    table = format_kernel_table(result)
+    assert all(f"| `{name}` | {count} |" in table for name, count in counts.items())
+    assert "2 worlds × 2 drones" in table
