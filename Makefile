@@ -26,6 +26,7 @@ smoke: install
 
 bench: install
 	$(BIN)/spiral bench sim --device cpu --worlds 1,64,1024,4096,16384 --json docs/bench_sim.json
+	$(BIN)/spiral bench kernels --json docs/bench_kernels.json
 	$(BIN)/spiral bench ppo pipelines/full.yaml --stage solo --json docs/bench_ppo.json
 
 lint: install
