@@ -14,7 +14,8 @@ import platform
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -255,6 +256,37 @@ def time_world(world_count: int, drones: int, *, device: str = "cpu", steps: int
     }
 
 
+def _restorer(world: World) -> Callable[[], None]:
+    """A function that puts ``world``'s state, race counters and per-drone buffers back as they are now, with the
+    crash flags cleared."""
+    mutable = [a for a in (*vars(world.state).values(), *vars(world.race).values(), world.integral, world.heading,
+                           world.rpy, world.ext_force) if isinstance(a, wp.array)]
+    snapshot = [wp.clone(a) for a in mutable]
+
+    def restore() -> None:
+        for a, saved in zip(mutable, snapshot, strict=True):
+            wp.copy(a, saved)
+        world.race.crashed.zero_()
+
+    return restore
+
+
+def _best_per_call(world: World, restore: Callable[[], None], run: Callable[[], Any], count: int, *,
+                   repeats: int) -> tuple[float, float]:
+    """Wall and process CPU seconds per call of ``run``, ``count`` calls in a row from the restored state, best of
+    ``repeats``."""
+    times = []
+    for _ in range(repeats):
+        restore()
+        wp.synchronize_device(world.device)
+        start, cpu = time.perf_counter(), time.process_time()
+        for _ in range(count):
+            run()
+        wp.synchronize_device(world.device)
+        times.append((time.perf_counter() - start, time.process_time() - cpu))
+    return min(t[0] for t in times) / count, min(t[1] for t in times) / count
+
+
 def kernel_profile(world_count: int, drones: int, *, device: str = "cpu", launches: int = 30, repeats: int = 9,
                    seed: int = 0, track: TrackSpec | None = None) -> dict[str, Any]:
     """Where a control step's time goes: each kernel of :meth:`World.step` timed alone, on the state of a world
@@ -269,27 +301,8 @@ def kernel_profile(world_count: int, drones: int, *, device: str = "cpu", launch
     track, airframe = track if track is not None else load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"]
     world, targets_wp, *_ = _make_world(track, airframe, world_count, drones, device, seed)
     _time_warp(world, targets_wp, WARMUP_STEPS, 0)
-    mutable = [a for a in (*vars(world.state).values(), *vars(world.race).values(), world.integral, world.heading,
-                           world.rpy, world.ext_force) if isinstance(a, wp.array)]
-    snapshot = [wp.clone(a) for a in mutable]
-
-    def restore() -> None:
-        for a, saved in zip(mutable, snapshot, strict=True):
-            wp.copy(a, saved)
-        world.race.crashed.zero_()
-
-    def best_of(run: Any, count: int) -> tuple[float, float]:
-        times = []
-        for _ in range(repeats):
-            restore()
-            wp.synchronize_device(world.device)
-            start, cpu = time.perf_counter(), time.process_time()
-            for _ in range(count):
-                run()
-            wp.synchronize_device(world.device)
-            times.append((time.perf_counter() - start, time.process_time() - cpu))
-        return min(t[0] for t in times) / count, min(t[1] for t in times) / count
-
+    restore = _restorer(world)
+    best_of = partial(_best_per_call, world, restore, repeats=repeats)
     restore()
     recorded = world._simulate(record=True)  # one control step's launches, arguments packed
     order: dict[str, list] = {}
