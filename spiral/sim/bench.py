@@ -312,9 +312,10 @@ def kernel_profile(world_count: int, drones: int, *, device: str = "cpu", launch
     rows = []
     for key, cmds in order.items():
         wall, cpu = best_of(cmds[0].launch, launches)
-        rows.append({"kernel": key, "launches_per_step": len(cmds), "wall_ms_per_launch": 1e3 * wall,
-                     "cpu_ms_per_launch": 1e3 * cpu, "cpu_ns_per_drone": 1e9 * cpu / n,
-                     "cpu_ms_per_step": 1e3 * cpu * len(cmds)})
+        rows.append({"kernel": key, "launches_per_step": len(cmds), "cpu_ms_per_launch": 1e3 * cpu,
+                     "cpu_ns_per_drone": 1e9 * cpu / n, "cpu_ms_per_step": 1e3 * cpu * len(cmds),
+                     "wall_ms_per_launch": 1e3 * wall, "wall_ns_per_drone": 1e9 * wall / n,
+                     "wall_ms_per_step": 1e3 * wall * len(cmds)})
     wall, cpu = best_of(lambda: (world.race.crashed.zero_(), world.step()), launches)
     restore()
     return {
@@ -327,28 +328,31 @@ def kernel_profile(world_count: int, drones: int, *, device: str = "cpu", launch
         "step_wall_ms": 1e3 * wall,
         "step_cpu_ms": 1e3 * cpu,
         "kernels_cpu_ms": sum(r["cpu_ms_per_step"] for r in rows),
+        "kernels_wall_ms": sum(r["wall_ms_per_step"] for r in rows),
         "machine": machine_info(),
         "settings": _bench_settings(track, airframe, _bench_cfg(), repeats=repeats, seed=seed),
     }
 
 
 def format_kernel_table(result: dict[str, Any]) -> str:
-    """Markdown table of a :func:`kernel_profile` result, with the whole control step under it."""
+    """Markdown table of a :func:`kernel_profile` result, with the whole control step under it: process CPU time on
+    the CPU (robust to other processes' load), wall clock on a GPU (where the host's CPU time is not the kernels')."""
     m, n = result["machine"], result["worlds"] * result["drones"]
+    clock, name = ("wall", "wall clock") if str(result["device"]).startswith("cuda") else ("cpu", "CPU")
     lines = [
         f"device {result['device']} · {m['cpu']} · {m['cores']} cores · Warp {m['warp']} · load {m['load_avg_1min']}"
         f" · {result['worlds']} worlds × {result['drones']} drones",
         "",
-        "| kernel | launches per control step | CPU per launch | per drone | per control step |",
+        f"| kernel | launches per control step | {name} per launch | per drone | per control step |",
         "|---|---:|---:|---:|---:|",
     ]
     for r in result["kernels"]:
-        lines.append(f"| `{r['kernel']}` | {r['launches_per_step']} | {r['cpu_ms_per_launch']:.3f} ms | "
-                     f"{r['cpu_ns_per_drone']:.1f} ns | {r['cpu_ms_per_step']:.2f} ms |")
-    step = result["step_cpu_ms"]
-    lines += ["", f"Kernels {result['kernels_cpu_ms']:.2f} ms of a control step's {step:.2f} ms CPU time "
-                  f"({n / step / 1e3:.3f} M drone-ctrl-steps per CPU-s); the rest is launching them and clearing "
-                  f"the step's event flags."]
+        lines.append(f"| `{r['kernel']}` | {r['launches_per_step']} | {r[f'{clock}_ms_per_launch']:.3f} ms | "
+                     f"{r[f'{clock}_ns_per_drone']:.1f} ns | {r[f'{clock}_ms_per_step']:.2f} ms |")
+    step = result[f"step_{clock}_ms"]
+    lines += ["", f"The kernels alone: {result[f'kernels_{clock}_ms']:.2f} ms per control step; whole control steps "
+                  f"(launches and the step's flag clearing included): {step:.2f} ms ({name}), "
+                  f"{n / step / 1e3:.3f} M drone-ctrl-steps per {'s' if clock == 'wall' else 'CPU-s'}."]
     return "\n".join(lines)
 
 

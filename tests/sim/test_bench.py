@@ -84,4 +84,8 @@ def test_kernel_profile_times_every_kernel_of_a_control_step_as_often_as_it_runs
     assert result["step_wall_ms"] > 0 and result["settings"]["substeps"] == 5
     table = format_kernel_table(result)
     assert all(f"| `{name}` | {count} |" in table for name, count in counts.items())
-    assert "2 worlds × 2 drones" in table
+    assert "2 worlds × 2 drones" in table and "| CPU per launch |" in table
+    on_gpu = format_kernel_table(result | {"device": "cuda:0"})  # a GPU's kernels are read off the wall clock
+    assert "| wall clock per launch |" in on_gpu
+    wall = result["kernels"][1]["wall_ms_per_launch"]
+    assert f"| `control_and_integrate` | 5 | {wall:.3f} ms |" in on_gpu
