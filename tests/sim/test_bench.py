@@ -7,9 +7,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+import warp as wp
 
 from spiral.sim.bench import (
+    _restorer,
     format_bench_table,
     format_kernel_table,
     kernel_profile,
@@ -89,3 +92,25 @@ def test_kernel_profile_times_every_kernel_of_a_control_step_as_often_as_it_runs
     assert "| wall clock per launch |" in on_gpu
     wall = result["kernels"][1]["wall_ms_per_launch"]
     assert f"| `control_and_integrate` | 5 | {wall:.3f} ms |" in on_gpu
+
+
+def test_kernel_profile_restores_the_state_it_times_from_bit_for_bit(make_world):
+    """Every repeat of the profile starts from the same state: the restorer puts positions, attitudes, rates,
+    integrals and race counters back exactly, crash flags cleared, after steps that moved and crashed drones."""
+    world = make_world(world_count=2, drones=2)
+    world.reset_all(np.array([[-2.0, 1.4, 1.5], [-2.0, 1.6, 1.5], [-2.0, 1.0, 1.5], [-2.0, 2.0, 1.5]]))
+    world.cmd.assign(np.tile(np.array([[1.0, 1.5, 1.5, 0.0]], np.float32), (4, 1)))
+    for _ in range(3):
+        world.step()
+    before = {name: arr.numpy().copy() for name, arr in (*vars(world.state).items(), *vars(world.race).items(),
+                                                         ("integral", world.integral)) if isinstance(arr, wp.array)}
+    restore = _restorer(world)
+    world.cmd.assign(np.tile(np.array([[0.0, 0.0, -5.0, 1.0]], np.float32), (4, 1)))  # into the ground
+    for _ in range(40):
+        world.step()
+    assert world.race.crashed.numpy().any() and not np.array_equal(world.state.pos.numpy(), before["pos"])
+    restore()
+    for name, arr in (*vars(world.state).items(), *vars(world.race).items(), ("integral", world.integral)):
+        if isinstance(arr, wp.array):
+            expected = np.zeros_like(before[name]) if name == "crashed" else before[name]
+            assert np.array_equal(arr.numpy(), expected), name
