@@ -15,6 +15,8 @@ from pydantic import ValidationError
 
 from spiral.config import KINDS, PipelineSpec, SpecError, load_pipeline, load_spec, load_track
 from spiral.config.errors import format_validation_error
+from spiral.core.device import check_device
+from spiral.core.numerics import cpu_target
 
 __all__ = ["app", "main"]
 
@@ -28,6 +30,8 @@ app.add_typer(bench_app, name="bench")
 F = TypeVar("F", bound=Callable[..., Any])
 
 Device = Annotated[str | None, typer.Option("--device", help="cpu or cuda:N (default: the pipeline's)")]
+DeviceOpt = Annotated[str, typer.Option("--device", help="cpu or cuda:N")]
+"""A command's device; its body checks it first (``check_device``), so a missing GPU is one ``Error:`` line."""
 JsonOut = Annotated[Path | None, typer.Option("--json", help="Also write the numbers as JSON to this file")]
 RunsDir = Annotated[Path, typer.Option("--runs-dir", help="Folder of run outputs")]
 CkptDir = Annotated[Path, typer.Option("--checkpoints-dir", help="Folder of promoted policies")]
@@ -231,10 +235,11 @@ def evaluate(
     starts: Annotated[str, typer.Option(
         "--starts", help="Where the races start: 'box' (the start box, the protocol), 'track' (every drone at its "
         "own random point along the track) or 'file' (each world's drones in single file on one stretch)")] = "box",
-    device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
+    device: DeviceOpt = "cpu",
     json_out: JsonOut = None,
 ) -> None:
     """Race methods from seeded start placements (identical for every method) and report their metrics."""
+    device = check_device(device)
     from spiral.core.scenario import SCENARIO_DRONES
     from spiral.eval.evaluate import FlightOverride, evaluate_methods, format_eval, parse_separation
 
@@ -258,7 +263,7 @@ def evaluate(
 @handles_errors
 def bench_sim(
     worlds: Annotated[str, typer.Option("--worlds", help="Comma-separated world counts")] = "1,64,1024,4096,16384",
-    device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
+    device: DeviceOpt = "cpu",
     steps: Annotated[int, typer.Option("--steps", min=1, help="Timed control steps per row")] = 100,
     two_process: Annotated[bool, typer.Option("--two-process", help="Also run 4096x4 in two processes")] = True,
     threads: Annotated[int, typer.Option("--threads", min=1, help="Also run 4096x4 in one process with the worlds "
@@ -266,6 +271,7 @@ def bench_sim(
     json_out: JsonOut = None,
 ) -> None:
     """Simulator throughput (pid mode, gates and collisions on) against the numpy reference."""
+    device = check_device(device)
     from spiral.sim.bench import format_bench_table, run_sim_bench
 
     counts = [int(w) for w in worlds.split(",") if w.strip()]
@@ -279,16 +285,36 @@ def bench_sim(
 def bench_kernels(
     worlds: Annotated[int, typer.Option("--worlds", min=1, help="Worlds")] = 4096,
     drones: Annotated[int, typer.Option("--drones", min=1, help="Drones per world")] = 4,
-    device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
+    device: DeviceOpt = "cpu",
     launches: Annotated[int, typer.Option("--launches", min=1, help="Launches per timed repeat")] = 30,
     repeats: Annotated[int, typer.Option("--repeats", min=1, help="Timed repeats (the best is kept)")] = 9,
     json_out: JsonOut = None,
 ) -> None:
     """Where a simulator control step's time goes: each kernel timed alone, beside the whole step."""
+    device = check_device(device)
     from spiral.sim.bench import format_kernel_table, kernel_profile
 
     result = kernel_profile(worlds, drones, device=device, launches=launches, repeats=repeats)
     typer.echo(format_kernel_table(result))
+    _write_json(json_out, result)
+
+
+@bench_app.command("repro")
+@handles_errors
+def bench_repro(
+    training: Annotated[bool, typer.Option("--training/--no-training", help="Also train a few PPO iterations")] = True,
+    json_out: JsonOut = None,
+) -> None:
+    """Digests of a fixed simulator rollout and a few PPO iterations: equal digests on two machines, equal bits."""
+    from spiral.train.reproducibility import run_digests
+
+    result = run_digests(training=training)
+    n, m = result["numerics"], result["machine"]
+    typer.echo(f"{m['cpu']} · SPIRAL_CPU_TARGET={n['cpu_target']} (portable build: {n['portable']}) · torch "
+               f"{n['torch']} {n['torch_cpu_capability']}")
+    for key in ("sim", "training"):
+        if key in result:
+            typer.echo(f"{key:<8} {result[key]}")
     _write_json(json_out, result)
 
 
@@ -346,9 +372,10 @@ def report(
         "--robustness/--no-robustness", help="Final policies in every format, racing strangers, downwash")] = True,
     jobs: Annotated[int, typer.Option("--jobs", "-j", min=1, help="Processes racing SE-IBR's head-to-head "
                                       "pairings side by side (with --se-ibr)")] = 1,
-    device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
+    device: DeviceOpt = "cpu",
 ) -> None:
     """Write results.md (the paper's tables, cross-play, lap-time reference), results.csv and figures."""
+    device = check_device(device)
     from spiral.eval.evaluate import KEEP, parse_separation
     from spiral.eval.report import build_report, track_of_run
 
@@ -381,9 +408,10 @@ def race(
     seed: Annotated[int, typer.Option("--seed", help="Seed of the start placement")] = 0,
     out: Annotated[Path, typer.Option("--out", help="race.gif or race.mp4")] = Path("race.gif"),
     fps: Annotated[float, typer.Option("--fps", min=1, help="Frames per second of race time")] = 15.0,
-    device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
+    device: DeviceOpt = "cpu",
 ) -> None:
     """Render one race: top and side views, gates, trails by team, time and lap counters, crash marks."""
+    device = check_device(device)
     from spiral.eval.replay import record_race, render_race
 
     opponent = _parse_method(against) if against else None
@@ -400,11 +428,12 @@ def bench_train(
     track: Annotated[Path, typer.Option("--track", help="Track YAML")] = Path("tracks/circuit6.yaml"),
     worlds: Annotated[int, typer.Option("--worlds", min=1, help="Parallel worlds")] = 1024,
     iterations: Annotated[int, typer.Option("--iterations", min=1, help="Timed PPO iterations")] = 10,
-    device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
+    device: DeviceOpt = "cpu",
     sim_threads: SimThreads = 1,
     json_out: JsonOut = None,
 ) -> None:
     """End-to-end PPO throughput for the compact and the paper's observation layout."""
+    device = check_device(device)
     from spiral.config import AIRFRAMES, SimCfg
     from spiral.train.bench import run_train_bench
 
@@ -424,7 +453,7 @@ def bench_ppo(
     stage: Annotated[str, typer.Option("--stage", help="Stage name in the pipeline")] = "solo",
     worlds: Annotated[int | None, typer.Option("--worlds", min=1, help="Worlds (default: the stage's)")] = None,
     iterations: Annotated[int, typer.Option("--iterations", min=1, help="Profiled PPO iterations")] = 3,
-    device: Annotated[str, typer.Option("--device", help="cpu or cuda:N")] = "cpu",
+    device: DeviceOpt = "cpu",
     sim_threads: SimThreads = 1,
     checkpoints_dir: CkptDir = Path("checkpoints"),
     init: Annotated[Path | None, typer.Option("--init", help="Multi-drone stage: the checkpoint it starts from "
@@ -437,6 +466,7 @@ def bench_ppo(
 
     A multi-drone stage races what it races in the pipeline, from the published checkpoints: its init stage's best,
     the pool (self-play) or the frozen opponent's best (no self-play)."""
+    device = check_device(device)
     from spiral.config.airframe import resolve_airframe
     from spiral.config.load import load_pipeline
     from spiral.pipeline.graph import PipelinePlan
@@ -493,6 +523,11 @@ def _published_inputs(spec: PipelineSpec, index: int, published: Path, init: Pat
 
 def main() -> None:
     """Console-script entry point."""
+    try:
+        cpu_target()  # SPIRAL_CPU_TARGET, checked before anything is built with it
+    except ValueError as exc:
+        typer.echo(f"Error: {exc}", err=True)
+        raise SystemExit(1) from None
     app()
 
 

@@ -12,6 +12,7 @@ from typing import Any
 
 from spiral.config.load import load_pipeline
 from spiral.core.checkpoint import list_checkpoints
+from spiral.core.device import check_device
 from spiral.core.files import atomic_write_bytes
 from spiral.pipeline.graph import PipelinePlan, select_steps
 from spiral.pipeline.lock import PipelineLock
@@ -41,8 +42,8 @@ class PipelineRunner:
                  log: Callable[[str], None] = print, progress: bool = True, device: str | None = None,
                  accept_code_changes: bool = False) -> None:
         spec, track = load_pipeline(path)
-        if device is not None:
-            spec = spec.model_copy(update={"device": device})
+        if device is not None:  # asked for now: checked now (a file's device is checked when steps run)
+            spec = spec.model_copy(update={"device": check_device(device)})
         self.path, self.log, self.progress = Path(path), log, progress
         self.accept_code_changes = accept_code_changes
         """Treat steps that ran with other spiral source (same spec and inputs) as complete."""
@@ -79,6 +80,7 @@ class PipelineRunner:
         """Run the selected steps, up to ``jobs`` independent ones at a time; return the names of those that ran."""
         if jobs < 1:
             raise ValueError(f"jobs must be at least 1, got {jobs}")
+        check_device(self.plan.spec.device)
         selected = {s.name for s in select_steps(self.steps, start=start, only=only)}
         forced = set(force or [])
         unknown = forced - {s.name for s in self.steps}

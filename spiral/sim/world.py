@@ -17,12 +17,14 @@ from spiral.sim.dynamics import control_and_integrate, drone_downwash
 from spiral.sim.options import MODULE_OPTIONS
 from spiral.sim.pid import command_heading
 from spiral.sim.rotations import quat_to_rpy, yaw_quat
+from spiral.sim.runtime import init_warp
 from spiral.sim.state import QuadParams, QuadState, RaceState, make_quad_params, make_track_arrays
 
 __all__ = ["World"]
 
 wp.config.log_level = wp.LOG_WARNING  # no greeting or per-module load lines
 wp.set_module_options(MODULE_OPTIONS)
+init_warp()
 
 
 @wp.kernel

@@ -1,0 +1,84 @@
+"""Digests of a fixed simulator rollout and of a few PPO iterations, to compare runs across machines bit for bit.
+
+Two hosts that print the same digests compute the same bits: the simulator's kernels, torch's forward and backward
+passes and the optimiser's steps, as a pipeline's training steps use them. docs/results.md ("Reproducibility") lists
+the digests measured so far, host by host.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+import warp as wp
+
+from spiral.config.airframe import AIRFRAMES
+from spiral.config.load import load_track
+from spiral.config.sim import SimCfg
+from spiral.config.stage import StageSpec
+from spiral.core.checkpoint import load_checkpoint
+from spiral.core.numerics import TORCH_PORTABLE_ENV, cpu_target, portable_build
+from spiral.sim.bench import DEFAULT_TRACK, _make_world, _time_warp, machine_info
+from spiral.sim.options import MODULE_OPTIONS
+from spiral.train.runner import StageTrainer
+
+__all__ = ["numerics_in_force", "run_digests", "sim_digest", "training_digest"]
+
+
+def numerics_in_force() -> dict[str, Any]:
+    """The CPU arithmetic of this process: the target, the simulator's build flags and torch's kernel choices."""
+    return {
+        "cpu_target": cpu_target(),
+        "portable": portable_build(),
+        "sim_cpu_flags": MODULE_OPTIONS["cpu_compiler_flags"],
+        "torch": torch.__version__,
+        "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "torch_env": {key: os.environ.get(key) for key in TORCH_PORTABLE_ENV},
+    }
+
+
+def sim_digest(*, world_count: int = 64, drones: int = 4, steps: int = 200, seed: int = 0) -> str:
+    """SHA-256 of the drones' state after ``steps`` control steps of ``spiral bench sim``'s world (circuit6, random
+    start points and targets of ``seed``, gates and collisions on)."""
+    wp.init()
+    world, targets, *_ = _make_world(load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"], world_count, drones, "cpu", seed)
+    _time_warp(world, targets, steps, 0)
+    digest = hashlib.sha256()
+    for name in ("pos", "vel", "quat", "omega"):
+        digest.update(getattr(world.state, name).numpy().tobytes())
+    return digest.hexdigest()
+
+
+def training_digest(*, worlds: int = 64, iterations: int = 3, seed: int = 0) -> str:
+    """SHA-256 of the actor's weights after ``iterations`` PPO iterations of a solo stage on circuit6 (the shipped
+    pipeline's compact observation, one torch thread, on the CPU)."""
+    stage = StageSpec.model_validate({
+        "name": "digest", "worlds": worlds, "iterations": iterations,
+        "env": {"obs": {"history_len": 1, "gate_normals": True, "pid_integral": True}},
+        "ppo": {"save_interval": iterations}, "selection": {"interval": 10_000}})
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            StageTrainer(load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"], SimCfg(), stage, Path(tmp), seed=seed,
+                         progress=False, selector=lambda trainer, it: {}).train()
+            weights = load_checkpoint(Path(tmp) / "ckpt" / f"model_{iterations - 1}.pt")["actor_state_dict"]
+    finally:
+        torch.set_num_threads(threads)
+    digest = hashlib.sha256()
+    for key in sorted(weights):
+        digest.update(key.encode())
+        digest.update(weights[key].contiguous().numpy().tobytes())
+    return digest.hexdigest()
+
+
+def run_digests(*, training: bool = True) -> dict[str, Any]:
+    """Both digests (the training one unless ``training`` is False) with the machine and the arithmetic in force."""
+    out: dict[str, Any] = {"machine": machine_info(), "numerics": numerics_in_force(), "sim": sim_digest()}
+    if training:
+        out["training"] = training_digest()
+    return out

@@ -1,0 +1,35 @@
+"""The shipped policies still fly their documented figures on this machine, within the spread of a race sample.
+
+Another CPU gives another draw of every race (docs/results.md, "Reproducibility"), so these tests check figures, not
+bits: held-out placements (seed 1, on which no setting was chosen) raced by ``checkpoints/full/spiral.pt``, against
+bounds that the documented figures clear with a wide margin for a few dozen races.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from spiral.config import load_track
+from spiral.eval.evaluate import evaluate_methods
+
+ROOT = Path(__file__).resolve().parents[2]
+SPIRAL = ROOT / "checkpoints" / "full" / "spiral.pt"
+CIRCUIT6 = ROOT / "tracks" / "circuit6.yaml"
+
+
+@pytest.mark.parametrize(("scenario", "races", "min_success", "lap_range"), [
+    # docs/results.md: solo 1.000 over 1024 held-out races, laps 3.9-4.0 s
+    ("solo", 32, 0.95, (3.7, 4.3)),
+    # docs/results.md: 2v2 0.984 of the drones over 1024 held-out races, laps 4.2-4.3 s
+    ("2v2", 24, 0.90, (3.9, 4.7)),
+])
+def test_the_shipped_final_policy_flies_its_documented_success_and_lap_time(scenario, races, min_success, lap_range):
+    """Race ``spiral.pt`` from held-out placements and find its success and mean lap time within the documented
+    figures' bounds."""
+    result = evaluate_methods(load_track(CIRCUIT6), {"spiral": SPIRAL}, scenario=scenario, runs=races, seed=1)
+    entry = result["methods"]["spiral"]
+    assert entry["success_ratio"] >= min_success
+    assert lap_range[0] <= entry["lap_time_mean"] <= lap_range[1]
+    assert entry["crashes"]["ground"] == 0  # exact: integer count
