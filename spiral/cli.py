@@ -30,6 +30,8 @@ app.add_typer(bench_app, name="bench")
 F = TypeVar("F", bound=Callable[..., Any])
 
 Device = Annotated[str | None, typer.Option("--device", help="cpu or cuda:N (default: the pipeline's)")]
+Laps = Annotated[int | None, typer.Option("--laps", min=1, help="Laps of each race (default: the track's; its time "
+                                          "limit scaled to them)")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="cpu or cuda:N")]
 """A command's device; its body checks it first (``check_device``), so a missing GPU is one ``Error:`` line."""
 JsonOut = Annotated[Path | None, typer.Option("--json", help="Also write the numbers as JSON to this file")]
@@ -235,6 +237,7 @@ def evaluate(
     starts: Annotated[str, typer.Option(
         "--starts", help="Where the races start: 'box' (the start box, the protocol), 'track' (every drone at its "
         "own random point along the track) or 'file' (each world's drones in single file on one stretch)")] = "box",
+    laps: Laps = None,
     device: DeviceOpt = "cpu",
     json_out: JsonOut = None,
 ) -> None:
@@ -253,8 +256,9 @@ def evaluate(
         raise ValueError(f"--starts: expected box, track or file, got {starts!r}")
     flight = FlightOverride(separation=parse_separation(separation), downwash=downwash,
                             separation_team=separation_team, starts=starts)  # type: ignore[arg-type]
-    result = evaluate_methods(load_track(track), methods, scenario=scenario, runs=runs, seed=seed, device=device,
-                              against=opponent, sides=sides, flight=flight)
+    spec = load_track(track)
+    result = evaluate_methods(spec.with_laps(laps or spec.laps), methods, scenario=scenario, runs=runs, seed=seed,
+                              device=device, against=opponent, sides=sides, flight=flight)
     typer.echo(format_eval(result))
     _write_json(json_out, result)
 
@@ -266,6 +270,8 @@ def bench_sim(
     device: DeviceOpt = "cpu",
     steps: Annotated[int, typer.Option("--steps", min=1, help="Timed control steps per row")] = 100,
     two_process: Annotated[bool, typer.Option("--two-process", help="Also run 4096x4 in two processes")] = True,
+    builds: Annotated[bool, typer.Option("--builds/--no-builds", help="CPU: also time 4096x4 with each CPU build "
+                                         "(SPIRAL_CPU_TARGET portable and native), each in fresh processes")] = True,
     threads: Annotated[int, typer.Option("--threads", min=1, help="Also run 4096x4 in one process with the worlds "
                                          "stepped on this many threads (1: not)")] = 2,
     json_out: JsonOut = None,
@@ -275,7 +281,8 @@ def bench_sim(
     from spiral.sim.bench import format_bench_table, run_sim_bench
 
     counts = [int(w) for w in worlds.split(",") if w.strip()]
-    result = run_sim_bench(counts, device=device, steps=steps, two_process=two_process, threads=threads)
+    result = run_sim_bench(counts, device=device, steps=steps, two_process=two_process, builds=builds,
+                           threads=threads)
     typer.echo(format_bench_table(result))
     _write_json(json_out, result)
 
@@ -408,6 +415,7 @@ def race(
     seed: Annotated[int, typer.Option("--seed", help="Seed of the start placement")] = 0,
     out: Annotated[Path, typer.Option("--out", help="race.gif or race.mp4")] = Path("race.gif"),
     fps: Annotated[float, typer.Option("--fps", min=1, help="Frames per second of race time")] = 15.0,
+    laps: Laps = None,
     device: DeviceOpt = "cpu",
 ) -> None:
     """Render one race: top and side views, gates, trails by team, time and lap counters, crash marks."""
@@ -415,7 +423,9 @@ def race(
     from spiral.eval.replay import record_race, render_race
 
     opponent = _parse_method(against) if against else None
-    rec = record_race(load_track(track), scenario, _parse_method(method), opponent, seed=seed, device=device)
+    spec = load_track(track)
+    rec = record_race(spec.with_laps(laps or spec.laps), scenario, _parse_method(method), opponent, seed=seed,
+                      device=device)
     frames = render_race(rec, out, fps=fps)
     typer.echo(f"wrote {out}: {frames} frames, {rec.duration:.2f} s of racing")
     for line in rec.outcomes():

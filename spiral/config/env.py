@@ -207,6 +207,9 @@ class EpisodeCfg(StrictModel):
         "of the track, 0.4-1 m apart in random order, each at its own speed up to track_start_speed: starts where a "
         "drone must follow or pass another (not in the paper)",
     )
+    laps: PosInt | None = Field(
+        default=None, description="Laps of a training race; the track's when absent (its time limit scaled to them)"
+    )
     time_limit_s: PosFloat | None = Field(default=None, description="Episode time limit; the track's when absent")
     start_cut_prob: float = Field(
         default=0.0, ge=0, le=1,

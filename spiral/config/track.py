@@ -69,6 +69,14 @@ class TrackSpec(StrictModel):
     laps: Annotated[int, Field(ge=1)] = Field(default=1, description="Laps in a race")
     time_limit_s: PosFloat = Field(default=20.0, description="Race time limit [s]")
 
+    def with_laps(self, laps: int) -> TrackSpec:
+        """This track raced over ``laps`` laps, its time limit scaled by as many laps (the limit is the race's)."""
+        if laps < 1:
+            raise ValueError(f"laps: expected at least 1, got {laps}")
+        if laps == self.laps:
+            return self
+        return self.model_copy(update={"laps": laps, "time_limit_s": self.time_limit_s * laps / self.laps})
+
     def gate_opening(self, i: int) -> float:
         """Opening of gate ``i`` after its override [m]."""
         return self.gates[i].opening or self.opening

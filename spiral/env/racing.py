@@ -60,6 +60,8 @@ class RaceResults:
     passes: torch.Tensor | None = None
     """Drones of the other team the drone passed in flight, and those that passed it (W, D, 2), places as the
     ``overtake`` reward term counts them (:func:`~spiral.env.events.overtakes`)."""
+    laps: int = 1
+    """Laps of the races (``split_time`` holds ``laps`` × gates + 1 passages)."""
 
     def permuted(self, order: list[int]) -> RaceResults:
         """The same races with the drones reordered: slot ``j`` of the result is slot ``order[j]`` of these.
@@ -89,7 +91,7 @@ class RaceResults:
             contact_fault=None if self.contact_fault is None else self.contact_fault[:, idx],
             racing_steps=None if self.racing_steps is None else self.racing_steps[:, idx],
             beyond_steps=None if self.beyond_steps is None else self.beyond_steps[:, idx],
-            passes=None if self.passes is None else self.passes[:, idx],
+            passes=None if self.passes is None else self.passes[:, idx], laps=self.laps,
         )
 
 
@@ -151,7 +153,7 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
         split_time=splits.view(w, d, -1).cpu(),
         racing_steps=grid(steps),
         beyond_steps=beyond.view(w, d, -1).cpu(),
-        passes=passes.view(w, d, 2).cpu(),
+        passes=passes.view(w, d, 2).cpu(), laps=env.track.laps,
     )
 
 
@@ -202,6 +204,8 @@ def concat_results(parts: list[RaceResults]) -> RaceResults:
         raise ValueError("concat_results: recorded trajectories differ in length and are not joined")
     if any(p.finished.shape[1] != first.finished.shape[1] for p in parts):
         raise ValueError("concat_results: the parts race different numbers of drones")
+    if any(p.laps != first.laps for p in parts):
+        raise ValueError("concat_results: the parts race different numbers of laps")
     if any((p.team is None) != (first.team is None) or (p.team is not None and not torch.equal(p.team, first.team))
            for p in parts):
         raise ValueError("concat_results: the parts have different teams")
@@ -219,7 +223,7 @@ def concat_results(parts: list[RaceResults]) -> RaceResults:
         split_time=cat_optional("split_time"), contact_bearing=cat_optional("contact_bearing"),
         contact_fault=cat_optional("contact_fault"),
         racing_steps=cat_optional("racing_steps"), beyond_steps=cat_optional("beyond_steps"),
-        passes=cat_optional("passes"),
+        passes=cat_optional("passes"), laps=first.laps,
     )
 
 

@@ -43,7 +43,7 @@ class RaceState:
                  auto_reset: bool = True) -> None:
         if sim.control_mode != "pid":
             raise ValueError("RaceEnv drives the PID: sim.control_mode must be 'pid'")
-        self.track, self.cfg, self.auto_reset = track, cfg, auto_reset
+        self.track, self.cfg, self.auto_reset = track.with_laps(cfg.episode.laps or track.laps), cfg, auto_reset
         self.world = World(track, airframe, sim, world_count=world_count, drones_per_world=drones_per_world,
                            device=device)
         self.device = torch.device(device)
@@ -57,9 +57,9 @@ class RaceState:
         self.slot_team, self.race_team, self.other_slots = s.slot_team, s.race_team, s.other_slots
         self.num_envs = self.learner_idx.numel()
         self.dt = self.world.time_step
-        self.time_limit = cfg.episode.time_limit_s or track.time_limit_s
+        self.time_limit = cfg.episode.time_limit_s or self.track.time_limit_s
         self.max_episode_length = math.ceil(self.time_limit / self.dt)
-        self.passes_needed = len(track.gates) * track.laps + 1
+        self.passes_needed = len(track.gates) * self.track.laps + 1
         self.margin_distance = 2.0 * airframe.radius + cfg.episode.contact_margin
         """Training with ``episode.contact_margin``: drones closer than this collide [m]."""
         self.generator = torch.Generator(device=self.device).manual_seed(seed)

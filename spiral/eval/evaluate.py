@@ -283,7 +283,8 @@ def evaluate_methods(track: TrackSpec, methods: dict[str, str | Path], *, scenar
     entry's ``layout`` says which. ``flight`` changes the flight stack of every drone (JSON ``flight``). Where the
     planner flew, ``planning`` is its cost (:func:`~spiral.baselines.planning_cost`: ms per plan per drone).
     """
-    out: dict[str, Any] = {"track": track.name, "scenario": scenario, "runs": runs, "seed": seed, "methods": {}}
+    out: dict[str, Any] = {"track": track.name, "scenario": scenario, "laps": track.laps, "runs": runs, "seed": seed,
+                           "methods": {}}
     if flight is not None and flight.to_json():
         out["flight"] = flight.to_json()
     check_sides(sides)
@@ -368,16 +369,23 @@ def evaluate_mixed_teams(track: TrackSpec, methods: dict[str, str | Path], *, ru
     return out
 
 
+def _num(x: float | None, digits: int = 2) -> str:
+    return "-" if x is None else f"{x:.{digits}f}"
+
+
 def format_eval(result: dict[str, Any]) -> str:
     """A plain-text table of an evaluation result."""
-    head = f"{result['track']} {result['scenario']}, {result['runs']} races, seed {result['seed']}"
+    laps = result.get("laps", 1)
+    head = (f"{result['track']} {result['scenario']}{f', {laps} laps' if laps > 1 else ''}, {result['runs']} races, "
+            f"seed {result['seed']}")
     if "against" in result:
         head += f", against {result['against']['name']}"
         if result.get("sides") == "both":
             head += " (each placement raced from both sides)"
     if "flight" in result:
         head += f", changed from training: {json.dumps(result['flight'])}"
-    lines = [head, f"{'method':<20} {'success':>8} {'95% CI':>15} {'races':>6} {'lap [s]':>14} {'win':>6}  crashes"]
+    time_head = "lap [s]" if laps == 1 else "race [s]"
+    lines = [head, f"{'method':<20} {'success':>8} {'95% CI':>15} {'races':>6} {time_head:>14} {'win':>6}  crashes"]
     for name, m in result["methods"].items():
         lap = f"{m['lap_time_mean']:.2f} ± {m['lap_time_std']:.2f}" if m["lap_time_mean"] is not None else "-"
         lo, hi = m["success_ci95"]
@@ -395,6 +403,13 @@ def format_eval(result: dict[str, Any]) -> str:
     if passes:
         lines.append("passes in flight per race, made / suffered: " + "; ".join(
             f"{name} {p['made_per_race']:.2f} / {p['suffered_per_race']:.2f}" for name, p in passes.items()))
+    racing = {name: m["racing"] for name, m in result["methods"].items() if m.get("racing")}
+    if racing:
+        lines.append("racing, per race: overtakes / lead changes / won from behind the first gate's leader; first lap, "
+                     "flying lap [s]; drone contacts per lap: " + "; ".join(
+                         f"{name} {_num(r['overtakes_per_race'])} / {_num(r['lead_changes_per_race'])} / "
+                         f"{_num(r['won_from_behind'])}; {_num(r['first_lap'])}, {_num(r['flying_lap'])}; "
+                         f"{_num(r['drone_contacts_per_lap'], 3)}" for name, r in racing.items()))
     gates = {name: m["first_gate"] for name, m in result["methods"].items() if m.get("first_gate")}
     if gates:
         lines.append("first through the lap's first gate, share of races; the team first there won: " + "; ".join(

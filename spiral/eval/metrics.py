@@ -11,6 +11,7 @@ import torch
 from spiral.core.outcome import race_winner
 from spiral.env.actions import ACTION_AXES
 from spiral.env.racing import BEARINGS, RaceResults
+from spiral.eval.racecraft import racecraft
 from spiral.sim import COLLISION_KINDS
 
 __all__ = ["clustered_interval", "first_gate_order", "lap_statistics", "summarize_races", "wilson_interval"]
@@ -121,6 +122,7 @@ def summarize_races(res: RaceResults, slots: list[int] | None = None) -> dict[st
         **({"split_times": _split_times(res, mask)} if res.split_time is not None else {}),
         **({"action_beyond_range": _beyond_range(res, mask)} if res.beyond_steps is not None else {}),
         **({"passes": _passes(res, mask, races)} if res.passes is not None else {}),
+        **({"racing": racecraft(res, mask)} if res.split_time is not None else {}),
     }
 
 

@@ -8,6 +8,7 @@ skips the gate and contact tests, and a benchmark in which drones drop out would
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import platform
@@ -26,11 +27,13 @@ from spiral.config.airframe import AIRFRAMES, AirframeCfg
 from spiral.config.load import load_track
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
+from spiral.core.numerics import CPU_TARGET_ENV, CPU_TARGETS, cpu_target
+from spiral.sim.options import MODULE_OPTIONS
 from spiral.sim.reference import ReferenceSim
 from spiral.sim.world import World
 
-__all__ = ["format_bench_table", "format_kernel_table", "kernel_profile", "machine_info", "run_sim_bench",
-           "run_sim_bench_two_process", "time_world", "two_process_worker"]
+__all__ = ["format_bench_table", "format_kernel_table", "kernel_profile", "machine_info", "run_build_comparison",
+           "run_sim_bench", "run_sim_bench_two_process", "time_world", "two_process_worker"]
 
 TARGET_REDRAW_STEPS = 10
 """Control steps between two draws of the random targets (about 0.2 s at 48 Hz)."""
@@ -58,6 +61,8 @@ def machine_info() -> dict[str, Any]:
         "python": platform.python_version(),
         "numpy": np.__version__,
         "warp": wp.config.version,
+        "cpu_target": cpu_target(),
+        "sim_cpu_flags": MODULE_OPTIONS["cpu_compiler_flags"],
     }
 
 
@@ -182,6 +187,7 @@ def run_sim_bench(
     repeats: int = 3,
     numpy_budget_s: float = 2.0,
     two_process: bool = False,
+    builds: bool = False,
     threads: int = 1,
     track: TrackSpec | None = None,
 ) -> dict[str, Any]:
@@ -197,24 +203,21 @@ def run_sim_bench(
         numpy_budget_s: About how long one numpy repeat may take; large rows time fewer numpy steps
             (``numpy_steps`` in the row), never fewer than 3.
         two_process: Also run the 4096 × 4 row in two processes side by side (``two_process`` entry).
+        builds: On the CPU, also time 4096 × 4 with each CPU build (``builds`` entry, :func:`run_build_comparison`).
         threads: Above 1, also time Warp alone at 4096 × 4 with the worlds stepped on this many threads of one
             process (``threaded`` entry; the rows use one).
         track: Track of the run; the paper's circuit by default.
 
     Returns:
-        ``{"device", "machine", "settings", "results": [row, ...]}`` and optionally ``"two_process"``.
+        ``{"device", "machine", "settings", "results": [row, ...]}`` and the optional entries above.
     """
     wp.init()
     track = track if track is not None else load_track(DEFAULT_TRACK)
     airframe = AIRFRAMES["cf2x"]
     cfg = _bench_cfg()
     machine = machine_info()
-    rows = [
-        _bench_row(track, airframe, w, d, device=device, steps=steps, seed=seed, repeats=repeats,
-                   numpy_budget_s=numpy_budget_s)
-        for w in worlds
-        for d in drones
-    ]
+    rows = [_bench_row(track, airframe, w, d, device=device, steps=steps, seed=seed, repeats=repeats,
+                       numpy_budget_s=numpy_budget_s) for w in worlds for d in drones]
     result: dict[str, Any] = {
         "device": str(wp.get_device(device)),
         "machine": machine,
@@ -225,6 +228,8 @@ def run_sim_bench(
         result["threaded"] = time_world(4096, 4, device=device, steps=steps, repeats=repeats, seed=seed,
                                         cpu_threads=threads, track=track)
     result["machine"]["load_avg_1min_end"] = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
+    if builds and result["device"] == "cpu":
+        result["builds"] = run_build_comparison(4096, 4, steps=steps, seed=seed, repeats=repeats)
     if two_process:
         result["two_process"] = run_sim_bench_two_process(4096, 4, device=device, steps=steps, seed=seed,
                                                           repeats=repeats)
@@ -425,6 +430,24 @@ def run_sim_bench_two_process(
     }
 
 
+def run_build_comparison(world_count: int = 4096, drones: int = 4, *, steps: int = 100, seed: int = 0,
+                         repeats: int = 3) -> dict[str, Any]:
+    """Time one Warp row with each CPU build (``SPIRAL_CPU_TARGET``: portable, native), each repeat in a fresh
+    process with its build, the builds taking turns, and keep each build's best repeat."""
+    rates: dict[str, list[int]] = {target: [] for target in CPU_TARGETS}
+    code = (f"import json; from spiral.sim.bench import time_world; "
+            f"print('row', json.dumps(time_world({world_count}, {drones}, steps={steps}, repeats=1, seed={seed})))")
+    for _ in range(repeats):
+        for target in CPU_TARGETS:
+            env = {**os.environ, CPU_TARGET_ENV: target}
+            out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+            row = next(line for line in out.stdout.splitlines() if line.startswith("row "))
+            rates[target].append(json.loads(row[4:])["drone_ctrl_steps_per_s"])
+    best = {target: max(r) for target, r in rates.items()}
+    return {"worlds": world_count, "drones": drones, "steps": steps, "repeats": repeats,
+            "drone_ctrl_steps_per_s": best, "portable_over_native": round(best["portable"] / best["native"], 3)}
+
+
 def format_bench_table(result: dict[str, Any]) -> str:
     """Markdown table of a :func:`run_sim_bench` result, with the machine and the two-process row if present."""
     m = result["machine"]
@@ -447,6 +470,12 @@ def format_bench_table(result: dict[str, Any]) -> str:
         each = " + ".join(f"{v:,}" for v in two["per_process_drone_ctrl_steps_per_s"])
         lines += ["", f"Two processes side by side, {two['worlds']} worlds × {two['drones']} drones each: "
                       f"{two['aggregate_drone_ctrl_steps_per_s']:,} drone-ctrl-steps/s in aggregate ({each})."]
+    builds = result.get("builds")
+    if builds:
+        rate = builds["drone_ctrl_steps_per_s"]
+        lines += ["", f"CPU builds, {builds['worlds']} worlds × {builds['drones']} drones, each repeat in a fresh "
+                      f"process: portable {rate['portable']:,}, native {rate['native']:,} drone-ctrl-steps/s "
+                      f"(portable {builds['portable_over_native']:.2f}× native)."]
     one = result.get("threaded")
     if one:
         lines += ["", f"One process, worlds stepped on {one['cpu_threads']} threads, {one['worlds']} worlds × "

@@ -147,6 +147,7 @@ def test_game_duals_vanish_when_players_are_far_apart(collision_course):
     assert np.all(far.duals[0] < 1e-6)
 
 
+@pytest.mark.bitwise
 def test_alpha_zero_reproduces_plain_ibr_and_alpha_changes_the_plan(collision_course):
     """Give identical plans for α = 0 with and without the sensitivity code path, and a different one for α > 0."""
     plans = []

@@ -94,6 +94,7 @@ def test_kernel_profile_times_every_kernel_of_a_control_step_as_often_as_it_runs
     assert f"| `control_and_integrate` | 5 | {wall:.3f} ms |" in on_gpu
 
 
+@pytest.mark.bitwise
 def test_kernel_profile_restores_the_state_it_times_from_bit_for_bit(make_world):
     """Every repeat of the profile starts from the same state: the restorer puts positions, attitudes, rates,
     integrals and race counters back exactly, crash flags cleared, after steps that moved and crashed drones."""

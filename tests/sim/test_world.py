@@ -39,6 +39,7 @@ def test_identical_worlds_stay_identical(make_world, run, targets):
     assert np.abs(out["pos"][-1] - out["pos"][0]).max() > 0.1  # they did move
 
 
+@pytest.mark.bitwise
 def test_trajectory_does_not_depend_on_world_count(make_world, run, targets):
     """Give world 0 the same trajectory, bit for bit, whether it runs alone or beside two other worlds."""
     rng = np.random.default_rng(2)
@@ -52,6 +53,7 @@ def test_trajectory_does_not_depend_on_world_count(make_world, run, targets):
         np.testing.assert_array_equal(a[k], c[k][:, :2])
 
 
+@pytest.mark.bitwise
 def test_same_seed_gives_bit_identical_runs(make_world, run, targets):
     """Reproduce every state and race array bit for bit from the same seed (CPU)."""
     results = []
@@ -66,6 +68,7 @@ def test_same_seed_gives_bit_identical_runs(make_world, run, targets):
     assert results[0]["crashed"].any() or results[0]["gates_passed"].any()  # the run had events to reproduce
 
 
+@pytest.mark.bitwise
 def test_reset_of_a_subset_leaves_other_worlds_untouched(make_world, run, targets):
     """Reset world 1 only: worlds 0 and 2 keep every array bit for bit; world 1 restarts like a fresh world."""
     rng = np.random.default_rng(4)
@@ -115,10 +118,10 @@ def test_nonfinite_state_is_flagged_and_contained(make_world, run, targets, fiel
     assert clean.race.world_nonfinite.numpy().tolist() == [0, 0, 0]
     for k in sorted({"pos", "quat", "omega", "rpm", "rpy"} - {field}):  # the injected value itself is never overwritten
         assert np.isfinite(b[k]).all(), k
-    np.testing.assert_array_equal(b["pos"][:, 2], np.broadcast_to(frozen_pos, (20, 3)))
+    np.testing.assert_array_equal(b["pos"][:, 2], np.broadcast_to(frozen_pos, (20, 3)))  # exact: pose kept
     others = [0, 1, 3, 4, 5]
     for k in STATE:
-        np.testing.assert_array_equal(a[k][:, others], b[k][:, others], err_msg=k)
+        np.testing.assert_array_equal(a[k][:, others], b[k][:, others], err_msg=k)  # exact: same inputs, same host
 
 
 def test_world_time_is_exact_at_48_hz(make_world):
@@ -136,6 +139,7 @@ def test_world_time_is_exact_at_48_hz(make_world):
 
 
 @pytest.mark.parametrize("downwash", [False, True], ids=["plain", "downwash"])
+@pytest.mark.bitwise
 def test_replayed_launches_give_exactly_the_plain_launch_path(make_world, targets, downwash):
     """Four drones per world flying random targets (some crash, some fly on, one passes a gate): replaying the
     recorded launches gives bit for bit the state of launching every kernel afresh."""
@@ -159,6 +163,7 @@ def test_replayed_launches_give_exactly_the_plain_launch_path(make_world, target
 
 @pytest.mark.parametrize(("world_count", "drones", "threads"), [(5, 4, 2), (5, 4, 3), (7, 1, 2)],
                          ids=["4-drones-2-threads", "4-drones-3-threads", "1-drone-2-threads"])
+@pytest.mark.bitwise
 def test_worlds_stepped_in_threads_give_exactly_the_one_thread_state(make_world, targets, world_count, drones,
                                                                      threads):
     """Worlds split into uneven contiguous shares, each stepped on its own thread (downwash on, some drones crash,

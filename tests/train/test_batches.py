@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 from rsl_rl.storage import RolloutStorage
 from tensordict import TensorDict
@@ -22,6 +23,7 @@ def filled_storage(envs: int = 6, steps: int = 4) -> RolloutStorage:
     return storage
 
 
+@pytest.mark.bitwise
 def test_gather_once_yields_rsl_rls_mini_batches_row_for_row():
     """Same permutation (same RNG draw), same rows in the same order in every epoch; batches are slices."""
     storage = filled_storage()

@@ -170,6 +170,7 @@ def test_ppo_update_variants_script_times_every_variant_on_the_smoke_pipeline(tm
     assert all(len(v) == 2 and min(v) > 0 for v in times.values())
 
 
+@pytest.mark.bitwise
 def test_pool_opponents_script_times_both_implementations_and_finds_the_same_actions(tmp_path):
     """Three members of the published pool, a few worlds: both implementations timed in each repeat, actions equal."""
     root = Path(__file__).resolve().parents[2]

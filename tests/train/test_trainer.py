@@ -82,6 +82,7 @@ def test_loaded_policy_reproduces_the_trained_actor(oval2, tmp_path):
     assert res.finished.shape == (3, 1)
 
 
+@pytest.mark.bitwise
 def test_same_seed_gives_the_same_training_on_cpu(oval2, tmp_path):
     """Produce bit-identical weights from two runs with the same seed."""
     a = StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(2), tmp_path / "a", seed=5, progress=False)
@@ -93,6 +94,7 @@ def test_same_seed_gives_the_same_training_on_cpu(oval2, tmp_path):
     assert all(torch.equal(wa[k], wb[k]) for k in wa)
 
 
+@pytest.mark.bitwise
 def test_simulator_threads_leave_the_training_unchanged(oval2, tmp_path, monkeypatch):
     """Step the worlds on two threads (rollouts and selection evaluations) and get the weights and the log of one
     thread, bit for bit."""
@@ -111,6 +113,7 @@ def test_simulator_threads_leave_the_training_unchanged(oval2, tmp_path, monkeyp
     assert log1 == log2 and any("eval/success" in row for row in log1)
 
 
+@pytest.mark.bitwise
 def test_paired_evaluation_races_both_policies_from_the_same_fresh_placements(oval2, tmp_path):
     """Start the learner's and the other policy's self-match from one draw, and the next pair from a new one."""
     trainer = StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(2), tmp_path, seed=4, progress=False)
@@ -150,6 +153,7 @@ def test_noise_range_must_not_be_empty():
         PPOCfg(min_noise_std=0.2, max_noise_std=0.1)
 
 
+@pytest.mark.bitwise
 def test_frozen_policy_acts_as_its_actor_modules_to_the_bit_after_a_reload_or_a_cast_too(oval2, tmp_path):
     """A frozen policy's direct forward pass gives what the actor's modules give, for any number of rows, and
     follows weights loaded into it or cast afterwards."""
