@@ -4,7 +4,16 @@ from __future__ import annotations
 
 from spiral.config.airframe import AIRFRAMES, AirframeCfg, AirframeSel, PIDCfg, resolve_airframe
 from spiral.config.base import StrictModel
-from spiral.config.env import ActionCfg, EnvCfg, EpisodeCfg, ObsCfg, RewardCfg, SeparationCfg, ShieldCfg
+from spiral.config.env import (
+    ActionCfg,
+    EnvCfg,
+    EpisodeCfg,
+    ObsCfg,
+    PassageStartsCfg,
+    RewardCfg,
+    SeparationCfg,
+    ShieldCfg,
+)
 from spiral.config.errors import SpecError
 from spiral.config.load import KINDS, load_pipeline, load_spec, load_track
 from spiral.config.pipeline import EvaluationCfg, PipelineSpec, ReportCfg
@@ -27,6 +36,7 @@ __all__ = [
     "ObsCfg",
     "PIDCfg",
     "PPOCfg",
+    "PassageStartsCfg",
     "PipelineSpec",
     "PromotionCfg",
     "ReportCfg",

@@ -8,7 +8,8 @@ from pydantic import Field, model_validator
 
 from spiral.config.base import NonNegFloat, PosFloat, PosInt, StrictModel
 
-__all__ = ["ActionCfg", "EnvCfg", "EpisodeCfg", "ObsCfg", "RewardCfg", "SeparationCfg", "ShieldCfg"]
+__all__ = ["ActionCfg", "EnvCfg", "EpisodeCfg", "ObsCfg", "PassageStartsCfg", "RewardCfg", "SeparationCfg",
+           "ShieldCfg"]
 
 
 class ObsCfg(StrictModel):
@@ -194,6 +195,22 @@ class RewardCfg(StrictModel):
     )
 
 
+class PassageStartsCfg(StrictModel):
+    """Training episodes started from states drones had just after passing a gate earlier in the stage (kept per
+    gate, perturbed): starts along the track as drones really fly it, at racing speed and heading. The share of such
+    episodes moves linearly from ``share_start`` to ``share_end`` over the stage; the other episodes start as the
+    rest of ``episode`` says. Until a gate has recorded states, worlds that would start behind it start so too."""
+
+    share_start: float = Field(default=0.5, ge=0, le=1, description="Share of episodes started from passage states "
+                               "at the stage's first iteration")
+    share_end: float = Field(default=0.5, ge=0, le=1, description="The same share at its last iteration")
+    capacity: PosInt = Field(default=512, description="Passage states kept per gate (the newest)")
+    pos_noise: NonNegFloat = Field(default=0.05, description="Standard deviation of a start's position noise per "
+                                   "axis [m]")
+    vel_noise: NonNegFloat = Field(default=0.2, description="Standard deviation of a start's velocity noise per "
+                                   "axis [m/s]")
+
+
 class EpisodeCfg(StrictModel):
     """Episode starts and limits in training (evaluation starts in the start box unless ``eval_starts`` says)."""
 
@@ -206,6 +223,9 @@ class EpisodeCfg(StrictModel):
         description="Share of multi-drone episodes that start with the world's drones in single file on one stretch "
         "of the track, 0.4-1 m apart in random order, each at its own speed up to track_start_speed: starts where a "
         "drone must follow or pass another (not in the paper)",
+    )
+    passage_starts: PassageStartsCfg | None = Field(
+        default=None, description="Starts from recorded gate-passage states (not in the paper); null: none"
     )
     laps: PosInt | None = Field(
         default=None, description="Laps of a training race; the track's when absent (its time limit scaled to them)"

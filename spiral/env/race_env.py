@@ -19,6 +19,7 @@ from spiral.core.scenario import team_slots
 from spiral.env.actions import ActionMap
 from spiral.env.events import RaceEvents, race_result
 from spiral.env.observations import Observer, ObsSource
+from spiral.env.passages import PassageStarts
 from spiral.env.rewards import compute_rewards
 from spiral.env.starts import draw_starts
 from spiral.env.state import RaceState
@@ -46,8 +47,8 @@ class RaceEnv(RaceState):
     is reset when any of its learner drones crashes or finishes, at its time limit, or when its state turns
     non-finite (``health/nonfinite_resets``); learner drones cut short by another's end get ``time_outs``. With
     ``auto_reset=False`` (evaluation) drones that are done stay frozen and nothing resets. :meth:`step` runs the
-    hooks apply action → simulate → race events → rewards → dones → reset → observe, in that order; what the env
-    holds is :class:`~spiral.env.state.RaceState`'s.
+    hooks apply action → simulate → race events → rewards → dones → reset → observe; the state is
+    :class:`~spiral.env.state.RaceState`'s.
     """
 
     def __init__(self, track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, cfg: EnvCfg, *, world_count: int,
@@ -63,6 +64,7 @@ class RaceEnv(RaceState):
         """The observation layout and history buffer."""
         self.opponent_observer: Observer | None = None
         """The opponent slots' own observer when their policy reads another observation layout (cross-play)."""
+        self.passages = PassageStarts.of(self, airframe.radius)
         self.reset()
 
     def set_opponent_policy(self, policy: OpponentPolicy | None, *, obs: ObsCfg | None = None) -> None:
@@ -78,6 +80,7 @@ class RaceEnv(RaceState):
     def set_training_progress(self, fraction: float) -> None:
         """Tell the env how far its training stage is (fraction of its iterations): schedules follow it."""
         self.action_map.set_training_progress(fraction)
+        self.passages.set_training_progress(fraction)
 
     # Step: the hooks in their order
 
@@ -135,6 +138,7 @@ class RaceEnv(RaceState):
         self.finished |= finished_now
         self.lap_time = torch.where(finished_now, self.pass_time, self.lap_time)
         self.out[finished_now] = 1
+        self.passages.record(self, racing & ~crashed_now)
         result = None
         if self.cfg.reward.win > 0:
             result, decided = race_result(finished_now, self.lap_time, racing & ~crashed_now, self.contested,
@@ -197,13 +201,11 @@ class RaceEnv(RaceState):
         return self.get_observations()
 
     def _reset_worlds(self, worlds: torch.Tensor) -> None:
-        """Draw new starts for the worlds in the bool mask ``worlds`` and reset them in the simulator.
-
-        Starts are drawn for those worlds only, in world order, so a reset of every world draws what it always did.
-        """
+        """Draw new starts for the worlds in the bool mask ``worlds`` (for those only, in world order, so a reset of
+        every world draws what it always did) and reset them in the simulator."""
         d, idx = self.drones_per_world, worlds.nonzero().squeeze(1)
-        n, starts = idx.numel(), draw_starts(self.track, self.cfg.episode, idx.numel(), d, self.generator,
-                                             training=self.auto_reset, device=self.device)
+        starts = self.passages.apply(draw_starts(self.track, self.cfg.episode, idx.numel(), d, self.generator,
+                                                 training=self.auto_reset, device=self.device), self.generator)
         buf, t = self._wp_starts, wp.to_torch
         t(buf["mask"]).copy_(worlds.int())
         for name in ("pos", "vel", "yaw", "gate"):
@@ -212,11 +214,11 @@ class RaceEnv(RaceState):
         drones = worlds.repeat_interleave(d)
         self._reset_drone_buffers(drones)
         if any(o is not None and o.builder.cfg.priority for o in (self.observer, self.opponent_observer)):
-            self.priority[drones] = torch.rand(n * d, generator=self.generator, device=self.device)
+            self.priority[drones] = torch.rand(idx.numel() * d, generator=self.generator, device=self.device)
         driven = self.learner_slots + (self.opponent_slots if self.opponent_policy is not None else [])
         self.contested[idx] = starts.box & (len({int(self.race_team[s]) for s in driven}) > 1)
         if self.auto_reset and self.cfg.episode.start_cut_prob > 0:
-            cut = starts.box & (torch.rand(n, generator=self.generator, device=self.device)
+            cut = starts.box & (torch.rand(idx.numel(), generator=self.generator, device=self.device)
                                 < self.cfg.episode.start_cut_prob)
             self.cut_time[idx] = torch.where(cut, self.cfg.episode.start_cut_s, math.inf)
         if isinstance(self.opponent_policy, ResettingOpponent):

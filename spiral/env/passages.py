@@ -1,0 +1,138 @@
+"""Starts from states drones really fly: a buffer of the states drones had just after passing each gate in training,
+drawn again (perturbed) as the start of a new episode.
+
+Each gate keeps its newest ``capacity`` passage states: position, velocity and yaw at the end of the control step in
+which a racing drone passed it. A start drawn from gate ``g``'s states heads for gate ``g + 1``. The drones of one
+world start behind different gates (a world with more drones than gates gets none of these starts), each state is
+perturbed by Gaussian noise, and a draw whose position is out of bounds or touches a gate's frame is not used.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from spiral.config.env import PassageStartsCfg
+from spiral.config.track import TrackSpec
+from spiral.env.starts import Starts
+from spiral.env.state import RaceState
+
+__all__ = ["PassageBuffer", "PassageStarts", "clear_of_gates", "passage_share"]
+
+
+def passage_share(cfg: PassageStartsCfg, fraction: float) -> float:
+    """Share of episodes started from passage states ``fraction`` of the way through a stage: linear from
+    ``cfg.share_start`` to ``cfg.share_end``."""
+    fraction = min(max(fraction, 0.0), 1.0)
+    return cfg.share_start + (cfg.share_end - cfg.share_start) * fraction
+
+
+def clear_of_gates(pos: torch.Tensor, track: TrackSpec, radius: float, *, margin: float = 0.05) -> torch.Tensor:
+    """Whether a sphere of ``radius`` at each position (..., 3) keeps ``margin`` from every gate's frame and from the
+    arena's bounds.
+
+    A gate's frame is the square ring between the opening (half side ``h``) and the outer side (``h`` plus the bar),
+    as deep as the bar. A sphere touches it when it reaches into that slab (``|x| < bar / 2 + r``) and is not inside
+    the opening (``max(|y|, |z|) > h − r``) nor outside the frame (``max(|y|, |z|) < h + bar + r``); the test adds
+    ``margin`` to ``r`` on every side.
+    """
+    r = radius + margin
+    centers = torch.tensor(track.gate_centers(), dtype=pos.dtype, device=pos.device)
+    rot = torch.tensor(track.gate_rotations(), dtype=pos.dtype, device=pos.device)  # columns: normal, y, z
+    half = torch.tensor([track.gate_opening(i) / 2 for i in range(len(track.gates))], dtype=pos.dtype,
+                        device=pos.device)
+    bar = torch.tensor([track.gate_bar(i) for i in range(len(track.gates))], dtype=pos.dtype, device=pos.device)
+    local = torch.einsum("gij,...gi->...gj", rot, pos[..., None, :] - centers)
+    in_plane = local[..., 1:].abs().amax(dim=-1)
+    touches = (local[..., 0].abs() < bar / 2 + r) & (in_plane > half - r) & (in_plane < half + bar + r)
+    lo = torch.tensor(track.bounds.min, dtype=pos.dtype, device=pos.device) + r
+    hi = torch.tensor(track.bounds.max, dtype=pos.dtype, device=pos.device) - r
+    inside = ((pos >= lo) & (pos <= hi)).all(dim=-1)
+    return inside & ~touches.any(dim=-1)
+
+
+class PassageBuffer:
+    """The newest ``capacity`` passage states of each gate (positions, velocities, yaws), on the env's device."""
+
+    def __init__(self, gate_count: int, capacity: int, *, device: torch.device) -> None:
+        self.gate_count, self.capacity = gate_count, capacity
+        self.pos = torch.zeros(gate_count, capacity, 3, device=device)
+        self.vel = torch.zeros(gate_count, capacity, 3, device=device)
+        self.yaw = torch.zeros(gate_count, capacity, device=device)
+        self.count = torch.zeros(gate_count, dtype=torch.long, device=device)
+        """States recorded per gate, at most ``capacity``."""
+        self.head = torch.zeros(gate_count, dtype=torch.long, device=device)
+        """Slot of each gate's next recorded state (the oldest once full)."""
+
+    def record(self, gate: torch.Tensor, pos: torch.Tensor, vel: torch.Tensor, yaw: torch.Tensor) -> None:
+        """Keep the states of the drones that passed ``gate`` (N,; −1 for a drone that passed none) in this step."""
+        keep = gate >= 0
+        if not bool(keep.any()):
+            return
+        g = gate[keep].long()
+        rank = torch.nn.functional.one_hot(g, self.gate_count).cumsum(dim=0)[torch.arange(g.numel()), g] - 1
+        slot = (self.head[g] + rank) % self.capacity
+        self.pos[g, slot], self.vel[g, slot], self.yaw[g, slot] = pos[keep], vel[keep], yaw[keep]
+        added = torch.bincount(g, minlength=self.gate_count)
+        self.head = (self.head + added) % self.capacity
+        self.count = (self.count + added).clamp(max=self.capacity)
+
+    def sample(self, world_count: int, drones: int, generator: torch.Generator, *, pos_noise: float,
+               vel_noise: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Starts for ``world_count`` worlds of ``drones``: positions and velocities (W, D, 3), yaws and next gates
+        (W, D), and whether each world could be given such starts (W,): every drone's gate has recorded states, and
+        there are at least as many gates as drones. Drones of one world start behind different gates."""
+        device = self.pos.device
+        order = torch.rand(world_count, self.gate_count, generator=generator, device=device).argsort(dim=1)
+        gate = order[:, torch.arange(drones, device=device) % self.gate_count]
+        pick = torch.rand(world_count, drones, generator=generator, device=device)
+        slot = (pick * self.count[gate]).long().clamp(max=self.capacity - 1)
+        pos = self.pos[gate, slot] + pos_noise * torch.randn(world_count, drones, 3, generator=generator,
+                                                            device=device)
+        vel = self.vel[gate, slot] + vel_noise * torch.randn(world_count, drones, 3, generator=generator,
+                                                            device=device)
+        ok = (self.count[gate] > 0).all(dim=1) & (drones <= self.gate_count)
+        return pos, vel, self.yaw[gate, slot], (gate + 1) % self.gate_count, ok
+
+
+class PassageStarts:
+    """What a training env does with passage starts (``episode.passage_starts``): records the states of its racing
+    drones at each gate passage, and turns a share of the starts it draws into starts from those states. Inert
+    without the setting, and in evaluation (an env that does not reset by itself)."""
+
+    def __init__(self, cfg: PassageStartsCfg | None, track: TrackSpec, radius: float, *, training: bool,
+                 device: torch.device) -> None:
+        self.cfg = cfg if training else None
+        self.track, self.radius, self.share = track, radius, 0.0 if self.cfg is None else self.cfg.share_start
+        self.buffer = None if self.cfg is None else PassageBuffer(len(track.gates), self.cfg.capacity, device=device)
+
+    @classmethod
+    def of(cls, env: RaceState, radius: float) -> PassageStarts:
+        """The passage starts of ``env`` (its ``episode.passage_starts``; training only), for drones of ``radius``."""
+        return cls(env.cfg.episode.passage_starts, env.track, radius, training=env.auto_reset, device=env.device)
+
+    def set_training_progress(self, fraction: float) -> None:
+        """Move the share of passage starts along the stage's schedule."""
+        if self.cfg is not None:
+            self.share = passage_share(self.cfg, fraction)
+
+    def record(self, env: RaceState, racing: torch.Tensor) -> None:
+        """Keep the state after this step of each drone of ``env`` in the bool mask ``racing`` (raced the step and
+        races on) that passed a gate in it, as a state of the gate before its next one."""
+        if self.buffer is not None:
+            passed = racing & (env.step_passes > 0)
+            gate = torch.where(passed, (env.next_gate.long() - 1) % self.buffer.gate_count, -1)
+            self.buffer.record(gate, env.pos, env.vel, env.rpy[:, 2])
+
+    def apply(self, starts: Starts, generator: torch.Generator) -> Starts:
+        """``starts`` with a share of its worlds started from passage states instead (those worlds are not box
+        starts); a world whose draw is not clear of the gates and bounds keeps its start."""
+        if self.buffer is None or self.share <= 0:
+            return starts
+        world_count, drones = starts.yaw.shape
+        pos, vel, yaw, gate, ok = self.buffer.sample(world_count, drones, generator, pos_noise=self.cfg.pos_noise,
+                                                     vel_noise=self.cfg.vel_noise)
+        use = torch.rand(world_count, generator=generator, device=pos.device) < self.share
+        use &= ok & clear_of_gates(pos, self.track, self.radius).all(dim=1)
+        w, v = use[:, None, None], use[:, None]
+        return Starts(torch.where(w, pos, starts.pos), torch.where(w, vel, starts.vel), torch.where(v, yaw, starts.yaw),
+                      torch.where(v, gate.to(starts.gate.dtype), starts.gate), starts.box & ~use)
