@@ -317,7 +317,7 @@ def bench_repro(
 
     result = run_digests(training=training)
     n, m = result["numerics"], result["machine"]
-    typer.echo(f"{m['cpu']} · SPIRAL_CPU_TARGET={n['cpu_target']} (portable build: {n['portable']}) · torch "
+    typer.echo(f"{m['cpu']} · SPIRAL_CPU_TARGET={n['cpu_target']} (portable simulator: {n['portable_sim']}) · torch "
                f"{n['torch']} {n['torch_cpu_capability']}")
     for key in ("sim", "training"):
         if key in result:

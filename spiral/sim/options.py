@@ -2,8 +2,9 @@
 
 Two CPU builds, chosen by ``SPIRAL_CPU_TARGET`` (:mod:`spiral.core.numerics`):
 
-- ``portable`` (default): ``x86-64-v3`` code with IEEE arithmetic only, the same machine code and bits on every host
-  that runs it. On a host without x86-64-v3, the host's own code (IEEE all the same).
+- ``portable`` (the default, and the ``avx2`` target's): ``x86-64-v3`` code with IEEE arithmetic only, the same
+  machine code and bits on every host that runs it. On a host without x86-64-v3, the host's own code (IEEE all the
+  same).
 - ``native``: the host's own code (Warp's ``-march=native``) plus floating-point relaxations. ``-freciprocal-math``
   and ``-fapprox-func`` let the compiler turn a division by a square root into an approximate reciprocal square root
   (``vrsqrtss``) and a Newton step, which makes the controller faster; that instruction's bits differ between CPU
@@ -29,8 +30,8 @@ PORTABLE_CPU = "x86-64-v3"
 
 
 def cpu_build_flags(target: str) -> str:
-    """Warp CPU compiler flags of ``target`` (``portable`` or ``native``): the CPU level, Warp's LLVM tuning flags and
-    the arithmetic."""
+    """Warp CPU compiler flags of ``target`` (``native``, else the portable build): the CPU level, Warp's LLVM tuning
+    flags and the arithmetic."""
     tuning = [f for f in (wp.config.cpu_compiler_flags or "").split() if not f.startswith("-march=")]
     if target == "native":
         return " ".join(["-march=native", *tuning, "-freciprocal-math", "-fapprox-func", "-fno-signed-zeros"])

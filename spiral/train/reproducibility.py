@@ -21,7 +21,7 @@ from spiral.config.load import load_track
 from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 from spiral.core.checkpoint import load_checkpoint
-from spiral.core.numerics import TORCH_PORTABLE_ENV, cpu_target, portable_build
+from spiral.core.numerics import TORCH_AVX2_ENV, cpu_target, portable_build
 from spiral.sim.bench import DEFAULT_TRACK, _make_world, _time_warp, machine_info
 from spiral.sim.options import MODULE_OPTIONS
 from spiral.train.runner import StageTrainer
@@ -33,11 +33,11 @@ def numerics_in_force() -> dict[str, Any]:
     """The CPU arithmetic of this process: the target, the simulator's build flags and torch's kernel choices."""
     return {
         "cpu_target": cpu_target(),
-        "portable": portable_build(),
+        "portable_sim": portable_build(),
         "sim_cpu_flags": MODULE_OPTIONS["cpu_compiler_flags"],
         "torch": torch.__version__,
         "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
-        "torch_env": {key: os.environ.get(key) for key in TORCH_PORTABLE_ENV},
+        "torch_env": {key: os.environ.get(key) for key in TORCH_AVX2_ENV},
     }
 
 

@@ -15,7 +15,7 @@ from spiral.cli import app
 from spiral.core.device import check_device
 from spiral.core.numerics import (
     CPU_TARGET_ENV,
-    TORCH_PORTABLE_ENV,
+    TORCH_AVX2_ENV,
     apply_cpu_target,
     cpu_target,
     host_runs_x86_64_v3,
@@ -36,50 +36,60 @@ def test_a_host_runs_x86_64_v3_only_with_every_v3_flag():
     assert not host_runs_x86_64_v3("processor : 0\n")
 
 
-def test_the_cpu_target_is_portable_unless_native_is_asked_for(monkeypatch):
-    """Read SPIRAL_CPU_TARGET: unset or empty is portable, native is native, anything else is an error naming it."""
+def test_the_cpu_target_is_portable_unless_another_is_asked_for(monkeypatch):
+    """Read SPIRAL_CPU_TARGET: unset or empty is portable, avx2 and native are themselves, anything else is an error
+    naming it."""
     monkeypatch.delenv(CPU_TARGET_ENV, raising=False)
     assert cpu_target() == "portable"
     monkeypatch.setenv(CPU_TARGET_ENV, "")
     assert cpu_target() == "portable"
-    monkeypatch.setenv(CPU_TARGET_ENV, "native")
-    assert cpu_target() == "native"
+    for target in ("avx2", "native"):
+        monkeypatch.setenv(CPU_TARGET_ENV, target)
+        assert cpu_target() == target
     monkeypatch.setenv(CPU_TARGET_ENV, "fast")
-    with pytest.raises(ValueError, match="SPIRAL_CPU_TARGET: expected one of portable, native, got 'fast'"):
+    with pytest.raises(ValueError, match="SPIRAL_CPU_TARGET: expected one of portable, avx2, native, got 'fast'"):
         cpu_target()
 
 
-def test_the_portable_sim_build_is_x86_64_v3_with_ieee_arithmetic():
+def test_the_portable_sim_build_is_x86_64_v3_with_ieee_arithmetic_and_avx2_builds_it_too():
     """Build the portable simulator for x86-64-v3 without the relaxations that bring approximate reciprocal square
     roots; build the native one for the host with them."""
     portable, native = cpu_build_flags("portable").split(), cpu_build_flags("native").split()
+    assert cpu_build_flags("avx2").split() == portable
     assert "-freciprocal-math" not in portable and "-fapprox-func" not in portable and "-ffast-math" not in portable
     assert {"-march=native", "-freciprocal-math", "-fapprox-func"} <= set(native)
     if host_runs_x86_64_v3():
         assert portable[:2] == ["-target-cpu", PORTABLE_CPU] and "-march=native" not in portable
 
 
-def test_a_portable_target_holds_torch_to_its_avx2_kernels_and_keeps_what_the_user_set(monkeypatch):
-    """Set MKL's, ATen's and oneDNN's AVX2 code paths for a portable target on a v3 host, keep a variable the user
-    set, and set nothing for a native target."""
-    for key in TORCH_PORTABLE_ENV:
+def test_the_avx2_target_holds_torch_to_its_avx2_kernels_and_keeps_what_the_user_set(monkeypatch):
+    """Set MKL's, ATen's and oneDNN's AVX2 code paths for the avx2 target on a v3 host, keeping a variable the user
+    set; set nothing for the portable and native targets."""
+    for key in TORCH_AVX2_ENV:
         monkeypatch.delenv(key, raising=False)
-    monkeypatch.setenv(CPU_TARGET_ENV, "native")
-    assert apply_cpu_target() == {} and not any(key in os.environ for key in TORCH_PORTABLE_ENV)
+    for target in ("portable", "native"):
+        monkeypatch.setenv(CPU_TARGET_ENV, target)
+        assert apply_cpu_target() == {} and not any(key in os.environ for key in TORCH_AVX2_ENV)
     if not host_runs_x86_64_v3():
-        pytest.skip("not an x86-64-v3 host: a portable target runs the host's own code")
-    monkeypatch.setenv(CPU_TARGET_ENV, "portable")
+        pytest.skip("not an x86-64-v3 host: every target runs the host's own code")
+    monkeypatch.setenv(CPU_TARGET_ENV, "avx2")
     monkeypatch.setenv("MKL_CBWR", "COMPATIBLE")
-    assert apply_cpu_target() == {**TORCH_PORTABLE_ENV, "MKL_CBWR": "COMPATIBLE"}
+    assert apply_cpu_target() == {**TORCH_AVX2_ENV, "MKL_CBWR": "COMPATIBLE"}
 
 
 @pytest.mark.skipif(not host_runs_x86_64_v3(), reason="not an x86-64-v3 host")
-def test_importing_spiral_first_runs_torchs_avx2_kernels():
-    """Run torch's AVX2 kernels in a process that imports spiral before torch computes, its host's own otherwise."""
-    code = "import spiral, torch; print(torch.backends.cpu.get_cpu_capability())"
-    env = {k: v for k, v in os.environ.items() if k not in TORCH_PORTABLE_ENV and k != CPU_TARGET_ENV}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "AVX2"
+def test_importing_spiral_first_runs_torchs_avx2_kernels_for_the_avx2_target_only():
+    """Run torch's AVX2 kernels in a process that imports spiral before torch computes with the avx2 target, and the
+    kernels torch picks by itself with the default target."""
+    env = {k: v for k, v in os.environ.items() if k not in TORCH_AVX2_ENV and k != CPU_TARGET_ENV}
+
+    def capability(code: str, **extra: str) -> str:
+        out = subprocess.run([sys.executable, "-c", code + "print(torch.backends.cpu.get_cpu_capability())"],
+                             env={**env, **extra}, capture_output=True, text=True, check=True)
+        return out.stdout.strip()
+
+    assert capability("import spiral, torch; ", SPIRAL_CPU_TARGET="avx2") == "AVX2"
+    assert capability("import spiral, torch; ") == capability("import torch; ")
 
 
 def test_check_device_names_a_bad_device_in_one_line():
@@ -126,4 +136,4 @@ def test_a_bad_cpu_target_is_one_error_line_of_the_cli():
     out = subprocess.run([sys.executable, "-m", "spiral.cli", "validate", str(ROOT / "tracks" / "oval4.yaml")],
                          env=env, capture_output=True, text=True)
     assert out.returncode == 1
-    assert out.stderr.strip() == "Error: SPIRAL_CPU_TARGET: expected one of portable, native, got 'fast'"
+    assert out.stderr.strip() == "Error: SPIRAL_CPU_TARGET: expected one of portable, avx2, native, got 'fast'"
