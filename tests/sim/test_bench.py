@@ -16,6 +16,7 @@ from spiral.sim.bench import (
     format_bench_table,
     format_kernel_table,
     kernel_profile,
+    run_build_comparison,
     run_sim_bench,
     run_sim_bench_two_process,
     time_world,
@@ -115,3 +116,15 @@ def test_kernel_profile_restores_the_state_it_times_from_bit_for_bit(make_world)
         if isinstance(arr, wp.array):
             expected = np.zeros_like(before[name]) if name == "crashed" else before[name]
             assert np.array_equal(arr.numpy(), expected), name
+
+
+def test_build_comparison_times_the_portable_and_the_native_simulator_each_in_its_own_process():
+    """Time both CPU builds (each repeat a fresh process with its SPIRAL_CPU_TARGET) and print their ratio."""
+    builds = run_build_comparison(2, 2, steps=3, repeats=1)
+    rates = builds["drone_ctrl_steps_per_s"]
+    assert set(rates) == {"portable", "native"} and min(rates.values()) > 0
+    assert builds["portable_over_native"] == pytest.approx(rates["portable"] / rates["native"], abs=1e-3)
+    table = format_bench_table({"device": "cpu", "machine": {"cpu": "x", "cores": 2, "python": "3", "warp": "1",
+                                                             "numpy": "2", "load_avg_1min": 0.0}, "results": [],
+                                "builds": builds})
+    assert f"portable {rates['portable']:,}, native {rates['native']:,} drone-ctrl-steps/s" in table
