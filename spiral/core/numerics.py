@@ -18,6 +18,7 @@ module imports neither torch nor Warp; docs/results.md ("Reproducibility") says 
 
 from __future__ import annotations
 
+import functools
 import os
 import platform
 from pathlib import Path
@@ -53,17 +54,22 @@ def host_runs_x86_64_v3(cpuinfo: str | None = None) -> bool:
     """Whether this host runs x86-64-v3 code: an x86-64 CPU whose ``/proc/cpuinfo`` flags hold every v3 feature.
 
     Args:
-        cpuinfo: Text of ``/proc/cpuinfo`` (read from the host when ``None``).
+        cpuinfo: Text of ``/proc/cpuinfo`` (this host's, read once, when ``None``).
     """
     if cpuinfo is None:
-        if platform.machine().lower() not in ("x86_64", "amd64"):
-            return False
-        try:
-            cpuinfo = Path("/proc/cpuinfo").read_text()
-        except OSError:
-            return False
+        return _this_host_runs_x86_64_v3()
     flags = next((line.split(":", 1)[1].split() for line in cpuinfo.splitlines() if line.startswith("flags")), [])
     return set(flags) >= _V3_FLAGS
+
+
+@functools.cache
+def _this_host_runs_x86_64_v3() -> bool:
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return False
+    try:
+        return host_runs_x86_64_v3(Path("/proc/cpuinfo").read_text())
+    except OSError:
+        return False
 
 
 def portable_build() -> bool:

@@ -115,11 +115,11 @@ class PassageStarts:
         if self.cfg is not None:
             self.share = passage_share(self.cfg, fraction)
 
-    def record(self, env: RaceState, racing: torch.Tensor) -> None:
-        """Keep the state after this step of each drone of ``env`` in the bool mask ``racing`` (raced the step and
-        races on) that passed a gate in it, as a state of the gate before its next one."""
+    def record(self, env: RaceState, racing: torch.Tensor, crashed_now: torch.Tensor) -> None:
+        """Keep the state after this step of each drone of ``env`` that raced the step (``racing``), did not crash in
+        it and passed a gate, as a state of the gate before its next one (nothing without a buffer)."""
         if self.buffer is not None:
-            passed = racing & (env.step_passes > 0)
+            passed = racing & ~crashed_now & (env.step_passes > 0)
             gate = torch.where(passed, (env.next_gate.long() - 1) % self.buffer.gate_count, -1)
             self.buffer.record(gate, env.pos, env.vel, env.rpy[:, 2])
 

@@ -138,7 +138,7 @@ class RaceEnv(RaceState):
         self.finished |= finished_now
         self.lap_time = torch.where(finished_now, self.pass_time, self.lap_time)
         self.out[finished_now] = 1
-        self.passages.record(self, racing & ~crashed_now)
+        self.passages.record(self, racing, crashed_now)
         result = None
         if self.cfg.reward.win > 0:
             result, decided = race_result(finished_now, self.lap_time, racing & ~crashed_now, self.contested,

@@ -13,6 +13,7 @@ from typing import Any
 
 import torch
 
+from spiral.core.outcome import race_winner
 from spiral.env.racing import RaceResults
 from spiral.sim import COLLISION_KINDS
 
@@ -72,14 +73,14 @@ def lead_changes(split_time: torch.Tensor, present: torch.Tensor) -> torch.Tenso
 
 
 def won_from_behind(res: RaceResults, team: torch.Tensor) -> torch.Tensor:
-    """Per race (W,): 1 when the race's winning team was not the team of the drone first through the first gate, 0
-    when it was, −1 without a winner or without a leader there. The winner is the team of the first drone home."""
+    """Per race (W,): 1 when the race's winning team was not the team first through the first gate, 0 when it was,
+    −1 without a winner or without a team first there; both by :func:`~spiral.core.outcome.race_winner`, the winner
+    from the drones' finish times, the leader from their first passages (``team``: each slot's team, (D,))."""
     assert res.split_time is not None
-    home = res.finished & res.present
-    finish = torch.where(home, res.lap_time, torch.inf)
-    winner = torch.where(home.any(dim=1), team[finish.argmin(dim=1)], -1)
-    first = passage_leaders(res.split_time[..., :1], res.present)[:, 0]
-    leader = torch.where(first >= 0, team[first.clamp(min=0)], -1)
+    teams = [(team == t).nonzero().flatten().tolist() for t in range(int(team.max()) + 1)]
+    winner = race_winner(res.finished & res.present, res.lap_time, teams)
+    first = res.split_time[..., 0]
+    leader = race_winner(_passed(res.split_time, res.present)[..., 0], first, teams)
     return torch.where((winner >= 0) & (leader >= 0), (winner != leader).long(), -1)
 
 
