@@ -1,10 +1,11 @@
-"""Exact float comparisons in the tests: only in same-machine bit-identity tests, or where a comment says why.
+"""Exact float comparisons in the tests: only in same-machine bit-identity tests.
 
 Floats from float32 arithmetic, Warp kernels or torch can round differently on another x86-64 CPU (MKL, oneDNN and
 ATen pick kernels by instruction set), so the suite compares them with a tolerance. An exact comparison stays only in
-a test marked ``@pytest.mark.bitwise`` (two runs of the same thing on one host) or on a line commented
-``# exact: <reason>`` (integer or boolean data, a value copied rather than computed). The check reads the test sources
-as syntax trees; it imports nothing of spiral.
+a test marked ``@pytest.mark.bitwise`` (two runs of the same thing on one host). An ``==``/``!=`` with a float
+literal is excused by nothing else; an exact-comparison call (``torch.equal``, ``np.array_equal``, ...) may also stay on
+a line commented ``# exact: <reason>``, for integer or boolean data only. The check reads the test sources as syntax
+trees; it imports nothing of spiral.
 """
 
 from __future__ import annotations
@@ -94,8 +95,9 @@ def _exact_comment_lines(source: str) -> set[int]:
 
 
 def exact_comparisons(source: str) -> list[int]:
-    """Lines of ``source`` with an exact float comparison outside a bitwise test and without an ``# exact:``
-    comment on any line of its statement (for a compound statement, of its header up to the comparison)."""
+    """Lines of ``source`` with an exact float comparison outside a bitwise test: any ``==``/``!=`` with a float
+    literal, and any exact-comparison call without an ``# exact:`` comment on a line of its statement (for a compound
+    statement, of its header up to the comparison)."""
     tree = ast.parse(source)
     commented = _exact_comment_lines(source)
     flagged: set[int] = set()
@@ -109,7 +111,7 @@ def exact_comparisons(source: str) -> list[int]:
         if stmt is not None and _is_exact(node):
             compound = hasattr(stmt, "body")
             last = node.end_lineno if compound else stmt.end_lineno
-            if not commented.intersection(range(stmt.lineno, last + 1)):
+            if not isinstance(node, ast.Call) or not commented.intersection(range(stmt.lineno, last + 1)):
                 flagged.add(node.lineno)
         for child in ast.iter_child_nodes(node):
             visit(child, stmt)
@@ -120,17 +122,18 @@ def exact_comparisons(source: str) -> list[int]:
 
 
 def test_exact_float_comparisons_are_marked_bitwise_or_give_a_reason():
-    """Compare floats in the tests with a tolerance, except in bitwise tests or on lines commented ``# exact:``."""
+    """Compare floats in the tests with a tolerance, except in bitwise tests; ``# exact:`` excuses only calls."""
     found = [f"{path.relative_to(TESTS.parent)}:{line}"
              for path in sorted(TESTS.rglob("*.py"))
              for line in exact_comparisons(path.read_text(encoding="utf-8"))]
-    assert not found, "exact comparisons without @pytest.mark.bitwise or '# exact: <reason>':\n" + "\n".join(found)
+    assert not found, ("exact comparisons outside @pytest.mark.bitwise (float literal, or a call without "
+                       "'# exact: <reason>'):\n" + "\n".join(found))
 
 
 def test_checker_flags_only_unmarked_exact_comparisons():
     """Flag torch.equal, the numpy equality helpers and ``==``/``!=`` with a float literal (negative, in a list, dict
-    or conditional), but not in a bitwise test, not with an ``# exact:`` comment on a line of the statement, not
-    against pytest.approx, and not for integers."""
+    or conditional), but not in a bitwise test, not against pytest.approx, and not for integers; an ``# exact:``
+    comment on a line of the statement excuses the calls only, never a float literal."""
     source = textwrap.dedent('''\
         import numpy as np
         import pytest
@@ -152,7 +155,9 @@ def test_checker_flags_only_unmarked_exact_comparisons():
             assert torch.equal(a, b) and a.sum() == 0.5
 
         def test_reasoned(a, b):
-            assert torch.equal(a, b)  # exact: copied, not computed
+            assert torch.equal(a, b)  # exact: integer data
+            np.testing.assert_array_equal(
+                a, b)  # exact: boolean masks
             assert a.tolist() == [
                 1.0, 2.0]  # exact: set by the test
             if a == 0.5:  # exact: written, not computed
@@ -164,4 +169,4 @@ def test_checker_flags_only_unmarked_exact_comparisons():
             assert a.count == 3 and b != "x"
             torch.testing.assert_close(a, b)
         ''')
-    assert exact_comparisons(source) == [6, 7, 8, 9, 10, 11, 12, 14]
+    assert exact_comparisons(source) == [6, 7, 8, 9, 10, 11, 12, 14, 24, 26]

@@ -12,9 +12,9 @@ G = 9.81
 def test_cf2x_has_the_crazyflie_constants():
     """Match the Crazyflie 2.x numbers of the issue."""
     cf = AIRFRAMES["cf2x"]
-    assert (cf.mass, cf.arm, cf.kf, cf.km) == (0.027, 0.0397, 3.16e-10, 7.94e-12)  # exact: constants of the config
-    assert cf.inertia == (1.4e-5, 1.4e-5, 2.17e-5)  # exact: constants of the config
-    assert cf.thrust_to_weight == 2.25  # exact: constants of the config
+    assert (cf.mass, cf.arm, cf.kf, cf.km) == pytest.approx((0.027, 0.0397, 3.16e-10, 7.94e-12), rel=1e-6, abs=0)
+    assert cf.inertia == pytest.approx((1.4e-5, 1.4e-5, 2.17e-5), rel=1e-6, abs=0)
+    assert cf.thrust_to_weight == pytest.approx(2.25)
 
 
 def test_airframe_by_name_equals_the_built_in():
@@ -26,7 +26,7 @@ def test_override_replaces_only_the_named_fields():
     """Change arm and one PID gain, keeping every other field of cf2x."""
     cf = AIRFRAMES["cf2x"]
     custom = resolve_airframe(AirframeSel(overrides={"arm": 0.05, "pid": {"att_d": [30.0, 30.0, 10.0]}}))
-    assert custom.arm == 0.05 and custom.pid.att_d == (30.0, 30.0, 10.0)  # exact: values of the override
+    assert custom.arm == pytest.approx(0.05) and custom.pid.att_d == pytest.approx((30.0, 30.0, 10.0))
     assert custom.model_copy(update={"arm": cf.arm, "pid": cf.pid}) == cf
 
 

@@ -90,7 +90,7 @@ def test_centreline_length_is_the_closed_polyline_length(circuit6):
 def test_airframe_override_changes_one_field_and_typos_fail():
     """Apply a valid override field by field; name a misspelt override key in the error."""
     heavy = resolve_airframe(AirframeSel(overrides={"mass": 0.03, "pid": {"max_tilt_deg": 45.0}}))
-    assert heavy.mass == 0.03 and heavy.pid.max_tilt_deg == 45.0  # exact: values of the override
+    assert heavy.mass == pytest.approx(0.03) and heavy.pid.max_tilt_deg == pytest.approx(45.0)
     assert heavy.pid.pos_p == AIRFRAMES["cf2x"].pid.pos_p
     with pytest.raises(SpecError, match=r"airframe\.overrides\.mas"):
         resolve_airframe(AirframeSel(overrides={"mas": 0.03}))
@@ -175,9 +175,10 @@ def test_the_shipped_pipeline_mixes_2v2_worlds_into_spirals_1v1_stage_but_not_th
     """full.yaml: SPIRAL's 1v1 stage races 30% 2v2 worlds; the baseline's 1v1 stage keeps pure 1v1 worlds (its
     stronger setting); both 2v2 stages keep solo and 1v1 worlds, so each branch's final policy races every format."""
     stages = {s.name: s for s in load_pipeline(ROOT / "pipelines" / "full.yaml")[0].stages}
-    assert stages["1v1"].mix == {"2v2": 0.3}  # exact: parsed from full.yaml
+    assert stages["1v1"].mix == pytest.approx({"2v2": 0.3})
     assert stages["1v1-noselfplay"].mix == {}
-    assert stages["2v2"].mix == stages["2v2-noselfplay"].mix == {"solo": 0.05, "1v1": 0.15}  # exact: from the YAML
+    assert stages["2v2"].mix == pytest.approx({"solo": 0.05, "1v1": 0.15})
+    assert stages["2v2-noselfplay"].mix == pytest.approx({"solo": 0.05, "1v1": 0.15})
 
 
 @pytest.mark.parametrize(("options", "field"), [
@@ -201,8 +202,8 @@ def test_the_shipped_pipeline_trains_every_multi_drone_stage_with_the_bound_loss
     """full.yaml: both branches' multi-drone stages keep their mean actions inside the clamped range (bound loss 0.5);
     the solo stage, whose policy both branches start from, trains as before."""
     stages = {s.name: s for s in load_pipeline(ROOT / "pipelines" / "full.yaml")[0].stages}
-    assert {name: s.ppo.bound_loss_coef for name, s in stages.items()} == {
-        "solo": 0.0, "1v1": 0.5, "2v2": 0.5, "1v1-noselfplay": 0.5, "2v2-noselfplay": 0.5}  # exact: from the YAML
+    assert {name: s.ppo.bound_loss_coef for name, s in stages.items()} == pytest.approx({
+        "solo": 0.0, "1v1": 0.5, "2v2": 0.5, "1v1-noselfplay": 0.5, "2v2-noselfplay": 0.5})
 
 
 def test_the_shipped_pipeline_charges_closing_in_both_branches_and_blinds_only_spirals_opponents():
@@ -210,10 +211,10 @@ def test_the_shipped_pipeline_charges_closing_in_both_branches_and_blinds_only_s
     the ablation); only SPIRAL's self-play flies blind opponents; both 2v2 stages (which publish the final policies)
     promote only a learner that keeps up in every format of their mix."""
     stages = {s.name: s for s in load_pipeline(ROOT / "pipelines" / "full.yaml")[0].stages}
-    assert {name: s.env.reward.closing for name, s in stages.items()} == {
-        "solo": 0.0, "1v1": 0.5, "2v2": 0.5, "1v1-noselfplay": 0.5, "2v2-noselfplay": 0.5}  # exact: from the YAML
-    assert {name: s.selfplay.opponent_blind for name, s in stages.items() if s.scenario != "solo"} == {
-        "1v1": 0.3, "2v2": 0.3, "1v1-noselfplay": 0.0, "2v2-noselfplay": 0.0}  # exact: parsed from full.yaml
+    assert {name: s.env.reward.closing for name, s in stages.items()} == pytest.approx({
+        "solo": 0.0, "1v1": 0.5, "2v2": 0.5, "1v1-noselfplay": 0.5, "2v2-noselfplay": 0.5})
+    assert {name: s.selfplay.opponent_blind for name, s in stages.items() if s.scenario != "solo"} == pytest.approx({
+        "1v1": 0.3, "2v2": 0.3, "1v1-noselfplay": 0.0, "2v2-noselfplay": 0.0})
     assert {name: s.selfplay.promotion.formats for name, s in stages.items() if s.scenario != "solo"} == {
         "1v1": False, "2v2": True, "1v1-noselfplay": False, "2v2-noselfplay": True}
 

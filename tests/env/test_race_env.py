@@ -116,7 +116,7 @@ def test_observation_lists_nearest_present_drones_first(oval2):
     obs = env.get_observations()["policy"]
     others = newest(env, obs, "opponents")[0].view(2, 3)
     assert torch.allclose(others, torch.tensor([[0.0, 0.0, 0.8], [0.0, -1.5, 0.0]]), atol=1e-6)
-    assert env.obs_builder.select(obs, "presence")[0].tolist() == [1.0, 1.0]  # exact: 0/1 flags
+    assert env.obs_builder.select(obs, "presence")[0].tolist() == pytest.approx([1.0, 1.0])  # 0/1 flags
 
 
 def test_teammate_flags_mark_the_nearest_drones_of_the_own_race_team(oval2):
@@ -132,11 +132,11 @@ def test_teammate_flags_mark_the_nearest_drones_of_the_own_race_team(oval2):
     place(env, [[-1.0, -1.0, 1.0], [-1.0, -0.2, 1.0], [-1.0, -1.3, 1.0], [-1.0, -1.9, 1.0]])
     assert list(env.obs_builder.slices())[-2:] == ["teammates", "history"]
     flags = term(env, "teammates")
-    assert flags.tolist() == [[0.0, 1.0], [1.0, 0.0], [0.0, 1.0], [1.0, 0.0]]  # exact: 0/1 flags
+    torch.testing.assert_close(flags, torch.tensor([[0.0, 1.0], [1.0, 0.0], [0.0, 1.0], [1.0, 0.0]]))  # 0/1 flags
     env.out[1] = 1  # drone 1 leaves the race: drone 0 sees two opponents, drone 1 sees nothing flagged
     flags = term(env, "teammates")
-    assert flags[0].tolist() == [0.0, 0.0]  # exact: 0/1 flags
-    assert flags[2].tolist() == [0.0, 1.0]  # exact: 0/1 flags
+    assert flags[0].tolist() == pytest.approx([0.0, 0.0])  # 0/1 flags
+    assert flags[2].tolist() == pytest.approx([0.0, 1.0])
 
 
 def test_teammate_flags_leave_layouts_without_them_unchanged(oval2):
@@ -165,7 +165,7 @@ def test_priority_inputs_give_the_own_priority_and_how_much_higher_the_nearest_d
     env.out[2] = 1  # drone 2 leaves the race: drone 0's nearest are 1, then 3
     torch.testing.assert_close(term(env, "priority")[0], torch.tensor([0.5, 0.4, 0.1]))
     env.reset()
-    assert not torch.equal(env.priority, torch.tensor([0.5, 0.9, 0.2, 0.6]))  # exact: inequality of fresh draws
+    assert not torch.allclose(env.priority, torch.tensor([0.5, 0.9, 0.2, 0.6]))  # fresh draws
 
 
 def test_closest_approach_inputs_predict_where_and_when_the_nearest_drones_pass(oval2):
@@ -254,7 +254,7 @@ def test_proximity_penalty_grows_linearly_inside_the_safe_distance(oval2):
         assert rewards.tolist() == pytest.approx([expected, expected], abs=2e-3)
     solo = make_env(oval2, worlds=1, auto_reset=False, reward=reward)
     _, rewards, _, _ = solo.step(torch.zeros(1, 4))
-    assert float(solo.term_sums["proximity"][0]) == 0.0  # exact: clamped to 0
+    assert float(solo.term_sums["proximity"][0]) == pytest.approx(0.0, abs=1e-12)  # clamped to 0
 
 
 def test_proximity_leader_share_charges_the_drone_behind_in_full_and_the_leader_its_share(oval2):
@@ -303,7 +303,7 @@ def test_closing_in_charges_the_drone_that_runs_up_on_a_slower_one_and_shares_a_
     assert rate.tolist() == pytest.approx([0.25, 0.0, 0.3, 0.3, 0.0, 0.0, 0.0, 0.0])
     out[1] = 1  # drone 1 left the race: drone 0's nearest racing drone is now 2, 5 m away
     after = closing_in(pos, vel, out, distance=1.0, world_count=2, drones_per_world=4)
-    assert after[:2].tolist() == [0.0, 0.0]  # exact: clamped and masked to 0
+    assert after[:2].tolist() == pytest.approx([0.0, 0.0], abs=1e-12)  # clamped and masked to 0
 
 
 def test_closing_in_with_a_miss_distance_charges_collision_courses_only():
@@ -348,7 +348,7 @@ def test_closing_penalty_is_weighted_into_the_reward(oval2):
     place(env, [[-1.70, -1.0, 1.0], [-1.20, -1.0, 1.0]])
     env.vel[:2] = torch.tensor([[2.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
     _, rewards, _, _ = env.step(torch.zeros(2, 4))
-    assert rewards[1] == 0.0 and -1.1 < float(rewards[0]) < -0.5  # exact: clamped to 0, the other weights 0
+    assert float(rewards[1]) == pytest.approx(0.0, abs=1e-12) and -1.1 < float(rewards[0]) < -0.5  # clamped to 0
 
 
 def test_overtakes_count_places_changing_hands_between_teams_only():
@@ -365,7 +365,7 @@ def test_overtakes_count_places_changing_hands_between_teams_only():
                     drones_per_world=4)
     # drone 0: opponents 2 and 3 ahead before, only 3 after: +1; drone 2 lost its place to it: -1; drone 1 had 3
     # ahead and 2 behind, before and after: 0; drone 3 led throughout: 0. Drone 6: +1, drone 4: -1.
-    assert got.tolist() == [1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0, 0.0]  # exact: integer counts
+    assert got.tolist() == pytest.approx([1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0, 0.0])
 
 
 def test_a_pass_in_a_start_box_race_is_paid_to_both_drones_at_the_step_it_happens(oval2):
@@ -401,7 +401,7 @@ def test_contact_fault_takes_the_closing_speed_along_the_offset_before_the_step(
     assert share.tolist() == pytest.approx([1.0, 0.0, 0.25, 0.75])
     none = contact_fault(pos, pos_before, vel_before, racing, torch.zeros(4, dtype=torch.bool), world_count=2,
                          drones_per_world=2)
-    assert none.tolist() == [0.0] * 4  # exact: masked to 0
+    assert none.tolist() == pytest.approx([0.0] * 4, abs=1e-12)  # masked to 0
 
 
 def test_opponents_with_their_own_layout_read_what_an_env_of_that_layout_shows_them(oval2):
@@ -447,7 +447,7 @@ def test_hiding_the_other_drone_columns_shows_what_a_drone_alone_observes(oval2)
     hidden = other_drone_columns(every)
     assert int(hidden.sum()) == 2 + 6 + 2 + 8 + 2 + 2 * 6  # presence, velocities, mates, approach, priority, history
     assert (with_others[hidden] != 0).sum() > 20 and not alone[hidden].any()
-    assert torch.equal(with_others.masked_fill(hidden, 0.0), alone)  # exact: the same columns from the same state
+    torch.testing.assert_close(with_others.masked_fill(hidden, 0.0), alone)  # the same columns from the same state
 
 
 def test_scripted_lap_pays_each_gate_once_and_the_lap_bonus_once(oval2):
@@ -575,8 +575,8 @@ def test_contact_margin_makes_drones_closer_than_it_collide_in_training_only(ova
 
     assert 2 * CF2X.radius == pytest.approx(0.12)
     expected = (True, True, 2.0, False) if gap < 0.17 else (False, False, 0.0, False)
-    assert ended(0.05) == expected  # exact: flags and a count
-    assert ended(0.0) == (False, False, 0.0, False)  # exact: flags and a count
+    assert ended(0.05) == pytest.approx(expected)  # flags and a count
+    assert ended(0.0) == pytest.approx((False, False, 0.0, False))
     assert ended(0.05, training=False) == (False, False)
 
 
@@ -594,9 +594,9 @@ def test_crash_pays_the_penalty_once_and_ends_the_episode(oval2):
             break
     assert done_at is not None
     assert not bool(extras["time_outs"][0])
-    assert env.stats["crash_ground"] == 1.0  # exact: a count
+    assert env.stats["crash_ground"] == pytest.approx(1.0)  # a count
     assert env.stats["term_collision"] == pytest.approx(-env.cfg.reward.collision)
-    assert float(env.world_time()[0]) == 0.0 and float(env.world_time()[1]) > 0.0  # exact: zeroed by the reset
+    assert float(env.world_time()[0]) == pytest.approx(0.0, abs=1e-12) and float(env.world_time()[1]) > 0.0  # reset
 
 
 def test_time_limit_is_a_time_out_not_a_termination(oval2):
@@ -607,7 +607,7 @@ def test_time_limit_is_a_time_out_not_a_termination(oval2):
     _, _, done, extras = outs[-1]
     assert bool(done[0]) and bool(extras["time_outs"][0])
     assert all(not bool(o[2][0]) for o in outs[:-1])
-    assert float(env.world_time()[0]) == 0.0  # exact: zeroed by the reset
+    assert float(env.world_time()[0]) == pytest.approx(0.0, abs=1e-12)  # zeroed by the reset
 
 
 def test_nonfinite_state_resets_the_world_and_never_reaches_observations(oval2):
@@ -617,7 +617,7 @@ def test_nonfinite_state_resets_the_world_and_never_reaches_observations(oval2):
     obs, _, done, _ = env.step(torch.zeros(2, 4))
     assert bool(done[0]) and not bool(done[1])
     assert torch.isfinite(obs["policy"]).all()
-    assert env.pop_stats()["health/nonfinite_resets"] == 1.0  # exact: a count
+    assert env.pop_stats()["health/nonfinite_resets"] == pytest.approx(1.0)  # a count
 
 
 def test_absent_opponent_slots_do_not_race(oval2):
@@ -701,8 +701,8 @@ def test_race_results_count_a_pass_of_a_hovering_drone_for_both_sides(oval2):
     assert not res.crashed[0].any() and res.gates_passed[0, 0] > 1
     assert res.passes[0].tolist() == [[1, 0], [0, 1]]
     summary = summarize_races(res, [0])
-    assert summary["passes"] == {"made": 1, "suffered": 0, "made_per_race": 1.0,
-                                 "suffered_per_race": 0.0}  # exact: integer counts over one race
+    assert summary["passes"] == pytest.approx({"made": 1, "suffered": 0, "made_per_race": 1.0,
+                                                "suffered_per_race": 0.0})
 
 
 def test_contact_bearing_splits_ahead_beside_and_behind_at_45_degrees():
@@ -726,17 +726,18 @@ def test_race_critic_sees_every_other_drone_opponents_first(oval2):
     env.gates_passed[3] = 2
     obs = env.get_observations()
     assert obs["critic"].shape == (2, env.obs_dim + 3 * 8)
-    assert torch.equal(obs["critic"][:, : env.obs_dim], obs["policy"])  # exact: the critic's inputs copy the policy's
+    torch.testing.assert_close(obs["critic"][:, : env.obs_dim], obs["policy"])  # the critic's inputs copy the policy's
     rows = obs["critic"][0, env.obs_dim :].view(3, 8)  # drone 0: opponents 2 and 3, then teammate 1
     assert torch.allclose(rows[:, :3], torch.tensor([[0.0, 0.0, 0.8], [0.0, -1.5, 0.0], [0.0, 0.5, 0.0]]), atol=1e-6)
-    assert torch.equal(rows[:, 3:6], torch.tensor(  # exact: velocities set by the test
+    torch.testing.assert_close(rows[:, 3:6], torch.tensor(  # velocities set by the test
         [[1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]))
-    assert rows[:, 6].tolist() == [1.0, 1.0, 1.0]  # exact: 0/1 flags
-    assert rows[:, 7].tolist() == [0.0, 2.0, 0.0]  # exact: gate counts
+    assert rows[:, 6].tolist() == pytest.approx([1.0, 1.0, 1.0])  # 0/1 flags
+    assert rows[:, 7].tolist() == pytest.approx([0.0, 2.0, 0.0])  # gate counts
     env.out[3] = 1  # drone 3 leaves the race
     rows = env.get_observations()["critic"][1, env.obs_dim :].view(3, 8)  # drone 1: opponents 2 and 3, teammate 0
-    assert rows[1].tolist() == [0.0] * 6 + [0.0, 2.0]  # exact: masked zeros and a gate count
-    assert torch.allclose(rows[2, :3], torch.tensor([0.0, -0.5, 0.0]), atol=1e-6) and rows[2, 6] == 1.0  # exact: a flag
+    assert rows[1].tolist() == pytest.approx([0.0] * 6 + [0.0, 2.0])  # masked zeros and a gate count
+    assert torch.allclose(rows[2, :3], torch.tensor([0.0, -0.5, 0.0]), atol=1e-6)
+    assert float(rows[2, 6]) == pytest.approx(1.0)  # a flag
 
 
 def test_resetting_some_worlds_draws_starts_for_them_only_and_a_full_reset_draws_as_before(oval2):
@@ -748,7 +749,8 @@ def test_resetting_some_worlds_draws_starts_for_them_only_and_a_full_reset_draws
     env.pos[:] = 5.0
     env._reset_worlds(torch.tensor([False, True, False, True]))
     pos = env.pos.view(4, 2, 3)
-    assert (pos[[0, 2]] == 5.0).all()  # exact: set by the test and kept
+    kept = pos[[0, 2]]  # set by the test and kept
+    torch.testing.assert_close(kept, torch.full_like(kept, 5.0))
     lo = torch.tensor(oval2.start.center) - torch.tensor(oval2.start.size) / 2
     hi = lo + torch.tensor(oval2.start.size)
     assert ((pos[[1, 3]] >= lo - 1e-6) & (pos[[1, 3]] <= hi + 1e-6)).all()

@@ -106,7 +106,7 @@ def test_frozen_opponents_refuse_mirror_self_play():
     """PPO without self-play never races the learner itself: p_self > 0 with frozen opponents is an error."""
     with pytest.raises(ValidationError, match="p_self"):
         SelfPlayCfg(mode="frozen", p_self=0.5)
-    assert SelfPlayCfg(mode="pool", p_self=0.5).p_self == 0.5  # exact: config values
+    assert SelfPlayCfg(mode="pool", p_self=0.5).p_self == pytest.approx(0.5)
 
 
 def test_only_frozen_opponents_name_the_stage_they_come_from():
@@ -119,8 +119,8 @@ def test_only_frozen_opponents_name_the_stage_they_come_from():
 
 def test_opponent_offsets_apply_to_both_branches_and_must_lie_in_the_action_range():
     """Offsets apply to pool and frozen opponents alike; a negative or beyond-action offset names the field."""
-    assert SelfPlayCfg(mode="frozen", opponent_offset=0.1).opponent_offset == 0.1  # exact: config values
-    assert SelfPlayCfg().opponent_offset == 0.0  # exact: config values
+    assert SelfPlayCfg(mode="frozen", opponent_offset=0.1).opponent_offset == pytest.approx(0.1)
+    assert SelfPlayCfg().opponent_offset == pytest.approx(0.0)
     for bad in (-0.1, 1.5):
         with pytest.raises(ValidationError, match="opponent_offset"):
             SelfPlayCfg(opponent_offset=bad)
@@ -147,8 +147,8 @@ def test_pool_skips_a_member_whose_checksum_fails(tmp_path):
 
 
 def test_opponent_blind_is_a_probability_and_off_by_default():
-    assert SelfPlayCfg().opponent_blind == 0.0  # exact: config values
-    assert SelfPlayCfg(opponent_blind=0.3).opponent_blind == 0.3  # exact: config values
+    assert SelfPlayCfg().opponent_blind == pytest.approx(0.0)
+    assert SelfPlayCfg(opponent_blind=0.3).opponent_blind == pytest.approx(0.3)
     for bad in (-0.1, 1.5):
         with pytest.raises(ValidationError, match="opponent_blind"):
             SelfPlayCfg(opponent_blind=bad)
@@ -156,13 +156,13 @@ def test_opponent_blind_is_a_probability_and_off_by_default():
 
 def test_opponent_pace_lies_in_zero_to_one_and_needs_relative_targets():
     """A pace below 0 or at 1 (an opponent that stops) names the field; absolute action targets refuse a pace."""
-    assert SelfPlayCfg(opponent_pace=0.3).opponent_pace == 0.3  # exact: config values
-    assert SelfPlayCfg().opponent_pace == 0.0  # exact: config values
+    assert SelfPlayCfg(opponent_pace=0.3).opponent_pace == pytest.approx(0.3)
+    assert SelfPlayCfg().opponent_pace == pytest.approx(0.0)
     for bad in (-0.1, 1.0):
         with pytest.raises(ValidationError, match="opponent_pace"):
             SelfPlayCfg(opponent_pace=bad)
     spec = {"name": "1v1", "scenario": "1v1", "iterations": 1, "selfplay": {"opponent_pace": 0.3}}
-    assert StageSpec.model_validate(spec).selfplay.opponent_pace == 0.3  # exact: config values
+    assert StageSpec.model_validate(spec).selfplay.opponent_pace == pytest.approx(0.3)
     with pytest.raises(ValidationError, match=r"selfplay\.opponent_pace"):
         StageSpec.model_validate({**spec, "env": {"action": {"mode": "absolute"}}})
 
@@ -172,5 +172,5 @@ def test_a_self_match_pair_scores_each_policy_on_its_own_races(oval2):
     and a drone that dives into the ground none, in either order (the first score is not the second race's)."""
     env = make_env(oval2, worlds=2, auto_reset=False)
     lap, dive = waypoint_policy(env), (lambda obs: torch.tensor([[0.0, 0.0, -1.0, 0.0]]).expand(2, 4))
-    assert tuple(score.success for score in paired_scores(env, lap, dive)) == (1.0, 0.0)  # exact: count ratios
-    assert tuple(score.success for score in paired_scores(env, dive, lap)) == (0.0, 1.0)  # exact: count ratios
+    assert tuple(score.success for score in paired_scores(env, lap, dive)) == pytest.approx((1.0, 0.0))
+    assert tuple(score.success for score in paired_scores(env, dive, lap)) == pytest.approx((0.0, 1.0))
