@@ -17,7 +17,7 @@ from spiral.config.track import TrackSpec
 from spiral.core.policy import OpponentPolicy, RecordingOpponent, ResettingOpponent
 from spiral.core.scenario import team_slots
 from spiral.env.actions import ActionMap
-from spiral.env.events import RaceEvents, race_result
+from spiral.env.events import RaceEvents, lap_splits, race_result
 from spiral.env.observations import Observer, ObsSource
 from spiral.env.passages import PassageStarts
 from spiral.env.rewards import compute_rewards
@@ -42,14 +42,12 @@ class EpisodeEnds:
 class RaceEnv(RaceState):
     """``world_count`` races of ``drones_per_world`` drones; the learner drives ``learner_slots`` of each world.
 
-    Each learner drone is one environment for PPO (``num_envs = world_count · len(learner_slots)``). Opponent
-    slots act from an injected :class:`~spiral.core.policy.OpponentPolicy`, or are absent when none is set. A world
-    is reset when any of its learner drones crashes or finishes, at its time limit, or when its state turns
-    non-finite (``health/nonfinite_resets``); learner drones cut short by another's end get ``time_outs``. With
-    ``auto_reset=False`` (evaluation) drones that are done stay frozen and nothing resets. :meth:`step` runs the
-    hooks apply action → simulate → race events → rewards → dones → reset → observe; the state is
-    :class:`~spiral.env.state.RaceState`'s.
-    """
+    Each learner drone is one PPO environment (``num_envs = world_count · len(learner_slots)``); opponent slots act
+    from an injected :class:`~spiral.core.policy.OpponentPolicy`, or are absent without one. A world is reset when
+    one of its learner drones crashes or finishes, at its time limit, or on a non-finite state
+    (``health/nonfinite_resets``); learner drones cut short by another's end get ``time_outs``. With
+    ``auto_reset=False`` (evaluation) drones that are done stay frozen. :meth:`step` runs apply action → simulate →
+    race events → rewards → dones → reset → observe on :class:`~spiral.env.state.RaceState`'s state."""
 
     def __init__(self, track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, cfg: EnvCfg, *, world_count: int,
                  drones_per_world: int, learner_slots: Sequence[int] = (0,), device: str = "cpu", seed: int = 0,
@@ -68,8 +66,8 @@ class RaceEnv(RaceState):
         self.reset()
 
     def set_opponent_policy(self, policy: OpponentPolicy | None, *, obs: ObsCfg | None = None) -> None:
-        """Drive the opponent slots with ``policy`` from the next reset on (``None``: the slots are absent);
-        ``obs``: the layout ``policy`` reads if not the env's (cross-play): its slots are then observed with it too."""
+        """Drive the opponent slots with ``policy`` from the next reset on (``None``: absent); ``obs``: the layout
+        ``policy`` reads if not the env's (cross-play), with which its slots are then observed too."""
         super().set_opponent_policy(policy)
         self.opponent_observer = None
         if obs is not None and obs != self.cfg.obs:  # observes the current state at once, each history afresh
@@ -126,8 +124,8 @@ class RaceEnv(RaceState):
         return gate, dist_before
 
     def race_events(self, gate: torch.Tensor, dist_before: torch.Tensor) -> RaceEvents:
-        """Race events: collisions end a drone's race, a completed lap finishes it (it leaves the race, frozen, no
-        longer an obstacle); a contested race is decided by its first finisher (with ``reward.forfeit`` a crash
+        """Race events: a collision ends a drone's race, its last lap finishes it (frozen, no longer an obstacle),
+        each lap's split is taken; a contested race is decided by its first finisher (``reward.forfeit``: a crash
         forfeits it)."""
         racing = ~(self.crashed | self.finished | self.absent)
         self.collide_near_misses(racing)
@@ -138,6 +136,8 @@ class RaceEnv(RaceState):
         self.finished |= finished_now
         self.lap_time = torch.where(finished_now, self.pass_time, self.lap_time)
         self.out[finished_now] = 1
+        split, self.lap_start = lap_splits(self.gates_passed, self.step_passes, self.pass_time, self.lap_start,
+                                           racing & ~crashed_now, len(self.track.gates))
         self.passages.record(self, racing, crashed_now)
         result = None
         if self.cfg.reward.win > 0:
@@ -145,7 +145,7 @@ class RaceEnv(RaceState):
                                           self.race_team, team_slots(self.drones_per_world),
                                           forfeited=crashed_now if self.cfg.reward.forfeit else None)
             self.contested &= ~decided
-        return RaceEvents(racing, crashed_now, finished_now, gate, dist_before, result)
+        return RaceEvents(racing, crashed_now, finished_now, gate, dist_before, result, split)
 
     def rewards(self, ev: RaceEvents) -> torch.Tensor:
         """Rewards: the weighted reward terms of every drone (N,); each term's episode sum is kept."""
@@ -167,8 +167,8 @@ class RaceEnv(RaceState):
         return EpisodeEnds(dones, time_outs, worlds, log)
 
     def reset_ended(self, ends: EpisodeEnds) -> None:
-        """Reset: tell the opponent policy who won the ended races, then (training) start new races in their worlds,
-        after :meth:`before_auto_reset`."""
+        """Reset: tell the opponent policy who won the ended races, then (training) start new ones after
+        :meth:`before_auto_reset`."""
         if ends.worlds.any() and isinstance(self.opponent_policy, RecordingOpponent):
             ended = ends.worlds.nonzero().squeeze(1)
             self.opponent_policy.record(ended, self.learner_won()[ended])

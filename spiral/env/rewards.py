@@ -29,7 +29,7 @@ class StepOutcome:
     to_gate: torch.Tensor
     """Vector from the drone to its next gate (N, 3) [m]."""
     lap_time: torch.Tensor
-    """Lap time for drones that completed their lap during the step, else 0 [s]."""
+    """Duration of the lap a drone completed during the step, else 0 [s]; over one lap the race time."""
     nearest: torch.Tensor | None = None
     """Distance to the nearest other drone still racing after the step, inf when there is none [m]."""
     nearest_behind: torch.Tensor | None = None
@@ -111,7 +111,7 @@ def _reward_overtake(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
 
 
 def _reward_lap(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
-    """100 / T_lap at the step a lap is completed."""
+    """100 / T_lap at the step a lap is completed, for each lap of the race (T_lap that lap's time)."""
     done = o.lap_time > 0
     return torch.where(done, 100.0 / o.lap_time.clamp(min=1e-3), torch.zeros_like(o.lap_time))
 

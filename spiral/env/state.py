@@ -91,6 +91,8 @@ class RaceState:
         self.absent = torch.zeros(n, dtype=torch.bool, device=dev)
         """Slot not in the race (an opponent slot with no opponent policy)."""
         self.lap_time = torch.zeros(n, device=dev)
+        self.lap_start = torch.zeros(n, device=dev)
+        """Race time at which each drone's current lap began (its start or its last lap's end) [s]."""
         self.priority = torch.zeros(n, device=dev)
         """Random priority of each drone for the race, drawn at its start (observed with ``obs.priority``)."""
         self.intervention = torch.zeros(n, device=dev)
@@ -118,7 +120,7 @@ class RaceState:
 
     def _reset_drone_buffers(self, drones: torch.Tensor) -> None:
         """Start the race afresh for the drones in the bool mask ``drones``; opponent slots without a policy are out."""
-        for buf in (self.last_action, self.lap_time, self.crash_kind, *self.term_sums.values()):
+        for buf in (self.last_action, self.lap_time, self.lap_start, self.crash_kind, *self.term_sums.values()):
             buf[drones] = 0
         self.finished[drones] = False
         self.crashed[drones] = False
@@ -153,7 +155,7 @@ class RaceState:
             crashed_now=ev.crashed_now,
             heading=heading(self.quat),
             to_gate=to_gate,
-            lap_time=torch.where(ev.finished_now, self.lap_time, torch.zeros_like(self.lap_time)),
+            lap_time=ev.lap_split,
             nearest=nearest,
             nearest_behind=behind,
             race_result=ev.race_result,
@@ -185,8 +187,7 @@ class RaceState:
                          world_count=self.world_count, drones_per_world=self.drones_per_world)
 
     def _contact_fault(self, ev: RaceEvents) -> torch.Tensor:
-        """Each drone's share of the fault for a drone–drone contact this step
-        (:func:`~spiral.env.events.contact_fault`)."""
+        """Each drone's share of the fault for a drone–drone contact this step (:func:`contact_fault`)."""
         contact = ev.crashed_now & ((self.step_collision & COLLISION_KINDS["drone"]) != 0)
         if not bool(contact.any()):
             return torch.zeros_like(ev.dist_before)
@@ -230,7 +231,6 @@ class RaceState:
         return summarize_stats(self.take_stats())
 
     def take_stats(self) -> dict[str, float]:
-        """Sums over the learner episodes ended since the last call (see :func:`~spiral.env.stats.summarize_stats`);
-        counting starts afresh."""
+        """Sums over the learner episodes ended since the last call (:func:`summarize_stats`); counting restarts."""
         s, self.stats = self.stats, empty_stats()
         return s

@@ -11,7 +11,7 @@ import torch
 from spiral.config import AIRFRAMES, EnvCfg, ObsCfg, RewardCfg, SimCfg, TrackSpec
 from spiral.core.checkpoint import load_policy
 from spiral.env import HISTORY_FEATURES, RaceEnv, compute_rewards, run_races
-from spiral.env.events import closing_in, contact_fault, overtakes
+from spiral.env.events import closing_in, contact_fault, lap_splits, overtakes
 from spiral.env.observations import HISTORY_FIELDS, OBS_TERMS, other_drone_columns
 from spiral.env.racing import BEARINGS, contact_bearing
 from spiral.env.rewards import StepOutcome
@@ -464,6 +464,36 @@ def test_scripted_lap_pays_each_gate_once_and_the_lap_bonus_once(oval2):
     lap = float(env.lap_time[0])
     assert float(env.term_sums["lap"][0]) == pytest.approx(100.0 / lap, rel=1e-5)
     assert (steps - 1) * env.dt < lap <= steps * env.dt + 1e-6
+
+
+def test_lap_splits_close_a_lap_every_gates_passages_after_the_start_line():
+    """Three gates a lap, two drones: the start-line passage closes nothing, the fourth passage closes lap 1 at its
+    passage time, the seventh lap 2 at the time since; a drone not counted (it crashed) gets no split."""
+    lap_start, times = torch.zeros(2), []
+    for passed, now in ((1, 0.5), (2, 1.6), (3, 2.7), (4, 3.9), (5, 5.0), (6, 6.2), (7, 7.3)):
+        split, lap_start = lap_splits(torch.tensor([passed, passed]), torch.tensor([1, 1]), torch.tensor([now, now]),
+                                      lap_start, torch.tensor([True, False]), gates=3)
+        times.append(split.tolist())
+    assert [t[0] for t in times] == pytest.approx([0.0, 0.0, 0.0, 3.9, 0.0, 0.0, 7.3 - 3.9])
+    assert [t[1] for t in times] == pytest.approx([0.0] * 7)
+    assert lap_start.tolist() == pytest.approx([7.3, 0.0])
+    unchanged, _ = lap_splits(torch.tensor([4]), torch.tensor([0]), torch.tensor([3.9]), torch.zeros(1),
+                              torch.tensor([True]), gates=3)
+    assert unchanged.tolist() == pytest.approx([0.0])  # no passage in the step: no lap closed
+
+
+def test_three_lap_race_pays_the_lap_bonus_for_each_lap_by_its_own_time(oval2):
+    """A scripted 3-lap race on the two-gate oval: the lap term pays 100 / T at each of the three laps, T that lap's
+    time (first lap from the start, the others gate 0 to gate 0), and the three times add up to the race time."""
+    env = make_env(oval2, worlds=1, auto_reset=False, reward=RewardCfg(progress=0.0, alignment=0.0),
+                   episode={"track_start_prob": 0.0, "laps": 3})
+    res = run_races(env, waypoint_policy(env))
+    assert bool(res.finished[0, 0]) and env.passes_needed == 2 * 3 + 1
+    ends = res.split_time[0, 0, [2, 4, 6]]  # passages closing laps 1, 2 and 3
+    laps = torch.cat([ends[:1], ends.diff()])
+    assert float(laps.sum()) == pytest.approx(float(res.lap_time[0, 0]), rel=1e-6)
+    assert float(env.term_sums["lap"][0]) == pytest.approx(float((100.0 / laps).sum()), rel=1e-5)
+    assert float(env.term_sums["gate"][0]) == pytest.approx(7.0 * env.cfg.reward.gate)
 
 
 def test_race_results_time_every_gate_passage_and_end_with_the_lap_time(oval2):
