@@ -377,12 +377,19 @@ def report(
         "extra table rows ('none': no such rows)")] = "none",
     robustness: Annotated[bool, typer.Option(
         "--robustness/--no-robustness", help="Final policies in every format, racing strangers, downwash")] = True,
+    racing_laps: Annotated[int, typer.Option(
+        "--racing-laps", min=0, help="Add a racing section of races of this many laps from the held-out placements, "
+        "from the start box and track starts (needs --holdout-runs; 0: none)")] = 0,
+    planner_runs: Annotated[int, typer.Option(
+        "--planner-runs", min=0,
+        help="Placements of the racing section's 1v1 duels against SE-IBR (with --se-ibr)")] = 8,
     jobs: Annotated[int, typer.Option("--jobs", "-j", min=1, help="Processes racing SE-IBR's head-to-head "
                                       "pairings side by side (with --se-ibr)")] = 1,
     device: DeviceOpt = "cpu",
 ) -> None:
     """Write results.md (the paper's tables, cross-play, lap-time reference), results.csv and figures."""
     device = check_device(device)
+    from spiral.config.pipeline import RacingCfg
     from spiral.eval.evaluate import KEEP, parse_separation
     from spiral.eval.report import build_report, track_of_run
 
@@ -399,9 +406,14 @@ def report(
         command += f" --separation {separation}"
     if not robustness:
         command += " --no-robustness"
+    racing = None
+    if racing_laps:
+        racing = RacingCfg(laps=racing_laps, planner_runs=planner_runs)
+        command += f" --racing-laps {racing_laps}" + (f" --planner-runs {planner_runs}" if planner_runs != 8 else "")
     path = build_report(run_dir, spec, out or run_dir / "report", runs=runs, device=device, se_ibr=se_ibr,
                         command=command, holdout=(holdout_runs, holdout_seed) if holdout_runs else None, sides=sides,
-                        separation=filter_row, robustness=robustness, jobs=jobs)  # type: ignore[arg-type]
+                        separation=filter_row, robustness=robustness, racing=racing,
+                        jobs=jobs)  # type: ignore[arg-type]
     typer.echo(f"wrote {path}")
 
 

@@ -13,7 +13,7 @@ from spiral.config.env import SeparationCfg
 from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 
-__all__ = ["PIPELINE_VERSION", "EvaluationCfg", "PipelineSpec", "ReportCfg"]
+__all__ = ["PIPELINE_VERSION", "EvaluationCfg", "PipelineSpec", "RacingCfg", "ReportCfg"]
 
 PIPELINE_VERSION = 1
 """Schema version of pipeline files; older versions are migrated on load, newer ones refused."""
@@ -44,6 +44,26 @@ class EvaluationCfg(StrictModel):
         return self
 
 
+class RacingCfg(StrictModel):
+    """The report's racing section: each learned method's final policy in races of several laps from the held-out
+    placements (``evaluation.holdout_runs`` of ``evaluation.holdout_seed``), from the start box and from points along
+    the track, with the racing metrics; SPIRAL's duels against PPO without self-play and against SE-IBR."""
+
+    laps: PosInt = Field(default=3, description="Laps of every race of the section")
+    starts: list[Literal["box", "track"]] = Field(
+        default=["box", "track"], min_length=1,
+        description="Where the races start: the start box, and/or random points along the track (moving)",
+    )
+    planner_runs: int = Field(
+        default=8, ge=0,
+        description="Placements (the held-out seed's first) of SPIRAL's duels against SE-IBR, each raced from both "
+        "sides (with report.se_ibr; the planner takes about 20 s of a CPU core per drone and 3-lap race); 0: none",
+    )
+    planner_formats: list[Literal["1v1", "2v2"]] = Field(
+        default=["1v1"], min_length=1, description="Formats of SPIRAL's duels against SE-IBR",
+    )
+
+
 class ReportCfg(StrictModel):
     """The pipeline's report (``runs/<name>/report/results.md`` and figures) and the steps that race for it."""
 
@@ -59,6 +79,10 @@ class ReportCfg(StrictModel):
     robustness: bool = Field(
         default=True,
         description="Sections on each method's final policy in every format, racing strangers and downwash",
+    )
+    racing: RacingCfg | None = Field(
+        default=None, description="A racing section of races of several laps (needs evaluation.holdout_runs); null: "
+        "none",
     )
 
 
@@ -88,6 +112,8 @@ class PipelineSpec(StrictModel):
             source = stage.selfplay.opponent_from
             if source is not None and source not in names[:i]:
                 raise ValueError(f"stages.{i}.selfplay.opponent_from: {source!r} is not an earlier stage")
+        if self.report.racing is not None and not self.evaluation.holdout_runs:
+            raise ValueError("report.racing: races the held-out placements; set evaluation.holdout_runs")
         return self
 
     def init_stage(self, index: int) -> str | None:

@@ -19,10 +19,12 @@ from typing import Any
 
 from spiral.config.airframe import AirframeCfg
 from spiral.config.env import SeparationCfg
+from spiral.config.pipeline import RacingCfg
 from spiral.config.track import TrackSpec
 from spiral.eval.bound import LapBound, lap_time_bound
 from spiral.eval.evaluate import SE_IBR, check_sides
 from spiral.eval.plots import TradeoffPoint, plot_learning_curves, plot_speed_vs_reliability, plot_track
+from spiral.eval.racing_section import Racing, race_planner_duels, race_racing, racing_markdown
 from spiral.eval.robustness import Robustness, filter_rows, race_learned, race_se_ibr, robustness_markdown
 from spiral.eval.runs import (
     MODE_OF,
@@ -39,7 +41,7 @@ from spiral.eval.runs import (
 )
 
 __all__ = ["APPROACHES", "PAPER", "SCENARIOS", "StageRun", "build_report", "find_stages", "race_learned_policies",
-           "race_planner_pairing", "read_train_log", "track_of_run"]
+           "race_planner_pairing", "race_planner_racing", "read_train_log", "track_of_run"]
 
 APPROACHES: dict[str, str] = {"spiral": "PPO Selfplay (SPIRAL)", "se-ibr": "SE-IBR (Baseline)",
                               "noselfplay": "PPO No Selfplay"}
@@ -64,8 +66,8 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
                  seed: int | None = None, device: str = "cpu", se_ibr: bool = False, cross_play: bool = True,
                  airframe: AirframeCfg | None = None, bound_steps: int = 24, command: str | None = None,
                  holdout: tuple[int, int] | None = None, sides: str = "both",
-                 separation: SeparationCfg | None = None, robustness: bool = True, jobs: int = 1,
-                 log: Callable[[str], None] = print) -> Path:
+                 separation: SeparationCfg | None = None, robustness: bool = True, racing: RacingCfg | None = None,
+                 jobs: int = 1, log: Callable[[str], None] = print) -> Path:
     """Write ``results.md``, ``results.csv``, ``bound.json`` and the figures for ``run_root`` into ``out_dir``.
 
     Args:
@@ -88,6 +90,8 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
             opt-in deployment layer, not part of the methods); None: no such rows.
         robustness: Add the sections of :mod:`spiral.eval.robustness` (final policy in every format, racing
             strangers, downwash), raced from the held-out placements when given, else the protocol's.
+        racing: Add the racing section (:mod:`spiral.eval.racing_section`), raced from the held-out placements
+            (needs ``holdout``); with ``se_ibr`` also SPIRAL's duels against the planner.
         jobs: Processes that race SE-IBR's head-to-head pairings side by side (with ``se_ibr``), while this one
             races the learned policies.
         log: Progress messages.
@@ -96,6 +100,7 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
         The path of ``results.md``.
     """
     run_root, out_dir = Path(run_root), Path(out_dir)
+    _check_racing(racing, holdout)
     ev = _protocol(run_root, track, out_dir, runs=runs, seed=seed, device=device, se_ibr=se_ibr, airframe=airframe,
                    holdout=holdout, sides=sides, log=log)
     stages, runs, seed, airframe = ev.stages, ev.runs, ev.seed, ev.airframe
@@ -103,15 +108,18 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int |
     held_ev = None if holdout is None else ev.held_out(*holdout)
     planner_pairings = _se_ibr_pairings(table) if se_ibr and (cross_play or robustness) else []
     with crosses_in_workers(ev, planner_pairings, jobs=jobs):  # everything else meanwhile, in this process
-        held, filtered, rb = _race_learned(ev, held_ev, table, stages, cross_play=cross_play, separation=separation,
-                                           robustness=robustness)
+        held, filtered, rb, raced = _race_learned(ev, held_ev, table, stages, cross_play=cross_play,
+                                                  separation=separation, robustness=robustness, racing=racing)
         bound = _write_files(out_dir, track, airframe, stages, table, bound_steps)
     matrices = {s: _cross_matrix(ev, s, table[s]) for s in SCENARIOS} if cross_play else {}
     if rb is not None and se_ibr:
         race_se_ibr(rb, ev)
+    if raced is not None and held_ev is not None and racing is not None and se_ibr:
+        race_planner_duels(held_ev, stages, racing, raced)
     text = _markdown(run_root, track, stages, table, matrices, bound, runs=runs, seed=seed, command=command,
                      held=held, sides=sides, filtered=filtered, separation=separation)
-    (out_dir / "results.md").write_text(_with_robustness(text, rb, sides))
+    text = _with_racing(_with_robustness(text, rb, sides), raced, sides)
+    (out_dir / "results.md").write_text(text)
     return out_dir / "results.md"
 
 
@@ -119,17 +127,18 @@ def race_learned_policies(run_root: Path, track: TrackSpec, out_dir: Path, *, ru
                           seed: int | None = None, device: str = "cpu", cross_play: bool = True,
                           airframe: AirframeCfg | None = None, holdout: tuple[int, int] | None = None,
                           sides: str = "both", separation: SeparationCfg | None = None, robustness: bool = True,
-                          log: Callable[[str], None] = print) -> Path:
+                          racing: RacingCfg | None = None, log: Callable[[str], None] = print) -> Path:
     """Race, on one torch thread, what :func:`build_report` races among the learned policies (cross-play, held-out,
     filter and robustness races), caching it under ``out_dir/evals``, where a later report of ``run_root`` finds it
     (arguments as :func:`build_report`'s). A pipeline runs it as a step of its own, beside the planner's pairings.
     Returns that cache folder."""
+    _check_racing(racing, holdout)
     ev = _protocol(Path(run_root), track, Path(out_dir), runs=runs, seed=seed, device=device, se_ibr=False,
                    airframe=airframe, holdout=holdout, sides=sides, log=log)
     with one_torch_thread():
         table = {s: [ev.self_match(s, key) for key in APPROACHES if key in MODE_OF] for s in SCENARIOS}
         _race_learned(ev, None if holdout is None else ev.held_out(*holdout), table, ev.stages,
-                      cross_play=cross_play, separation=separation, robustness=robustness)
+                      cross_play=cross_play, separation=separation, robustness=robustness, racing=racing)
     return ev.cache
 
 
@@ -150,6 +159,18 @@ def race_planner_pairing(run_root: Path, track: TrackSpec, out_dir: Path, scenar
         return ev.cross(scenario, (key, agent), ("se-ibr", SE_IBR))
 
 
+def race_planner_racing(run_root: Path, track: TrackSpec, out_dir: Path, racing: RacingCfg, *,
+                        holdout: tuple[int, int], device: str = "cpu", airframe: AirframeCfg | None = None,
+                        sides: str = "both", log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Race, on one torch thread, SPIRAL's duels against SE-IBR of the racing section as :func:`build_report` races
+    them, caching them under ``out_dir/evals`` (arguments as :func:`build_report`'s). A pipeline runs them as a step
+    of its own once SPIRAL's final stage has trained. Returns starts -> scenario -> SPIRAL's entry."""
+    ev = _protocol(Path(run_root), track, Path(out_dir), runs=None, seed=None, device=device, se_ibr=True,
+                   airframe=airframe, holdout=holdout, sides=sides, log=log)
+    with one_torch_thread():
+        return race_planner_duels(ev.held_out(*holdout), ev.stages, racing)
+
+
 def _protocol(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int | None, seed: int | None, device: str,
               se_ibr: bool, airframe: AirframeCfg | None, holdout: tuple[int, int] | None, sides: str,
               log: Callable[[str], None]) -> Evaluations:
@@ -166,16 +187,24 @@ def _protocol(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int | No
 
 
 def _race_learned(ev: Evaluations, held_ev: Evaluations | None, table: dict, stages: list[StageRun], *,
-                  cross_play: bool, separation: SeparationCfg | None, robustness: bool
-                  ) -> tuple[dict[str, Any] | None, dict[str, list[RowResult]], Robustness | None]:
+                  cross_play: bool, separation: SeparationCfg | None, robustness: bool, racing: RacingCfg | None
+                  ) -> tuple[dict[str, Any] | None, dict[str, list[RowResult]], Robustness | None, Racing | None]:
     """What the report races without the planner: the cross-play pairings among learned methods (into the cache),
-    the held-out races, the filter rows and the robustness races among learned methods."""
+    the held-out races, the filter rows, the robustness races and the racing section's races among learned
+    methods."""
     if cross_play:
         for s in SCENARIOS:
             _cross_matrix(ev, s, table[s], planner=False)
     held = None if held_ev is None else _held_out(held_ev)
     filtered = filter_rows(ev, separation) if separation is not None else {}
-    return held, filtered, race_learned(held_ev or ev, stages, separation) if robustness else None
+    rb = race_learned(held_ev or ev, stages, separation) if robustness else None
+    raced = race_racing(held_ev, stages, racing) if racing is not None and held_ev is not None else None
+    return held, filtered, rb, raced
+
+
+def _check_racing(racing: RacingCfg | None, holdout: tuple[int, int] | None) -> None:
+    if racing is not None and holdout is None:
+        raise ValueError("the racing section races the held-out placements: give holdout (runs, seed)")
 
 
 def _write_files(out_dir: Path, track: TrackSpec, airframe: AirframeCfg, stages: list[StageRun], table: dict,
@@ -205,6 +234,14 @@ def _with_robustness(text: str, rb: Robustness | None, sides: str) -> str:
     if rb is None:
         return text
     return text.replace(_FIGURES_HEADING, "\n".join(robustness_markdown(rb, sides)) + "\n" + _FIGURES_HEADING)
+
+
+def _with_racing(text: str, racing: Racing | None, sides: str) -> str:
+    """``results.md`` with the racing section (when measured) ahead of the paper's one-lap tables."""
+    if racing is None:
+        return text
+    head = text.index("\n## ") + 1
+    return text[:head] + "\n".join(racing_markdown(racing, sides)) + "\n" + text[head:]
 
 
 def _held_out(ev: Evaluations) -> dict[str, Any]:
@@ -316,7 +353,8 @@ def _markdown(run_root: Path, track: TrackSpec, stages: list[StageRun], table: d
               "races all home: share of races in which every drone finished; lap / bound: lap time over the "
               "point-mass reference.",
               _flight_stack(stages), _sides_text(sides, runs), ""]
-    titles = {"1v1": "Two-drone (1v1) race", "2v2": "Four-drone (2v2) team race"}
+    titles = {"1v1": "Two-drone (1v1) race: the paper's protocol", "2v2": "Four-drone (2v2) team race: the paper's "
+              "protocol"}
     notes: list[str] = []
     for scenario in SCENARIOS:
         lines += [f"## {titles[scenario]}", "",

@@ -11,12 +11,13 @@ from __future__ import annotations
 import concurrent.futures
 import contextlib
 import copy
+import dataclasses
 import json
 import multiprocessing
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from spiral.config.airframe import AIRFRAMES, AirframeCfg
 from spiral.config.sim import SimCfg
@@ -140,12 +141,22 @@ class Evaluations:
         self.sides = sides
         self.stages, self.runs, self.seed, self.device = stages, runs, seed, device
         self.se_ibr, self.airframe, self.sim, self.log = se_ibr, airframe, sim, log
+        self.starts: Literal["box", "track"] = "box"
+        """Where every race of these evaluations starts (as :class:`FlightOverride`'s ``starts``)."""
 
     def held_out(self, runs: int, seed: int) -> Evaluations:
         """The same evaluations from other placements (``runs`` races of ``seed``), cached under ``holdout-`` names;
         learned policies only."""
         other = copy.copy(self)
         other.runs, other.seed, other.prefix, other.se_ibr = runs, seed, "holdout-", False
+        return other
+
+    def racing(self, runs: int, seed: int, laps: int, starts: Literal["box", "track"]) -> Evaluations:
+        """Races of ``laps`` laps from ``runs`` placements of ``seed``, every one starting where ``starts`` says,
+        cached under ``racing-<laps>laps-<starts>-`` names."""
+        other = copy.copy(self)
+        other.runs, other.seed, other.track, other.starts = runs, seed, self.track.with_laps(laps), starts
+        other.prefix = f"racing-{laps}laps-{starts}-"
         return other
 
     def stage_for(self, scenario: str, key: str) -> StageRun | None:
@@ -225,6 +236,7 @@ class Evaluations:
     def _inputs(self, scenario: str, methods: dict[str, str], against: tuple[str, str] | None, *,
                 flight: FlightOverride | None = None, mixed: bool = False) -> dict[str, Any]:
         """What an evaluation's numbers depend on, as its JSON records them under ``inputs``."""
+        flight = self._flight(flight)
         agents = [*methods.values(), *([against[1]] if against else [])]
         inputs = {"track": self.track.model_dump(mode="json"), "scenario": scenario, "runs": self.runs,
                   "seed": self.seed, "agents": [a if a == SE_IBR else _checksum(Path(a)) for a in agents],
@@ -250,6 +262,7 @@ class Evaluations:
         found = self._cached(tag, inputs)
         if found is not None:
             return found
+        flight = self._flight(flight)
         self.log(f"report: running {self.prefix}{tag} ({self.runs} races, seed {self.seed})")
         if mixed:
             data = evaluate_mixed_teams(self.track, methods, runs=self.runs, seed=self.seed, device=self.device,
@@ -262,6 +275,13 @@ class Evaluations:
         path = self.cache / f"{self.prefix}{tag}.json"
         atomic_write_bytes(path, (json.dumps(data, indent=2) + "\n").encode())  # other steps may be reading the run
         return data, path
+
+
+    def _flight(self, flight: FlightOverride | None) -> FlightOverride | None:
+        """``flight`` with these evaluations' starts."""
+        if self.starts == "box":
+            return flight
+        return dataclasses.replace(flight or FlightOverride(), starts=self.starts)
 
 
 def _cross_tag(scenario: str, a: tuple[str, str], b: tuple[str, str], variant: str) -> str:

@@ -20,14 +20,23 @@ from spiral.config.pipeline import PipelineSpec
 from spiral.config.track import TrackSpec
 from spiral.core.files import atomic_write_bytes
 from spiral.eval.evaluate import evaluate_methods
-from spiral.eval.report import SCENARIOS, build_report, race_learned_policies, race_planner_pairing
+from spiral.eval.report import (
+    SCENARIOS,
+    build_report,
+    race_learned_policies,
+    race_planner_pairing,
+    race_planner_racing,
+)
 from spiral.eval.runs import MODE_OF, approach_stage, one_torch_thread
 from spiral.pipeline.step import Step, StepContext
 
-__all__ = ["LEARNED_STEP", "PLANNER_STEP", "report_steps"]
+__all__ = ["LEARNED_STEP", "PLANNER_RACING_STEP", "PLANNER_STEP", "report_steps"]
 
 PLANNER_STEP = "eval:se-ibr"
 """The step that races SE-IBR's self-matches (with ``report.se_ibr``)."""
+PLANNER_RACING_STEP = "eval:se-ibr-racing"
+"""The step that races SPIRAL's final policy against SE-IBR for the racing section (with ``report.se_ibr`` and
+``report.racing``)."""
 LEARNED_STEP = "eval:report"
 """The step that races what the report races among learned policies."""
 REPORT_JOBS = os.cpu_count() or 1
@@ -60,6 +69,7 @@ def report_steps(plan: PlanView, steps: list[Step]) -> list[Step]:
         out.insert(0, Step(PLANNER_STEP, _planner_fn(plan), [], _planner_section(plan)))
         if report.cross_play or report.robustness:
             out += _pairing_steps(plan)
+        out += _planner_racing_steps(plan)
     section = {"report": report, **plan.spec.evaluation.model_dump()}
     stage_steps = [s.name for s in steps if not s.name.startswith("promote:")]
     out.append(Step(LEARNED_STEP, _learned_fn(plan), stage_steps, section))
@@ -118,12 +128,39 @@ def _pairing_fn(plan: PlanView, name: str, scenario: str, key: str):
     return run
 
 
+def _final_stage(plan: PlanView, mode: str) -> str | None:
+    """The stage of self-play ``mode`` whose best is the approach's final policy: the last one published under a
+    name, else the last one (as :func:`spiral.eval.robustness.final_stages` finds it in a run folder)."""
+    own = [s for s in plan.spec.stages if s.selfplay.mode == mode]
+    published = [s for s in own if s.publish_as]
+    return (published or own)[-1].name if own else None
+
+
+def _planner_racing_steps(plan: PlanView) -> list[Step]:
+    """SPIRAL's duels against SE-IBR for the racing section, once SPIRAL's final stage has trained (none without a
+    racing section, planner races or a SPIRAL stage)."""
+    racing, ev = plan.spec.report.racing, plan.spec.evaluation
+    final = _final_stage(plan, MODE_OF["spiral"])
+    if racing is None or not racing.planner_runs or final is None:
+        return []
+    section = {"racing": racing, **ev.model_dump(include={"holdout_seed", "sides"})}
+
+    def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
+        duels = race_planner_racing(plan.run_root, plan.track, ctx.step_dir, racing,
+                                    holdout=(ev.holdout_runs, ev.holdout_seed), device=plan.spec.device,
+                                    airframe=plan.airframe, sides=ev.sides, log=ctx.log)
+        info = {f"{starts}-{s}": entry["win_rate"] for starts, by in duels.items() for s, entry in by.items()}
+        ctx.log(f"{PLANNER_RACING_STEP}: SPIRAL's win rate against SE-IBR {info}")
+        return {}, info
+    return [Step(PLANNER_RACING_STEP, run, [f"train:{final}"], section)]
+
+
 def _report_options(plan: PlanView) -> dict[str, Any]:
     """The arguments that :func:`build_report` and :func:`race_learned_policies` take alike, from the pipeline."""
     cfg, ev = plan.spec.report, plan.spec.evaluation
     return {"runs": ev.runs, "seed": ev.seed, "device": plan.spec.device, "cross_play": cfg.cross_play,
             "holdout": (ev.holdout_runs, ev.holdout_seed) if ev.holdout_runs else None, "sides": ev.sides,
-            "separation": cfg.separation, "robustness": cfg.robustness,
+            "separation": cfg.separation, "robustness": cfg.robustness, "racing": cfg.racing,
             "airframe": plan.airframe}
 
 

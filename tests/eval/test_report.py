@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from spiral.config import AIRFRAMES, SeparationCfg, SimCfg, TrackSpec
+from spiral.config.pipeline import RacingCfg
 from spiral.eval.report import _flight_stack, build_report, find_stages, race_learned_policies, race_planner_pairing
 from spiral.eval.runs import Evaluations, crosses_in_workers, run_setup
 from tests.eval.conftest import tiny_stage
@@ -213,6 +214,56 @@ def test_report_races_the_filter_rows_final_policies_strangers_and_downwash(spri
     downwash = json.loads((evals / "holdout-self-2v2-noselfplay-downwash.json").read_text())
     assert downwash["flight"] == {"downwash": True}
     assert md.index("## Downwash (zero-shot)") < md.index("## Lap-time reference")
+
+
+def test_racing_section_races_final_policies_over_laps_from_box_and_track_ahead_of_the_paper_tables(
+        sprint, tiny_checkpoint, tmp_path):
+    """The racing section races each final policy in every format and SPIRAL's duel with the baseline, over the
+    section's laps from the held-out placements, once from the box and once from track starts (cached apart), and
+    leads the report; without held-out placements it is refused."""
+    root, out = tmp_path / "runs" / "tiny", tmp_path / "report"
+    fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("1v1-noselfplay", "1v1", "frozen"),
+                                                    ("2v2", "2v2", "pool")))
+    racing = RacingCfg(laps=2)
+    md = build_report(root, sprint, out, bound_steps=8, cross_play=False, robustness=False, holdout=(2, 5),
+                      racing=racing, log=lambda _: None).read_text()
+    evals = out / "evals"
+    box = json.loads((evals / "racing-2laps-box-self-solo-spiral-final.json").read_text())
+    track = json.loads((evals / "racing-2laps-track-self-solo-spiral-final.json").read_text())
+    assert (box["laps"], box["runs"], box["seed"], "flight" in box) == (2, 2, 5, False)
+    assert track["laps"] == 2 and track["flight"] == {"starts": "track"}
+    assert box["methods"]["spiral"]["checkpoint"].endswith("train-2v2/best.pt")
+    assert box["methods"]["spiral"]["racing"]["laps"] == 2
+    duel = json.loads((evals / "racing-2laps-track-cross-2v2-spiral-vs-noselfplay.json").read_text())
+    assert duel["inputs"]["track"]["laps"] == 2 and duel["races"] == 4  # both sides
+    section = md[md.index("## Racing: 2-lap races"):md.index("## Two-drone (1v1) race: the paper's protocol")]
+    rows = [line for line in section.splitlines() if line.startswith(("| start box |", "| track starts |"))]
+    assert len(rows) == 2 * 3 * 2 + 2 * 2  # starts x formats x methods self-matches, starts x scenarios duels
+    solo = next(r for r in rows if r.startswith("| start box | solo | SPIRAL |"))
+    assert solo.split(" | ")[8:11] == ["–", "–", "–"]  # no overtakes, lead changes or winner in a solo race
+    d = duel["methods"]["spiral"]
+    row = next(r for r in rows if r.startswith("| track starts | 2v2 | PPO No Selfplay | 4 |"))
+    assert f"| {d['win_rate']:.2f} / {d['loss_rate']:.2f} / {d['draws']:.2f} | {d['success_ratio']:.3f} |" in row
+    assert "against SE-IBR" not in section
+
+    with pytest.raises(ValueError, match="held-out placements"):
+        build_report(root, sprint, out, bound_steps=8, cross_play=False, racing=racing)
+
+
+def test_racing_section_races_spirals_duels_against_se_ibr_with_the_planner(sprint, tiny_checkpoint, tmp_path):
+    """With the planner, SPIRAL's final policy duels SE-IBR over the section's laps from the first ``planner_runs``
+    held-out placements, both sides, and the duel is a row of the section."""
+    root, out = tmp_path / "runs" / "tiny", tmp_path / "report"
+    fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("2v2", "2v2", "pool")))
+    racing = RacingCfg(laps=2, starts=["box"], planner_runs=1)
+    md = build_report(root, sprint, out, bound_steps=8, cross_play=False, robustness=False, holdout=(2, 5),
+                      racing=racing, se_ibr=True, log=lambda _: None).read_text()
+    duel = json.loads((out / "evals" / "racing-2laps-box-cross-1v1-spiral-vs-se-ibr.json").read_text())
+    assert (duel["runs"], duel["races"], duel["seed"], duel["laps"]) == (1, 2, 5, 2)
+    section = md[md.index("## Racing: 2-lap races"):md.index("## Two-drone (1v1) race")]
+    assert "against SE-IBR from the first 1 of the placements" in section
+    assert any(line.startswith("| start box | 1v1 | SE-IBR | 2 |") for line in section.splitlines())
+    assert not any(line.startswith("| start box | 2v2 | SE-IBR |") for line in section.splitlines())
 
 
 def test_report_races_se_ibr_in_both_tables_and_prints_its_planning_cost(sprint, tiny_checkpoint, tmp_path):

@@ -247,6 +247,17 @@ def test_held_out_check_and_head_to_head_sides_are_the_reports_alone(tmp_path):
         runner = runner_for(path, tmp_path)
 
 
+def test_a_racing_section_without_held_out_placements_is_refused_before_any_step_runs(tmp_path):
+    """report.racing races the held-out placements: without evaluation.holdout_runs the pipeline fails to load,
+    naming the field."""
+    path = write_pipeline(tmp_path)
+    data = yaml.safe_load(path.read_text())
+    data["report"] = {"racing": {"laps": 3}}
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(SpecError, match=r"report\.racing"):
+        runner_for(path, tmp_path)
+
+
 def test_the_planners_races_are_steps_that_wait_only_for_what_they_race_and_the_report_races_nothing(tmp_path):
     """With report.se_ibr the planner's self-matches are a step that needs no trained policy (listed first, so that
     --jobs runs it beside the first training step), each of its head-to-head pairings a step that needs the one stage
@@ -255,8 +266,9 @@ def test_the_planners_races_are_steps_that_wait_only_for_what_they_race_and_the_
     data = yaml.safe_load((ROOT / "pipelines" / "smoke.yaml").read_text())
     data = json.loads(json.dumps({k: v for k, v in data.items() if not k.startswith("x-")}))
     data["track"] = str(ROOT / "tracks" / "oval4.yaml")
-    data["report"] = {"se_ibr": True, "robustness": False}
-    data["evaluation"] = {"runs": 1, "seed": 0}
+    data["report"] = {"se_ibr": True, "robustness": False,
+                      "racing": {"laps": 2, "starts": ["box"], "planner_runs": 1}}
+    data["evaluation"] = {"runs": 1, "seed": 0, "holdout_runs": 1, "holdout_seed": 1}
     path = tmp_path / "p.yaml"
     path.write_text(yaml.safe_dump(data))
     logs: list[str] = []
@@ -266,8 +278,10 @@ def test_the_planners_races_are_steps_that_wait_only_for_what_they_race_and_the_
     stages = ["solo", "1v1", "2v2", "1v1-noselfplay", "2v2-noselfplay"]
     pairings = {name: s.inputs for name, s in steps.items() if name.startswith("eval:se-ibr-vs-")}
     assert pairings == {f"eval:se-ibr-vs-{stage}": [f"train:{stage}"] for stage in stages[1:]}
+    assert steps["eval:se-ibr-racing"].inputs == ["train:2v2"]  # SPIRAL's final (published) stage
     assert steps["eval:report"].inputs == [f"{kind}:{stage}" for stage in stages for kind in ("train", "eval")]
-    assert set(steps["report"].inputs) == {"eval:se-ibr", *pairings, *steps["eval:report"].inputs, "eval:report"}
+    assert set(steps["report"].inputs) == {"eval:se-ibr", *pairings, "eval:se-ibr-racing",
+                                           *steps["eval:report"].inputs, "eval:report"}
     assert runner.steps[-1].name == "report"
 
     runner.run()
@@ -275,6 +289,9 @@ def test_the_planners_races_are_steps_that_wait_only_for_what_they_race_and_the_
     assert not [line for line in report_logs if line.startswith("report: running")]
     cached = tmp_path / "runs" / "smoke" / "eval-se-ibr-vs-2v2" / "evals" / "cross-2v2-spiral-vs-se-ibr.json"
     assert json.loads(cached.read_text())["inputs"]["runs"] == 1
+    racing = tmp_path / "runs" / "smoke" / "eval-se-ibr-racing" / "evals"
+    assert json.loads((racing / "racing-2laps-box-cross-1v1-spiral-vs-se-ibr.json").read_text())["laps"] == 2
+    assert "## Racing: 2-lap races" in (tmp_path / "runs" / "smoke" / "report" / "results.md").read_text()
     data["report"] = {"se_ibr": False}
     path.write_text(yaml.safe_dump(data))
     assert not [name for name in (s.name for s in runner_for(path, tmp_path).steps) if name.startswith("eval:se-ibr")]
