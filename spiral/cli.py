@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
+import os
 import sys
 import tempfile
 from collections.abc import Callable
@@ -16,6 +17,7 @@ from pydantic import ValidationError
 from spiral.config import KINDS, PipelineSpec, SpecError, load_pipeline, load_spec, load_track
 from spiral.config.errors import format_validation_error
 from spiral.core.device import check_device
+from spiral.core.errors import UsageError
 from spiral.core.numerics import cpu_target
 
 __all__ = ["app", "main"]
@@ -41,6 +43,15 @@ SimThreads = Annotated[int, typer.Option("--sim-threads", min=1, help="CPU threa
                                          "share of the worlds (a Warp CPU launch uses one core); same results")]
 
 
+@app.callback()
+def _options(debug: Annotated[bool, typer.Option(
+        "--debug", help="Show the traceback of every error, also of those printed as one Error: line")] = False,
+) -> None:
+    """spiral: self-play training of autonomous racing drones."""
+    if debug:
+        os.environ[DEBUG_ENV] = "1"
+
+
 def _use_sim_threads(count: int) -> None:
     from spiral.sim import World
 
@@ -48,20 +59,34 @@ def _use_sim_threads(count: int) -> None:
 
 
 def _expected_errors() -> tuple[type[Exception], ...]:
+    """Errors a user can fix: a spec, an option, a path, a checkpoint, a pipeline's state. Anything else is a bug."""
     from spiral.core.checkpoint import CheckpointError
     from spiral.pipeline import PipelineError, PipelineLockedError
 
-    return SpecError, PipelineError, PipelineLockedError, CheckpointError, FileNotFoundError, ValueError
+    return (SpecError, ValidationError, UsageError, PipelineError, PipelineLockedError, CheckpointError,
+            FileNotFoundError)
+
+
+DEBUG_ENV = "SPIRAL_DEBUG"
+"""Set to 1 (``spiral --debug`` sets it for the command and the processes it starts): every error keeps its
+traceback."""
+
+
+def _debugging() -> bool:
+    return os.environ.get(DEBUG_ENV, "") not in ("", "0")
 
 
 def handles_errors(fn: F) -> F:
-    """Print expected errors as ``Error: ...`` lines on stderr and exit 1, without a traceback."""
+    """Print the errors a user can fix as ``Error: ...`` lines on stderr and exit 1, without a traceback (with
+    ``--debug``: with it); any other exception is a bug and keeps its traceback."""
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return fn(*args, **kwargs)
         except _expected_errors() as exc:
+            if _debugging():
+                raise
             if isinstance(exc, SpecError):
                 lines = exc.problems
             elif isinstance(exc, ValidationError):  # a setting built from options: its model and field, one a line
@@ -247,13 +272,13 @@ def evaluate(
     from spiral.eval.evaluate import FlightOverride, evaluate_methods, format_eval, parse_separation
 
     if scenario not in SCENARIO_DRONES:
-        raise ValueError(f"--scenario: expected solo, 1v1 or 2v2, got {scenario!r}")
+        raise UsageError(f"--scenario: expected solo, 1v1 or 2v2, got {scenario!r}")
     methods = dict(_parse_method(m) for m in method)
     opponent = _parse_method(against) if against else None
     if separation_team not in ("all", "a", "b"):
-        raise ValueError(f"--separation-team: expected all, a or b, got {separation_team!r}")
+        raise UsageError(f"--separation-team: expected all, a or b, got {separation_team!r}")
     if starts not in ("box", "track", "file"):
-        raise ValueError(f"--starts: expected box, track or file, got {starts!r}")
+        raise UsageError(f"--starts: expected box, track or file, got {starts!r}")
     flight = FlightOverride(separation=parse_separation(separation), downwash=downwash,
                             separation_team=separation_team, starts=starts)  # type: ignore[arg-type]
     spec = load_track(track)
@@ -352,7 +377,7 @@ def track_bound(
     from spiral.eval.bound import format_bound, lap_time_bound
 
     if model not in ("thrust", "ball"):
-        raise ValueError(f"--model: expected thrust or ball, got {model!r}")
+        raise UsageError(f"--model: expected thrust or ball, got {model!r}")
     result = lap_time_bound(load_track(track), resolve_airframe(airframe), model=model, steps_per_segment=steps)
     typer.echo(format_bound(result))
     _write_json(json_out, result.to_json(trajectory=True))
@@ -396,7 +421,7 @@ def report(
     spec = load_track(track) if track is not None else track_of_run(run_dir)
     filter_row = parse_separation(separation)
     if filter_row == KEEP:
-        raise ValueError("--separation: expected none or DISTANCE,HORIZON_S,GAIN")
+        raise UsageError("--separation: expected none or DISTANCE,HORIZON_S,GAIN")
     command = f"spiral report {run_dir}" + (" --se-ibr" if se_ibr else "") + (f" --runs {runs}" if runs else "")
     if holdout_runs:
         command += f" --holdout-runs {holdout_runs} --holdout-seed {holdout_seed}"
@@ -499,7 +524,7 @@ def bench_ppo(
     spec, track = load_pipeline(pipeline)
     names = [s.name for s in spec.stages]
     if stage not in names:
-        raise ValueError(f"--stage: {pipeline} has no stage named {stage!r} (stages: {', '.join(names)})")
+        raise UsageError(f"--stage: {pipeline} has no stage named {stage!r} (stages: {', '.join(names)})")
     index = names.index(stage)
     spec_stage = spec.stages[index] if worlds is None else spec.stages[index].model_copy(update={"worlds": worlds})
     frozen = None
@@ -539,7 +564,7 @@ def _published_inputs(spec: PipelineSpec, index: int, published: Path, init: Pat
         frozen = published / stage.selfplay.opponent_from / "best.pt"
     for option, path in (("--init", init), ("--pool", pool), ("the frozen opponent", frozen)):
         if path is not None and not path.exists():
-            raise ValueError(f"{option}: {path} does not exist (train the pipeline, or pass another)")
+            raise UsageError(f"{option}: {path} does not exist (train the pipeline, or pass another)")
     return init, pool, frozen
 
 

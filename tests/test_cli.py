@@ -8,6 +8,8 @@ from pathlib import Path
 from typer.testing import CliRunner
 
 from spiral.cli import app
+from spiral.config import SpecError
+from spiral.core.errors import UsageError
 
 ROOT = Path(__file__).resolve().parents[1]
 runner = CliRunner()
@@ -159,3 +161,29 @@ def test_status_lines_up_every_steps_state_after_the_longest_step_name(tmp_path)
     names = [line.split()[0] for line in lines]
     assert "eval:se-ibr-vs-2v2-noselfplay" in names and names[-1] == "report"
     assert len({line.index("missing") for line in lines}) == 1
+
+
+def test_debug_shows_the_traceback_of_an_error_printed_as_one_line_without_it(tmp_path, monkeypatch):
+    """A malformed track file is one `Error:` line; under `spiral --debug` the same error keeps its traceback."""
+    monkeypatch.setenv("SPIRAL_DEBUG", "0")  # restored after the test, which --debug sets
+    bad = ROOT / "tests" / "config" / "fixtures" / "unknown_key.yaml"
+    plain = runner.invoke(app, ["track", "info", str(bad)])
+    assert plain.exit_code == 1 and f"Error: {bad}: gates.0.colour:" in plain.output
+    assert plain.exception is None or isinstance(plain.exception, SystemExit)
+    debug = runner.invoke(app, ["--debug", "track", "info", str(bad)])
+    assert debug.exit_code == 1 and isinstance(debug.exception, SpecError)
+    assert "Error:" not in debug.output
+
+
+def test_an_error_that_is_not_the_users_keeps_its_traceback(monkeypatch):
+    """A ValueError from inside spiral (a bug, not a UsageError) is not hidden behind an `Error:` line."""
+    monkeypatch.setenv("SPIRAL_DEBUG", "0")  # restored after the test, which --debug sets
+
+    def broken(*args, **kwargs):
+        raise ValueError("an internal inconsistency")
+
+    monkeypatch.setattr("spiral.eval.evaluate.evaluate_methods", broken)
+    result = runner.invoke(app, ["eval", "--track", str(ROOT / "tracks" / "oval4.yaml"), "--method", "se-ibr",
+                                 "--runs", "1"])
+    assert isinstance(result.exception, ValueError) and not isinstance(result.exception, UsageError)
+    assert "Error:" not in result.output

@@ -22,6 +22,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from spiral.baselines import opponent_policy
+from spiral.core.errors import UsageError
 from spiral.env.factory import OpponentFactory, make_race_env
 from spiral.env.race_env import RaceEnv
 
@@ -83,14 +84,14 @@ class RaceVectorEnv(VectorEnv):
 
     def __init__(self, num_envs: int = 1, *, array_type: Literal["numpy", "torch"] = "numpy", **kwargs: Any) -> None:
         if array_type not in ("numpy", "torch"):
-            raise ValueError(f"array_type: expected 'numpy' or 'torch', got {array_type!r}")
+            raise UsageError(f"array_type: expected 'numpy' or 'torch', got {array_type!r}")
         per_world = 2 if kwargs.get("scenario") == "2v2" and kwargs.get("learner_slots") is None else 1
         if num_envs < 1 or num_envs % per_world:
-            raise ValueError(f"num_envs: expected a positive multiple of {per_world}, got {num_envs}")
+            raise UsageError(f"num_envs: expected a positive multiple of {per_world}, got {num_envs}")
         self.race = make_race_env(world_count=num_envs // per_world, env_class=_RaceEnvWithFinalObs,
                                   named_opponents=NAMED_OPPONENTS, **kwargs)
         if self.race.num_envs != num_envs:
-            raise ValueError(f"num_envs: {num_envs} is not a multiple of the learner slots {self.race.learner_slots}")
+            raise UsageError(f"num_envs: {num_envs} is not a multiple of the learner slots {self.race.learner_slots}")
         self.num_envs, self.array_type = num_envs, array_type
         self.single_observation_space, self.single_action_space = _spaces(self.race.obs_dim)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
@@ -144,7 +145,7 @@ class RaceSingleEnv(gymnasium.Env):
 
     def __init__(self, **kwargs: Any) -> None:
         if kwargs.get("scenario") == "2v2":
-            raise ValueError("scenario: the single env drives one drone; use gymnasium.make_vec or PettingZoo for 2v2")
+            raise UsageError("scenario: the single env drives one drone; use gymnasium.make_vec or PettingZoo for 2v2")
         kwargs.pop("render_mode", None)
         self.race = make_race_env(world_count=1, env_class=_RaceEnvWithFinalObs, named_opponents=NAMED_OPPONENTS,
                                   **kwargs)

@@ -7,6 +7,7 @@
 - :mod:`spiral.core.files`: atomic writes and checksums.
 - :mod:`spiral.core.checkpoint`: the checkpoint format, frozen policies and loading them.
 - :mod:`spiral.core.inputs`: inputs a stored policy never saw vary, and silencing them.
+- :mod:`spiral.core.errors`: the error a user can fix (``UsageError``).
 
 The package imports none of its modules, so ``spiral.config`` (and through it ``spiral.sim``) reads the scenario
 table without loading torch; import each name from its module.

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import re
 
+from spiral.core.errors import UsageError
+
 __all__ = ["check_device"]
 
 
@@ -22,7 +24,7 @@ def check_device(device: str) -> str:
     """
     match = re.fullmatch(r"cpu|cuda(?::(\d+))?", device)
     if match is None:
-        raise ValueError(f"device {device!r}: expected cpu, cuda or cuda:N")
+        raise UsageError(f"device {device!r}: expected cpu, cuda or cuda:N")
     if device == "cpu":
         return "cpu"
     import torch
@@ -30,8 +32,8 @@ def check_device(device: str) -> str:
     count = torch.cuda.device_count()
     if count == 0:
         why = "this torch build has no CUDA support" if torch.version.cuda is None else "no CUDA driver or GPU found"
-        raise ValueError(f"device {device}: CUDA is not available on this machine ({why}); use --device cpu")
+        raise UsageError(f"device {device}: CUDA is not available on this machine ({why}); use --device cpu")
     index = int(match.group(1) or 0)
     if index >= count:
-        raise ValueError(f"device {device}: this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")
+        raise UsageError(f"device {device}: this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")
     return f"cuda:{index}"

@@ -13,6 +13,7 @@ from spiral.config.load import load_track
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
 from spiral.core.checkpoint import load_policy
+from spiral.core.errors import UsageError
 from spiral.core.policy import OpponentPolicy
 from spiral.core.scenario import SCENARIO_DRONES
 from spiral.core.scenario import learner_slots as team_a_slots
@@ -106,13 +107,13 @@ def make_race_env(
         named_opponents: Opponents chosen by name, built for the env (the gymnasium adapter's ``"se-ibr"``).
     """
     if scenario not in SCENARIO_DRONES:
-        raise ValueError(f"scenario: expected one of {', '.join(SCENARIO_DRONES)}, got {scenario!r}")
+        raise UsageError(f"scenario: expected one of {', '.join(SCENARIO_DRONES)}, got {scenario!r}")
     drones = SCENARIO_DRONES[scenario]
     slots = list(learner_slots) if learner_slots is not None else team_a_slots(scenario)
     policy, factory, stored_env = _opponent(opponent, named_opponents or {}, device)
     env_cfg = stored_env if env_cfg is None else env_cfg
     if opponent is not None and len(slots) == drones:
-        raise ValueError(f"opponent: a {scenario} race whose every slot is driven by the caller has no opponent slot")
+        raise UsageError(f"opponent: a {scenario} race whose every slot is driven by the caller has no opponent slot")
     air = airframe if isinstance(airframe, AirframeCfg) else resolve_airframe(airframe)
     env = env_class(resolve_track(track), air, _model(sim, SimCfg, "sim"), _model(env_cfg, EnvCfg, "env_cfg"),
                     world_count=world_count, drones_per_world=drones, learner_slots=slots, device=device, seed=seed,
@@ -121,7 +122,7 @@ def make_race_env(
     if policy is not None:
         layout = getattr(policy, "obs_layout", None)
         if layout is not None and layout != env.obs_builder.layout():
-            raise ValueError(f"opponent: checkpoint observation layout {layout} differs from the env's "
+            raise UsageError(f"opponent: checkpoint observation layout {layout} differs from the env's "
                              f"{env.obs_builder.layout()} (pass env_cfg=None to use the checkpoint's)")
         env.set_opponent_policy(policy)
         env.reset()  # the opponents join at a reset

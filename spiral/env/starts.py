@@ -9,6 +9,7 @@ import torch
 
 from spiral.config.env import EpisodeCfg
 from spiral.config.track import TrackSpec
+from spiral.core.errors import UsageError
 
 __all__ = ["FILE_GAP", "FILE_JITTER", "Starts", "draw_starts", "sample_box_starts", "sample_file_starts",
            "sample_track_starts"]
@@ -59,7 +60,7 @@ def sample_box_starts(
         if not todo.any():
             break
     else:
-        raise ValueError(f"start box of track {track.name!r} cannot hold {drones} drones "
+        raise UsageError(f"start box of track {track.name!r} cannot hold {drones} drones "
                          f"{track.start.min_separation} m apart")
     yaw = torch.full((world_count, drones), math.radians(track.start.yaw_deg), device=device)
     return pos, yaw

@@ -13,6 +13,7 @@ from spiral.config.airframe import AirframeCfg
 from spiral.config.env import EnvCfg
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
+from spiral.core.errors import UsageError
 from spiral.core.outcome import race_winner
 from spiral.core.policy import OpponentPolicy
 from spiral.env.events import (
@@ -42,7 +43,7 @@ class RaceState:
                  drones_per_world: int, learner_slots: Sequence[int] = (0,), device: str = "cpu", seed: int = 0,
                  auto_reset: bool = True) -> None:
         if sim.control_mode != "pid":
-            raise ValueError("RaceEnv drives the PID: sim.control_mode must be 'pid'")
+            raise UsageError("RaceEnv drives the PID: sim.control_mode must be 'pid'")
         self.track, self.cfg, self.auto_reset = track.with_laps(cfg.episode.laps or track.laps), cfg, auto_reset
         self.world = World(track, airframe, sim, world_count=world_count, drones_per_world=drones_per_world,
                            device=device)

@@ -29,6 +29,7 @@ import scipy.sparse as sp
 
 from spiral.config.airframe import AirframeCfg
 from spiral.config.track import TrackSpec
+from spiral.core.errors import UsageError
 
 __all__ = ["AccelLimits", "LapBound", "format_bound", "lap_time_bound"]
 
@@ -144,7 +145,7 @@ class _Course:
         rot, fwd = track.gate_rotations(), track.gate_forward()
         half = np.array([track.gate_opening(i) / 2 - radius for i in seq])
         if (half <= 0).any():
-            raise ValueError(f"track {track.name!r}: a gate opening is narrower than the drone")
+            raise UsageError(f"track {track.name!r}: a gate opening is narrower than the drone")
         course = cls(start=np.asarray(track.start.center, float), centre=track.gate_centers()[seq], forward=fwd[seq],
                      axis_y=rot[seq, :, 1], axis_z=rot[seq, :, 2], half=half,
                      lo=np.asarray(track.bounds.min, float) + radius, hi=np.asarray(track.bounds.max, float) - radius)
@@ -290,7 +291,7 @@ def lap_time_bound(track: TrackSpec, airframe: AirframeCfg, *, model: Model = "t
         steps = _local_search(problem, steps, cache)
     lap, x = cache[tuple(steps)]
     if x is None:
-        raise ValueError(f"track {track.name!r}: no feasible point-mass lap found")
+        raise UsageError(f"track {track.name!r}: no feasible point-mass lap found")
     n_nodes = int(steps.sum()) + 1
     h = lap / (n_nodes - 1)
     pos = x[: 3 * n_nodes].reshape(n_nodes, 3)

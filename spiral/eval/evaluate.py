@@ -22,6 +22,7 @@ from spiral.config.env import ActionCfg, EnvCfg, ObsCfg, SeparationCfg
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
 from spiral.core.checkpoint import FrozenPolicy, load_policy
+from spiral.core.errors import UsageError
 from spiral.core.outcome import race_winner
 from spiral.core.policy import OpponentPolicy, Policy
 from spiral.core.scenario import SCENARIO_DRONES, TEAMS
@@ -36,7 +37,7 @@ SIDES = ("a", "both")
 def check_sides(sides: str) -> None:
     """Raise ``ValueError`` unless ``sides`` is one of :data:`SIDES`."""
     if sides not in SIDES:
-        raise ValueError(f"sides: expected {' or '.join(SIDES)}, got {sides!r}")
+        raise UsageError(f"sides: expected {' or '.join(SIDES)}, got {sides!r}")
 
 
 SE_IBR = "se-ibr"
@@ -159,7 +160,7 @@ def parse_separation(text: str) -> SeparationCfg | str | None:
     try:
         distance, horizon, gain = (float(x) for x in text.split(","))
     except ValueError:
-        raise ValueError(f"--separation: expected keep, none or DISTANCE,HORIZON_S,GAIN, got {text!r}") from None
+        raise UsageError(f"--separation: expected keep, none or DISTANCE,HORIZON_S,GAIN, got {text!r}") from None
     return SeparationCfg(distance=distance, horizon_s=horizon, gain=gain)
 
 
@@ -181,7 +182,7 @@ def eval_env_for(policy: FrozenPolicy, track: TrackSpec, scenario: str, runs: in
 def _race_env(layout: EvalLayout, track: TrackSpec, scenario: str, runs: int, seed: int, *, device: str,
               team_a_only: bool) -> RaceEnv:
     if scenario not in TEAMS:
-        raise ValueError(f"scenario: expected solo, 1v1 or 2v2, got {scenario!r}")
+        raise UsageError(f"scenario: expected solo, 1v1 or 2v2, got {scenario!r}")
     drones = SCENARIO_DRONES[scenario]
     slots = TEAMS[scenario][0] if team_a_only else list(range(drones))
     return RaceEnv(track, layout.airframe, layout.sim, layout.env, world_count=runs, drones_per_world=drones,
@@ -197,7 +198,7 @@ def setup_race(track: TrackSpec, scenario: str, runs: int, seed: int, agent: Age
     changed by ``flight``.
     """
     if opponent is not None and scenario == "solo":
-        raise ValueError("cross-play needs a 1v1 or 2v2 scenario")
+        raise UsageError("cross-play needs a 1v1 or 2v2 scenario")
     if isinstance(agent, FrozenPolicy) and isinstance(opponent, FrozenPolicy):
         _check_compatible(agent, opponent, same_inputs=False)
     learned = [a for a in (agent, opponent) if isinstance(a, FrozenPolicy)]
@@ -217,9 +218,9 @@ def _check_compatible(a: FrozenPolicy, b: FrozenPolicy, *, same_inputs: bool = T
     """Two policies can race each other if every drone flies the same action mapping; sharing a team's slots in one
     env (``same_inputs``) also needs the same observation layout, while opposing teams each read their own."""
     if same_inputs and a.meta["obs_layout"] != b.meta["obs_layout"]:
-        raise ValueError("mixed teams need policies with the same obs_layout")
+        raise UsageError("mixed teams need policies with the same obs_layout")
     if ActionCfg(**a.meta["env"]["action"]) != ActionCfg(**b.meta["env"]["action"]):  # as read: defaults filled in
-        raise ValueError("cross-play needs policies with the same action mapping")
+        raise UsageError("cross-play needs policies with the same action mapping")
 
 
 def race_agents(track: TrackSpec, scenario: str, runs: int, seed: int, agent: Agent, opponent: Agent | None = None,
@@ -349,10 +350,10 @@ def evaluate_mixed_teams(track: TrackSpec, methods: dict[str, str | Path], *, ru
     (:data:`MIXED_SLOTS`), so every drone races a stranger as its team mate and as an opponent. Per method, the
     metrics of its drones (no win rate: the teams are alike)."""
     if len(methods) != 2:
-        raise ValueError(f"mixed teams need exactly two methods, got {len(methods)}")
+        raise UsageError(f"mixed teams need exactly two methods, got {len(methods)}")
     agents = {name: load_agent(path, device=device) for name, path in methods.items()}
     if any(not isinstance(a, FrozenPolicy) for a in agents.values()):
-        raise ValueError("mixed teams are raced by learned policies only")
+        raise UsageError("mixed teams are raced by learned policies only")
     a, b = agents.values()
     _check_compatible(a, b)  # type: ignore[arg-type]
     layout = EvalLayout.of_policy(a)  # type: ignore[arg-type]

@@ -25,6 +25,7 @@ from PIL import Image
 from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
+from spiral.core.errors import UsageError
 from spiral.core.scenario import TEAMS
 from spiral.env.race_env import RaceEnv
 from spiral.eval.evaluate import EvalLayout, load_agent, setup_race
@@ -151,7 +152,7 @@ def render_race(rec: RaceRecording, out: Path, *, fps: float = 15.0, speed: floa
     """
     out = Path(out)
     if out.suffix.lower() not in (".gif", ".mp4"):
-        raise ValueError(f"{out}: replay must be a .gif or .mp4 file")
+        raise UsageError(f"{out}: replay must be a .gif or .mp4 file")
     count = frame_count(rec.duration, fps, speed=speed)
     steps = np.minimum(np.rint(np.arange(count) * speed / fps / rec.dt).astype(int), len(rec.pos) - 1)
     scene = _Scene(rec, dpi=dpi, trail_steps=max(1, round(trail_s / rec.dt)))
@@ -280,7 +281,7 @@ def _ffmpeg() -> str | None:
 def _write_mp4(frames: list[np.ndarray], out: Path, fps: float) -> None:
     exe = _ffmpeg()
     if exe is None:
-        raise ValueError(f"{out}: writing .mp4 needs ffmpeg on PATH (or the imageio-ffmpeg package); "
+        raise UsageError(f"{out}: writing .mp4 needs ffmpeg on PATH (or the imageio-ffmpeg package); "
                          "write a .gif instead")
     height, width = frames[0].shape[:2]
     cmd = [exe, "-y", "-loglevel", "error", "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{width}x{height}",
@@ -288,4 +289,4 @@ def _write_mp4(frames: list[np.ndarray], out: Path, fps: float) -> None:
            "-c:v", "libx264", str(out)]
     proc = subprocess.run(cmd, input=b"".join(f.tobytes() for f in frames), capture_output=True, check=False)
     if proc.returncode != 0:
-        raise ValueError(f"{out}: ffmpeg failed: {proc.stderr.decode(errors='replace').strip()}")
+        raise UsageError(f"{out}: ffmpeg failed: {proc.stderr.decode(errors='replace').strip()}")

@@ -21,6 +21,7 @@ from spiral.config.airframe import AirframeCfg
 from spiral.config.env import SeparationCfg
 from spiral.config.pipeline import RacingCfg
 from spiral.config.track import TrackSpec
+from spiral.core.errors import UsageError
 from spiral.eval.bound import LapBound, lap_time_bound
 from spiral.eval.evaluate import SE_IBR, check_sides
 from spiral.eval.plots import TradeoffPoint, plot_learning_curves, plot_speed_vs_reliability, plot_track
@@ -180,7 +181,7 @@ def _protocol(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int | No
     stages = find_stages(run_root)
     runs, seed = run_protocol(stages, runs, seed)
     if holdout is not None and holdout[1] == seed:
-        raise ValueError(f"holdout seed {seed} is the evaluation's own seed: held-out placements need another")
+        raise UsageError(f"holdout seed {seed} is the evaluation's own seed: held-out placements need another")
     stage_airframe, sim = run_setup(stages)
     return Evaluations(run_root, track, out_dir, stages, runs=runs, seed=seed, device=device, se_ibr=se_ibr,
                        airframe=airframe or stage_airframe, sim=sim, log=log, sides=sides)
@@ -204,7 +205,7 @@ def _race_learned(ev: Evaluations, held_ev: Evaluations | None, table: dict, sta
 
 def _check_racing(racing: RacingCfg | None, holdout: tuple[int, int] | None) -> None:
     if racing is not None and holdout is None:
-        raise ValueError("the racing section races the held-out placements: give holdout (runs, seed)")
+        raise UsageError("the racing section races the held-out placements: give holdout (runs, seed)")
 
 
 def _write_files(out_dir: Path, track: TrackSpec, airframe: AirframeCfg, stages: list[StageRun], table: dict,

@@ -14,6 +14,7 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
+from spiral.core.errors import UsageError
 from spiral.pipeline.manifest import read_manifest
 from spiral.pipeline.runner import PipelineRunner
 from spiral.pipeline.step import StepContext
@@ -60,7 +61,7 @@ def _train_worker(runner: PipelineRunner, name: str, rank: int) -> None:
     """Run step ``name``'s function in a scratch folder that is deleted afterwards."""
     steps = {s.name: s for s in runner.steps}
     if name not in steps:
-        raise ValueError(f"unknown step {name!r}; steps: {', '.join(steps)}")
+        raise UsageError(f"unknown step {name!r}; steps: {', '.join(steps)}")
     step = steps[name]
     inputs = {i: read_manifest(runner.plan.run_root / steps[i].dirname) or {} for i in step.inputs}
     # StageCancelledError: rank 0 found the step complete and trains nothing

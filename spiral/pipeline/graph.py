@@ -14,6 +14,7 @@ from spiral.config.airframe import AirframeCfg, resolve_airframe
 from spiral.config.pipeline import PipelineSpec
 from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
+from spiral.core.errors import UsageError
 from spiral.core.files import atomic_write_bytes
 from spiral.eval.evaluate import evaluate_methods
 from spiral.pipeline.report_steps import PLANNER_STEP, report_steps
@@ -140,7 +141,7 @@ def select_steps(steps: list[Step], *, start: str | None = None, only: str | Non
     names = [s.name for s in steps]
     for name in (start, only):
         if name is not None and name not in names:
-            raise ValueError(f"unknown step {name!r}; steps: {', '.join(names)}")
+            raise UsageError(f"unknown step {name!r}; steps: {', '.join(names)}")
     if only is not None:
         return [s for s in steps if s.name == only]
     if start is not None:

@@ -13,6 +13,7 @@ from typing import Any
 from spiral.config.load import load_pipeline
 from spiral.core.checkpoint import list_checkpoints
 from spiral.core.device import check_device
+from spiral.core.errors import UsageError
 from spiral.core.files import atomic_write_bytes
 from spiral.pipeline.graph import PipelinePlan, select_steps
 from spiral.pipeline.lock import PipelineLock
@@ -79,13 +80,13 @@ class PipelineRunner:
             jobs: int = 1) -> list[str]:
         """Run the selected steps, up to ``jobs`` independent ones at a time; return the names of those that ran."""
         if jobs < 1:
-            raise ValueError(f"jobs must be at least 1, got {jobs}")
+            raise UsageError(f"jobs must be at least 1, got {jobs}")
         check_device(self.plan.spec.device)
         selected = {s.name for s in select_steps(self.steps, start=start, only=only)}
         forced = set(force or [])
         unknown = forced - {s.name for s in self.steps}
         if unknown:
-            raise ValueError(f"unknown step(s) {', '.join(sorted(unknown))}")
+            raise UsageError(f"unknown step(s) {', '.join(sorted(unknown))}")
         fps, todo = self._fingerprints(), {}
         with PipelineLock(self.plan.run_root / ".lock", log=self.log):
             for step in self.steps:

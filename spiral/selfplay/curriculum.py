@@ -15,6 +15,7 @@ from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
 from spiral.core.checkpoint import CheckpointError, FrozenPolicy, list_checkpoints, load_checkpoint, load_policy
+from spiral.core.errors import UsageError
 from spiral.core.scenario import SCENARIO_DRONES
 from spiral.env.observations import other_drone_columns
 from spiral.selfplay.matchmaking import Matchmaker
@@ -54,9 +55,9 @@ def run_stage(
                                init_checkpoint=init_checkpoint, log=log, progress=progress)
         return trainer.train()
     if init_checkpoint is None:
-        raise ValueError(f"stage {stage.name!r}: a {stage.scenario} stage needs an earlier stage to start from")
+        raise UsageError(f"stage {stage.name!r}: a {stage.scenario} stage needs an earlier stage to start from")
     if opponent_checkpoint is not None and stage.selfplay.mode != "frozen":
-        raise ValueError(f"stage {stage.name!r}: an opponent checkpoint is for frozen opponents; pool mode races "
+        raise UsageError(f"stage {stage.name!r}: an opponent checkpoint is for frozen opponents; pool mode races "
                          "the pool")
     best_path = _first_best(run_dir, init_checkpoint)
     pool = Pool(pool_dir, log=log) if stage.selfplay.mode == "pool" else None
@@ -102,7 +103,7 @@ def stage_opponents(stage: StageSpec, pool: Pool | None, init_checkpoint: Path, 
     members, latest, best_rating = _opponent_policies(stage, pool, init_meta, init_checkpoint, opponent_checkpoint,
                                                       device=device)
     if not members:
-        raise ValueError(f"stage {stage.name!r}: no usable policy in the pool {pool.root if pool else None}")
+        raise UsageError(f"stage {stage.name!r}: no usable policy in the pool {pool.root if pool else None}")
     matchmaker = Matchmaker(len(members), latest=latest, p_latest=stage.selfplay.p_latest,
                             p_first=stage.selfplay.p_first, mode=stage.selfplay.sampling, device=device)
     return StageOpponents(members, matchmaker, _world_opponents(stage, members, matchmaker, generator), best_rating,
@@ -183,6 +184,6 @@ def _earlier_snapshots(stage: StageSpec, init_checkpoint: Path, meta: dict[str, 
     folder = init_checkpoint.parent / "ckpt"
     found = sorted((it, path) for it, path in list_checkpoints(folder) if it < meta["iteration"])
     if not found:
-        raise ValueError(f"stage {stage.name!r}: selfplay.init_snapshots: no periodic checkpoint before iteration "
+        raise UsageError(f"stage {stage.name!r}: selfplay.init_snapshots: no periodic checkpoint before iteration "
                          f"{meta['iteration']} of {init_checkpoint} in {folder}")
     return [(it, path, meta.get("stage", "init")) for it, path in found]

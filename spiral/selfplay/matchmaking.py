@@ -7,6 +7,8 @@ from typing import Literal
 
 import torch
 
+from spiral.core.errors import UsageError
+
 __all__ = ["Matchmaker"]
 
 
@@ -20,7 +22,7 @@ class Matchmaker:
     def __init__(self, member_count: int, *, latest: int, p_latest: float, p_first: float = 0.0,
                  mode: Literal["uniform", "prioritized"] = "prioritized", device: torch.device | str = "cpu") -> None:
         if p_latest + p_first > 1.0:
-            raise ValueError(f"p_latest + p_first = {p_latest + p_first} exceeds 1")
+            raise UsageError(f"p_latest + p_first = {p_latest + p_first} exceeds 1")
         self.latest, self.p_latest, self.p_first, self.mode = latest, p_latest, p_first, mode
         self.races = torch.zeros(member_count, device=device)
         self.losses = torch.zeros(member_count, device=device)

@@ -29,6 +29,8 @@ import torch.distributed as dist
 from rsl_rl.algorithms import PPO
 from rsl_rl.runners import OnPolicyRunner
 
+from spiral.core.errors import UsageError
+
 __all__ = [
     "DistInfo",
     "GroupRunner",
@@ -86,10 +88,10 @@ def env_info(environ: Mapping[str, str] | None = None) -> DistInfo | None:
     try:
         rank, local_rank, world_size = (int(env[n]) for n in names)
     except (KeyError, ValueError) as exc:
-        raise ValueError(f"torchrun variables {', '.join(f'{n}={env.get(n)!r}' for n in names)}: "
+        raise UsageError(f"torchrun variables {', '.join(f'{n}={env.get(n)!r}' for n in names)}: "
                          f"expected three integers") from exc
     if world_size < 1 or not 0 <= rank < world_size or not 0 <= local_rank < world_size:
-        raise ValueError(f"torchrun variables RANK={rank}, LOCAL_RANK={local_rank}, WORLD_SIZE={world_size} "
+        raise UsageError(f"torchrun variables RANK={rank}, LOCAL_RANK={local_rank}, WORLD_SIZE={world_size} "
                          "are inconsistent")
     return DistInfo(rank, local_rank, world_size)
 
@@ -106,9 +108,9 @@ def rank_device(device: str | None, info: DistInfo) -> str:
         return "cpu"
     m = re.fullmatch(r"cuda:(\d+)", device)
     if m is None:
-        raise ValueError(f"--device: expected cpu, cuda or cuda:N, got {device!r}")
+        raise UsageError(f"--device: expected cpu, cuda or cuda:N, got {device!r}")
     if int(m.group(1)) != info.local_rank:
-        raise ValueError(f"--device {device} on local rank {info.local_rank}: with --distributed each process uses "
+        raise UsageError(f"--device {device} on local rank {info.local_rank}: with --distributed each process uses "
                          f"cuda:LOCAL_RANK (pass --device cuda, or none)")
     return device
 
@@ -121,13 +123,13 @@ def init_distributed(device: str | None = None, *, environ: Mapping[str, str] | 
     """
     info = env_info(environ)
     if info is None:
-        raise ValueError("--distributed needs torchrun, which sets RANK, LOCAL_RANK and WORLD_SIZE "
+        raise UsageError("--distributed needs torchrun, which sets RANK, LOCAL_RANK and WORLD_SIZE "
                          "(see docs/scaling.md)")
     dev = rank_device(device, info)
     cuda = dev.startswith("cuda")
     if cuda:
         if torch.cuda.device_count() <= info.local_rank:
-            raise ValueError(f"local rank {info.local_rank} needs {dev}, but this node has "
+            raise UsageError(f"local rank {info.local_rank} needs {dev}, but this node has "
                              f"{torch.cuda.device_count()} CUDA device(s)")
         torch.cuda.set_device(info.local_rank)
     if not dist.is_initialized():
@@ -160,7 +162,7 @@ class GroupRunner(OnPolicyRunner):
     def _configure_multi_gpu(self) -> None:
         if not (dist.is_available() and dist.is_initialized()):
             if int(os.getenv("WORLD_SIZE", "1")) > 1:
-                raise ValueError("launched by torchrun without a process group: train with `spiral train ... "
+                raise UsageError("launched by torchrun without a process group: train with `spiral train ... "
                                  "--distributed`, or call spiral.train.distributed.init_distributed() first")
             super()._configure_multi_gpu()
             return

@@ -23,6 +23,7 @@ from typing import Any, Literal
 import torch
 
 from spiral.core.checkpoint import FrozenPolicy, load_policy
+from spiral.core.errors import UsageError
 from spiral.core.files import atomic_write_bytes, file_sha256
 
 __all__ = ["EXPORT_FORMATS", "export_metadata", "export_policy", "load_torchscript"]
@@ -50,7 +51,7 @@ def export_policy(checkpoint: Path, out: Path, *, fmt: ExportFormat) -> Path:
         CheckpointError: for a missing, corrupt or incompatible checkpoint.
     """
     if fmt not in EXPORT_FORMATS:
-        raise ValueError(f"--format: expected one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}")
+        raise UsageError(f"--format: expected one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}")
     policy = load_policy(Path(checkpoint), device="cpu")
     meta = json.dumps(export_metadata(policy, Path(checkpoint)), indent=2, default=str)
     out = Path(out)
@@ -69,7 +70,7 @@ def _export_onnx(policy: FrozenPolicy, out: Path, meta: str) -> None:
     """torch.export-based ONNX export (needs ``onnx`` and ``onnxscript``) with a free batch dimension."""
     missing = [name for name in ("onnx", "onnxscript") if importlib.util.find_spec(name) is None]
     if missing:
-        raise ValueError(f"ONNX export needs {' and '.join(missing)}: pip install 'spiral[onnx]'")
+        raise UsageError(f"ONNX export needs {' and '.join(missing)}: pip install 'spiral[onnx]'")
     model = policy.actor.as_onnx(verbose=False).cpu().eval()
     with _quiet_exporter():
         program = torch.onnx.export(model, model.get_dummy_inputs(), dynamo=True, opset_version=18,

@@ -18,6 +18,7 @@ from rsl_rl.models import MLPModel
 from rsl_rl.runners import OnPolicyRunner
 from tensordict import TensorDict
 
+from spiral.core.errors import UsageError
 from spiral.core.inputs import (
     UNUSED_STD,
     first_linear,
@@ -44,7 +45,7 @@ def widen_inputs(state: dict[str, torch.Tensor], model: MLPModel) -> dict[str, t
     name = first_linear_name(model)
     had, width = state[f"{name}.weight"].shape[1], first_linear(model).in_features
     if had > width:
-        raise ValueError(f"the stored model has {had} inputs, this one {width}: inputs can be added, not removed")
+        raise UsageError(f"the stored model has {had} inputs, this one {width}: inputs can be added, not removed")
     out = dict(state)
     for key in (f"{name}.weight", "obs_normalizer._mean", "obs_normalizer._var", "obs_normalizer._std"):
         if key in state:

@@ -27,6 +27,7 @@ from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
+from spiral.core.errors import UsageError
 from spiral.core.policy import OpponentPolicy
 from spiral.env.mixed import MixedRaceEnv
 from spiral.train.runner import StageTrainer
@@ -187,7 +188,7 @@ def profile_iteration(track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, stag
     """
     opponents = opponents or {}
     if stage.scenario != "solo" and (init_checkpoint is None or not opponents):
-        raise ValueError(f"stage {stage.name!r}: profiling a {stage.scenario} stage needs the checkpoint it starts "
+        raise UsageError(f"stage {stage.name!r}: profiling a {stage.scenario} stage needs the checkpoint it starts "
                          "from and its opponents")
     with tempfile.TemporaryDirectory() as tmp:
         trainer = StageTrainer(track, airframe, sim, stage, Path(tmp), device=device, seed=seed,
