@@ -8,6 +8,7 @@
 - :mod:`spiral.core.checkpoint`: the checkpoint format, frozen policies and loading them.
 - :mod:`spiral.core.inputs`: inputs a stored policy never saw vary, and silencing them.
 - :mod:`spiral.core.errors`: the error a user can fix (``UsageError``).
+- :mod:`spiral.core.seeds`: the random streams of a stage and their seeds.
 
 The package imports none of its modules, so ``spiral.config`` (and through it ``spiral.sim``) reads the scenario
 table without loading torch; import each name from its module.

@@ -12,14 +12,11 @@ from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
 from spiral.core.policy import OpponentPolicy
 from spiral.core.scenario import SCENARIO_DRONES
+from spiral.core.seeds import MIX_PART_STRIDE
 from spiral.env.race_env import RaceEnv
 from spiral.env.stats import summarize_stats
 
 __all__ = ["MixedRaceEnv", "training_env"]
-
-PART_SEED_STRIDE = 1_000
-"""Seed offset between the parts of a mixed stage (the first part keeps the stage's seed)."""
-
 
 class MixedRaceEnv:
     """Named :class:`RaceEnv` parts (race formats, all-learner mirror worlds) stepped together; their learner rows
@@ -121,7 +118,7 @@ def training_env(track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, stage: St
     parts = {
         part.name: RaceEnv(track, airframe, sim, stage.env, world_count=part.worlds,
                            drones_per_world=SCENARIO_DRONES[part.scenario], learner_slots=part.learner_slots,
-                           device=device, seed=seed + k * PART_SEED_STRIDE)
+                           device=device, seed=seed + k * MIX_PART_STRIDE)
         for k, part in enumerate(stage.world_parts())
     }
     return next(iter(parts.values())) if len(parts) == 1 else MixedRaceEnv(parts)

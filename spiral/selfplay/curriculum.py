@@ -17,6 +17,7 @@ from spiral.config.track import TrackSpec
 from spiral.core.checkpoint import CheckpointError, FrozenPolicy, list_checkpoints, load_checkpoint, load_policy
 from spiral.core.errors import UsageError
 from spiral.core.scenario import SCENARIO_DRONES
+from spiral.core.seeds import stream_seed
 from spiral.env.observations import other_drone_columns
 from spiral.selfplay.matchmaking import Matchmaker
 from spiral.selfplay.opponents import PoolOpponents
@@ -99,7 +100,7 @@ def stage_opponents(stage: StageSpec, pool: Pool | None, init_checkpoint: Path, 
         ValueError: no policy of the stage's observation layout in the pool.
     """
     init_meta = load_checkpoint(init_checkpoint)["spiral"]
-    generator = torch.Generator(device=device).manual_seed(seed + 30_000)
+    generator = torch.Generator(device=device).manual_seed(stream_seed(seed, "matchmaking"))
     members, latest, best_rating = _opponent_policies(stage, pool, init_meta, init_checkpoint, opponent_checkpoint,
                                                       device=device)
     if not members:

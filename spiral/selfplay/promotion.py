@@ -14,6 +14,7 @@ from spiral.core.checkpoint import FrozenPolicy, load_policy
 from spiral.core.outcome import race_winner
 from spiral.core.policy import Policy
 from spiral.core.scenario import SCENARIO_DRONES
+from spiral.core.seeds import stream_seed
 from spiral.env.race_env import RaceEnv
 from spiral.env.racing import run_races
 from spiral.selfplay.pool import Pool
@@ -105,12 +106,13 @@ class PromotionSelector:
         self.best: FrozenPolicy = load_policy(best_path, device=device)
         d = stage.drones_per_world
         self.env = RaceEnv(track, airframe, sim, stage.env, world_count=self.cfg.races, drones_per_world=d,
-                           learner_slots=stage.learner_slots(), device=device, seed=seed + 20_000, auto_reset=False)
+                           learner_slots=stage.learner_slots(), device=device, seed=stream_seed(seed, "promotion"),
+                           auto_reset=False)
         self.interval = self.cfg.interval
         self.format_envs = {
             fmt: RaceEnv(track, airframe, sim, stage.env, world_count=self.cfg.races,
                          drones_per_world=SCENARIO_DRONES[fmt], learner_slots=list(range(SCENARIO_DRONES[fmt])),
-                         device=device, seed=seed + 30_000 + i, auto_reset=False)
+                         device=device, seed=stream_seed(seed, "formats", i), auto_reset=False)
             for i, fmt in enumerate(sorted(stage.mix))} if self.cfg.formats else {}
 
     def __call__(self, trainer: StageTrainer, it: int) -> dict[str, float]:

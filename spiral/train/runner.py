@@ -30,6 +30,7 @@ from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
 from spiral.core.checkpoint import CheckpointError
 from spiral.core.policy import MirrorOpponent, OpponentPolicy
+from spiral.core.seeds import stream_seed
 from spiral.env.mixed import MixedRaceEnv, training_env
 from spiral.env.race_env import RaceEnv
 from spiral.env.vec_env import RaceVecEnv
@@ -99,7 +100,7 @@ class StageTrainer:
         d = stage.drones_per_world
         self.eval_env = RaceEnv(track, airframe, sim, stage.env, world_count=stage.selection.races,
                                 drones_per_world=d, learner_slots=list(range(d)), device=device,
-                                seed=seed + 10_000, auto_reset=False)
+                                seed=stream_seed(seed, "selection"), auto_reset=False)
         self.vec_env = RaceVecEnv(self.env)
         with contextlib.redirect_stdout(io.StringIO()):  # rsl-rl prints the model architecture
             self.runner = distributed.GroupRunner(self.vec_env, stage.ppo.to_rsl_rl(), log_dir=None, device=device)
