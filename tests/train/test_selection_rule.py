@@ -1,15 +1,18 @@
-"""Which evaluation a solo stage keeps as its best: success first, or the faster lap within a success tolerance."""
+"""Which evaluation a solo stage keeps as its best: success first, or the faster lap within a success tolerance;
+paired races of two policies from the same placements."""
 
 from __future__ import annotations
 
 import math
 
 import pytest
+import torch
 
 from spiral.config import AIRFRAMES, SimCfg, StageSpec
 from spiral.core.checkpoint import load_checkpoint
 from spiral.train import StageTrainer
-from spiral.train.selection import EvalScore
+from spiral.train.selection import EvalScore, paired_scores
+from tests.env.helpers import make_env, waypoint_policy
 
 # (iteration, success, lap) of a solo stage's evaluations: an early 1.00 at a slow lap, then faster laps at
 # 0.95-0.98 with two collapses (the selection evaluations of a bfloat16 draw, seed 0, from iteration 99 on)
@@ -66,3 +69,12 @@ def test_a_solo_stage_with_a_tolerance_writes_the_faster_best_pt(oval2, tmp_path
     assert meta["eval"]["iteration"] == 299
     assert meta["best"] == pytest.approx({"success": 0.969, "lap_time": 3.96, "iteration": 299,
                                           "top_success": 1.0})  # the kept score, in the meta
+
+
+def test_a_self_match_pair_scores_each_policy_on_its_own_races(oval2):
+    """The promotion's format check races two policies from the same placements: a scripted lap finishes every race
+    and a drone that dives into the ground none, in either order (the first score is not the second race's)."""
+    env = make_env(oval2, worlds=2, auto_reset=False)
+    lap, dive = waypoint_policy(env), (lambda obs: torch.tensor([[0.0, 0.0, -1.0, 0.0]]).expand(2, 4))
+    assert tuple(score.success for score in paired_scores(env, lap, dive)) == pytest.approx((1.0, 0.0))
+    assert tuple(score.success for score in paired_scores(env, dive, lap)) == pytest.approx((0.0, 1.0))

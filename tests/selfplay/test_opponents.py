@@ -1,26 +1,49 @@
-"""Self-play stages: opponents race from the first episode, promotion feeds the pool, resume keeps the pool."""
+"""Pool opponents: their settings, batched inference, mirror worlds, per-episode offsets, pace and blind opponents."""
 
 from __future__ import annotations
 
 import copy
-import json
-import shutil
 
 import pytest
 import torch
+from pydantic import ValidationError
 from tensordict import TensorDict
 
-from spiral.config import AIRFRAMES, SimCfg, StageSpec
-from spiral.core.checkpoint import CheckpointError, FrozenPolicy
-from spiral.selfplay import Matchmaker, Pool, PoolOpponents, run_stage
+from spiral.config import SelfPlayCfg, SimCfg, StageSpec
+from spiral.core.checkpoint import FrozenPolicy
+from spiral.selfplay import Matchmaker, PoolOpponents, run_stage
 from spiral.train import StageTrainer, load_policy
+from tests.selfplay.helpers import CF2X, COMMON
 
-CF2X = AIRFRAMES["cf2x"]
-COMMON = {"worlds": 8, "env": {"obs": {"history_len": 1, "gate_normals": True, "pid_integral": True}},
-          "ppo": {"num_steps_per_env": 8, "save_interval": 1, "actor_hidden_dims": [16, 16],
-                  "critic_hidden_dims": [16, 16]},
-          "selection": {"interval": 2, "races": 2}}
-PERMISSIVE = {"promotion": {"interval": 1, "races": 4, "min_races": 4, "min_win_rate": 0.0, "max_success_drop": 1.0}}
+
+def test_opponent_offsets_apply_to_both_branches_and_must_lie_in_the_action_range():
+    """Offsets apply to pool and frozen opponents alike; a negative or beyond-action offset names the field."""
+    assert SelfPlayCfg(mode="frozen", opponent_offset=0.1).opponent_offset == pytest.approx(0.1)
+    assert SelfPlayCfg().opponent_offset == pytest.approx(0.0)
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValidationError, match="opponent_offset"):
+            SelfPlayCfg(opponent_offset=bad)
+
+
+def test_opponent_blind_is_a_probability_and_off_by_default():
+    assert SelfPlayCfg().opponent_blind == pytest.approx(0.0)
+    assert SelfPlayCfg(opponent_blind=0.3).opponent_blind == pytest.approx(0.3)
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValidationError, match="opponent_blind"):
+            SelfPlayCfg(opponent_blind=bad)
+
+
+def test_opponent_pace_lies_in_zero_to_one_and_needs_relative_targets():
+    """A pace below 0 or at 1 (an opponent that stops) names the field; absolute action targets refuse a pace."""
+    assert SelfPlayCfg(opponent_pace=0.3).opponent_pace == pytest.approx(0.3)
+    assert SelfPlayCfg().opponent_pace == pytest.approx(0.0)
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ValidationError, match="opponent_pace"):
+            SelfPlayCfg(opponent_pace=bad)
+    spec = {"name": "1v1", "scenario": "1v1", "iterations": 1, "selfplay": {"opponent_pace": 0.3}}
+    assert StageSpec.model_validate(spec).selfplay.opponent_pace == pytest.approx(0.3)
+    with pytest.raises(ValidationError, match=r"selfplay\.opponent_pace"):
+        StageSpec.model_validate({**spec, "env": {"action": {"mode": "absolute"}}})
 
 
 @pytest.fixture(scope="module")
@@ -30,109 +53,6 @@ def solo_policy(line2, tmp_path_factory) -> FrozenPolicy:
     solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
     run_stage(line2, CF2X, SimCfg(), solo, root / "a", pool_dir=root / "p", init_checkpoint=None, progress=False)
     return load_policy(root / "a" / "best.pt")
-
-
-def test_short_1v1_stage_promotes_into_the_pool_and_resumes(line2, tmp_path):
-    """Promote at least once with a permissive rule, add members to the pool, and resume the stage."""
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
-    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "solo", pool_dir=tmp_path / "pool", init_checkpoint=None,
-              progress=False)
-    duel = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 2, "selfplay": PERMISSIVE,
-                                     **COMMON})
-    result = run_stage(line2, CF2X, SimCfg(), duel, tmp_path / "duel", pool_dir=tmp_path / "pool",
-                       init_checkpoint=tmp_path / "solo" / "best.pt", progress=False)
-    pool = Pool(tmp_path / "pool")
-    assert len(pool.members) == 3  # the initial policy and two promotions
-    assert pool.latest_best == pool.members[-1].id
-    assert result.best_path.exists()
-    rows = [json.loads(x) for x in (tmp_path / "duel" / "train_log.jsonl").read_text().splitlines()]
-    assert [r["h2h/promoted"] for r in rows] == pytest.approx([1.0, 1.0])  # 0/1 flags
-    longer = duel.model_copy(update={"iterations": 3})
-    run_stage(line2, CF2X, SimCfg(), longer, tmp_path / "duel", pool_dir=tmp_path / "pool",
-              init_checkpoint=tmp_path / "solo" / "best.pt", progress=False)
-    rows = [json.loads(x) for x in (tmp_path / "duel" / "train_log.jsonl").read_text().splitlines()]
-    assert [r["iteration"] for r in rows] == [0, 1, 2]
-    assert len(Pool(tmp_path / "pool").members) == 4
-
-
-def test_frozen_opponents_run_the_opponent_checkpoint_not_the_initial_policy(line2, tmp_path, monkeypatch):
-    """PPO without self-play races the stage it names (the solo best), not the policy the stage starts from."""
-    from spiral.selfplay import curriculum
-
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
-    for name, seed in (("a", 1), ("b", 2)):
-        run_stage(line2, CF2X, SimCfg(), solo, tmp_path / name, pool_dir=tmp_path / "p", init_checkpoint=None,
-                  progress=False, seed=seed)
-    seen: list[list] = []
-
-    def recording(policies, *args, **kwargs):
-        seen.append(policies)
-        return PoolOpponents(policies, *args, **kwargs)
-
-    monkeypatch.setattr(curriculum, "PoolOpponents", recording)
-    frozen = StageSpec.model_validate({"name": "nsp", "scenario": "1v1", "iterations": 1, **COMMON,
-                                       "selfplay": {**PERMISSIVE, "mode": "frozen", "opponent_from": "b"}})
-    run_stage(line2, CF2X, SimCfg(), frozen, tmp_path / "nsp", pool_dir=tmp_path / "nsp-pool",
-              init_checkpoint=tmp_path / "a" / "best.pt", opponent_checkpoint=tmp_path / "b" / "best.pt",
-              progress=False)
-    (opponent,) = seen[0]
-    a, b = (load_policy(tmp_path / name / "best.pt") for name in ("a", "b"))
-    x = torch.randn(16, b.obs_layout["obs_dim"])
-    obs = TensorDict({"policy": x, "critic": x}, batch_size=[16])
-    torch.testing.assert_close(opponent(obs), b(obs))  # the same checkpoint on the same rows
-    assert not torch.allclose(opponent(obs), a(obs))
-    assert not (tmp_path / "nsp-pool").exists()
-    other = StageSpec.model_validate({**COMMON, "name": "solo", "iterations": 1,
-                                      "env": {"obs": {**COMMON["env"]["obs"], "history_len": 2}}})
-    run_stage(line2, CF2X, SimCfg(), other, tmp_path / "c", pool_dir=tmp_path / "p", init_checkpoint=None,
-              progress=False)
-    with pytest.raises(CheckpointError, match=r"c/best\.pt: observation layout"):
-        run_stage(line2, CF2X, SimCfg(), frozen, tmp_path / "nsp2", pool_dir=tmp_path / "nsp-pool",
-                  init_checkpoint=tmp_path / "a" / "best.pt", opponent_checkpoint=tmp_path / "c" / "best.pt",
-                  progress=False)
-    pooled = frozen.model_copy(update={"selfplay": frozen.selfplay.model_copy(update={"mode": "pool",
-                                                                                      "opponent_from": None})})
-    with pytest.raises(ValueError, match="opponent checkpoint"):
-        run_stage(line2, CF2X, SimCfg(), pooled, tmp_path / "pooled", pool_dir=tmp_path / "p",
-                  init_checkpoint=tmp_path / "a" / "best.pt", opponent_checkpoint=tmp_path / "b" / "best.pt",
-                  progress=False)
-
-
-def test_init_snapshots_start_a_new_pool_with_the_init_stages_earlier_checkpoints(line2, tmp_path):
-    """``selfplay.init_snapshots``: the periodic checkpoints saved before the initial policy's iteration join a new
-    pool oldest first, then the initial policy as its latest best; a carried-over pool is left as it is, and an init
-    policy without earlier checkpoints beside it is an error naming the folder."""
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 4, **COMMON})
-    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "solo", pool_dir=tmp_path / "unused", init_checkpoint=None,
-              progress=False)
-    init = tmp_path / "solo" / "best.pt"
-    best_iteration = json.loads(init.with_suffix(".json").read_text())["iteration"]
-    assert best_iteration >= 1  # the stage saved a checkpoint at every iteration (save_interval 1)
-    duel = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 1, **COMMON,
-                                     "selfplay": {"p_self": 0.5, "init_snapshots": True}})
-    run_stage(line2, CF2X, SimCfg(), duel, tmp_path / "duel", pool_dir=tmp_path / "pool", init_checkpoint=init,
-              progress=False)
-    pool = Pool(tmp_path / "pool")
-    first = pool.members[:best_iteration + 1]
-    assert [(m.stage, m.iteration) for m in first] == [("solo", i) for i in range(best_iteration)] + [("init", 0)]
-    assert pool.latest_best == pool.members[-1].id and {m.stage for m in pool.members[best_iteration + 1:]} <= {"1v1"}
-    for m in first[:-1]:  # byte copies of the stage's own checkpoints
-        assert m.sha256 == json.loads((tmp_path / "solo" / "ckpt" / f"model_{m.iteration}.json").read_text())["sha256"]
-    size = len(pool.members)
-    run_stage(line2, CF2X, SimCfg(), duel.model_copy(update={"name": "again"}), tmp_path / "again",
-              pool_dir=tmp_path / "pool", init_checkpoint=init, progress=False)
-    assert [m.stage for m in Pool(tmp_path / "pool").members[:size]] == [m.stage for m in pool.members]
-    assert {m.stage for m in Pool(tmp_path / "pool").members[size:]} <= {"again"}  # promotions only, no snapshots
-    (tmp_path / "bare").mkdir()
-    for suffix in (".pt", ".json"):
-        shutil.copyfile(init.with_suffix(suffix), tmp_path / "bare" / f"best{suffix}")
-    missing = r"init_snapshots: no periodic checkpoint before iteration \d+ of .*bare/best\.pt in .*bare/ckpt"
-    with pytest.raises(ValueError, match=missing):
-        run_stage(line2, CF2X, SimCfg(), duel, tmp_path / "duel2", pool_dir=tmp_path / "pool2",
-                  init_checkpoint=tmp_path / "bare" / "best.pt", progress=False)
-    with pytest.raises(ValueError, match="init_snapshots"):
-        StageSpec.model_validate({"name": "nsp", "scenario": "1v1",
-                                  "selfplay": {"mode": "frozen", "init_snapshots": True}})
 
 
 def test_batched_opponents_match_one_by_one_inference(line2, tmp_path):
@@ -317,49 +237,3 @@ def test_blind_opponents_read_rows_without_the_unseen_entries_for_their_episode(
     opponents.reset(torch.arange(worlds) < worlds // 2)
     assert torch.equal(opponents.blind_world[worlds // 2:], drawn[worlds // 2:])  # exact: booleans
     assert not torch.equal(opponents.blind_world[: worlds // 2], drawn[: worlds // 2])  # exact: booleans
-
-
-def test_a_stage_with_blind_opponents_hides_what_its_layout_shows_of_other_drones(line2, tmp_path, monkeypatch):
-    """`selfplay.opponent_blind` reaches every format's opponents with the stage layout's other-drone columns."""
-    from spiral.env.observations import other_drone_columns
-    from spiral.selfplay import curriculum
-
-    built: list[PoolOpponents] = []
-
-    def recording(*args, **kwargs):
-        built.append(PoolOpponents(*args, **kwargs))
-        return built[-1]
-
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
-    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "solo", pool_dir=tmp_path / "pool", init_checkpoint=None,
-              progress=False)
-    monkeypatch.setattr(curriculum, "PoolOpponents", recording)
-    duel = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 1, "mix": {"2v2": 0.5},
-                                     "selfplay": {**PERMISSIVE, "opponent_blind": 0.4}, **COMMON})
-    run_stage(line2, CF2X, SimCfg(), duel, tmp_path / "duel", pool_dir=tmp_path / "pool",
-              init_checkpoint=tmp_path / "solo" / "best.pt", progress=False)
-    hidden = other_drone_columns(duel.env.obs)
-    assert len(built) == 2 and {o.per_world for o in built} == {1, 2}
-    assert all(o.blind == pytest.approx(0.4) for o in built)
-    assert all(torch.equal(o.unseen, hidden) for o in built)  # exact: boolean masks
-
-
-def test_promotion_with_formats_races_the_learner_and_the_best_in_each_other_format_of_the_mix(line2, tmp_path):
-    """With `promotion.formats` a 1v1 stage mixing in solo worlds logs, at each promotion check, the solo success of
-    learner and best (four one-drone races each: a multiple of 1/4), and nothing of it without the option."""
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
-    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "solo", pool_dir=tmp_path / "pool", init_checkpoint=None,
-              progress=False)
-    logged = {}
-    for formats in (True, False):
-        duel = StageSpec.model_validate({
-            "name": "1v1", "scenario": "1v1", "iterations": 1, "mix": {"solo": 0.25},
-            "selfplay": {"promotion": {**PERMISSIVE["promotion"], "formats": formats}}, **COMMON})
-        run_dir = tmp_path / f"duel-{formats}"
-        run_stage(line2, CF2X, SimCfg(), duel, run_dir, pool_dir=tmp_path / f"pool-{formats}",
-                  init_checkpoint=tmp_path / "solo" / "best.pt", progress=False)
-        row = json.loads((run_dir / "train_log.jsonl").read_text().splitlines()[-1])
-        logged[formats] = {k: v for k, v in row.items() if k.startswith("formats/")}
-    assert set(logged[True]) == {"formats/solo_success", "formats/solo_best_success"}
-    assert all(v in (0.0, 0.25, 0.5, 0.75, 1.0) for v in logged[True].values())
-    assert logged[False] == {}
