@@ -73,7 +73,7 @@ class RaceState:
         self.pos, self.vel, self.quat, self.omega = t(s.pos), t(s.vel), t(s.quat), t(s.omega)
         self.rpy, self.integral, self.cmd = t(self.world.rpy), t(self.world.integral), t(self.world.cmd)
         self.next_gate, self.gates_passed, self.step_passes = t(r.next_gate), t(r.gates_passed), t(r.step_passes)
-        self.pass_time, self.step_collision, self.out = t(r.pass_time), t(r.step_collision), t(r.crashed)
+        self.pass_time, self.step_collision, self.out = t(r.pass_time), t(r.step_collision), t(r.out)
         self.crash_time = t(r.crash_time)
         self.world_substeps, self.world_nonfinite = t(r.world_substeps), t(r.world_nonfinite)
         self.gate_center = torch.tensor(self.track.gate_centers(), dtype=torch.float32, device=self.device)

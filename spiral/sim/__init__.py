@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from spiral.sim.state import COLLISION_KINDS, QuadParams, QuadState, RaceState, TrackArrays
+from spiral.sim.state import COLLISION_KINDS, QuadParams, QuadState, RaceCounters, TrackArrays
 from spiral.sim.world import World
 
-__all__ = ["COLLISION_KINDS", "QuadParams", "QuadState", "RaceState", "TrackArrays", "World"]
+__all__ = ["COLLISION_KINDS", "QuadParams", "QuadState", "RaceCounters", "TrackArrays", "World"]

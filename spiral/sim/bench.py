@@ -2,7 +2,7 @@
 
 Each row runs ``pid`` mode at 240 Hz physics and 48 Hz control (5 substeps) with gates and collisions on. Drones
 start at random points of the arena and chase random targets that are re-drawn every few control steps, so they
-keep moving. ``freeze_crashed`` is off and the crash flags are cleared before every control step: a crashed drone
+keep moving. ``freeze_crashed`` is off and the out-of-race flags are cleared before every control step: a crashed drone
 skips the gate and contact tests, and a benchmark in which drones drop out would flatter the figure.
 """
 
@@ -92,7 +92,7 @@ def _time_warp(world: World, targets: list[wp.array], steps: int, first: int) ->
     for i in range(first, first + steps):
         if i % TARGET_REDRAW_STEPS == 0:
             wp.copy(world.cmd, targets[(i // TARGET_REDRAW_STEPS) % len(targets)])
-        world.race.crashed.zero_()
+        world.race.out.zero_()
         world.step()
     wp.synchronize_device(device)
     return time.perf_counter() - start, time.process_time() - cpu
@@ -105,7 +105,7 @@ def _time_numpy(ref: ReferenceSim, targets: np.ndarray, steps: int, first: int) 
     for i in range(first, first + steps):
         if i % TARGET_REDRAW_STEPS == 0:
             cmd = targets[(i // TARGET_REDRAW_STEPS) % len(targets)]
-        ref.crashed[:] = 0
+        ref.out[:] = 0
         ref.step(cmd)
     return time.perf_counter() - start, time.process_time() - cpu
 
@@ -271,7 +271,7 @@ def _restorer(world: World) -> Callable[[], None]:
     def restore() -> None:
         for a, saved in zip(mutable, snapshot, strict=True):
             wp.copy(a, saved)
-        world.race.crashed.zero_()
+        world.race.out.zero_()
 
     return restore
 
@@ -320,7 +320,7 @@ def kernel_profile(world_count: int, drones: int, *, device: str = "cpu", launch
                      "cpu_ns_per_drone": 1e9 * cpu / n, "cpu_ms_per_step": 1e3 * cpu * len(cmds),
                      "wall_ms_per_launch": 1e3 * wall, "wall_ns_per_drone": 1e9 * wall / n,
                      "wall_ms_per_step": 1e3 * wall * len(cmds)})
-    wall, cpu = best_of(lambda: (world.race.crashed.zero_(), world.step()), launches)
+    wall, cpu = best_of(lambda: (world.race.out.zero_(), world.step()), launches)
     return {
         "worlds": world_count,
         "drones": drones,

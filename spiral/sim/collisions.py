@@ -60,7 +60,7 @@ def sphere_gate_overlap(p: wp.vec3, radius: wp.float32, g: wp.int32, track: Trac
 def collision_bits(
     tid: wp.int32,
     pos: wp.array[wp.vec3],
-    crashed: wp.array[wp.int32],
+    out: wp.array[wp.int32],
     track: TrackArrays,
     params: QuadParams,
     drones_per_world: wp.int32,
@@ -80,7 +80,7 @@ def collision_bits(
             bits = bits | COLLISION_GATE
     first = (tid / drones_per_world) * drones_per_world
     for j in range(first, first + drones_per_world):
-        if j != tid and crashed[j] == 0 and wp.length_sq(pos[j] - p) < 4.0 * r * r:
+        if j != tid and out[j] == 0 and wp.length_sq(pos[j] - p) < 4.0 * r * r:
             bits = bits | COLLISION_DRONE
     return bits
 
@@ -89,7 +89,7 @@ def collision_bits(
 def detect_collisions_and_gate_passes(
     prev_pos: wp.array[wp.vec3],
     pos: wp.array[wp.vec3],
-    crashed: wp.array[wp.int32],
+    out: wp.array[wp.int32],
     track: TrackArrays,
     params: QuadParams,
     world_substeps: wp.array[wp.int32],
@@ -103,7 +103,7 @@ def detect_collisions_and_gate_passes(
     pass_time: wp.array[wp.float32],
 ):
     """Write this substep's collision bits of each flying drone and advance its next gate when it passed it;
-    crashed drones are out of the race (bits 0, no passes).
+    drones out of the race (crashed, finished or absent) get bits 0 and no passes.
 
     Two concerns in one launch, as one launch per substep is cheaper: both read the substep's positions and the
     crash flags and neither writes what the other reads (the gate test touches only its own drone's race counters,
@@ -112,8 +112,8 @@ def detect_collisions_and_gate_passes(
     """
     tid = wp.tid()
     bits = wp.int32(0)
-    if crashed[tid] == 0:
-        bits = collision_bits(tid, pos, crashed, track, params, drones_per_world)
+    if out[tid] == 0:
+        bits = collision_bits(tid, pos, out, track, params, drones_per_world)
         pass_next_gate(tid, prev_pos, pos, track, world_substeps, drones_per_world, substep, dt, next_gate,
                        gates_passed, step_passes, pass_time)
     contact[tid] = bits
@@ -127,7 +127,7 @@ def apply_contacts(
     substep: wp.int32,
     dt: wp.float32,
     step_collision: wp.array[wp.int32],
-    crashed: wp.array[wp.int32],
+    out: wp.array[wp.int32],
     crash_time: wp.array[wp.float32],
 ):
     """Record the substep's contacts: any collision crashes the drone (after every drone's contacts are known)."""
@@ -135,6 +135,6 @@ def apply_contacts(
     bits = contact[tid]
     if bits != 0:
         step_collision[tid] = step_collision[tid] | bits
-        if crashed[tid] == 0:
-            crashed[tid] = 1
+        if out[tid] == 0:
+            out[tid] = 1
             crash_time[tid] = wp.float32(world_substeps[tid / drones_per_world] + substep + 1) * dt

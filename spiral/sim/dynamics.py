@@ -70,7 +70,7 @@ def control_and_integrate(
     cmd: wp.array[wp.vec4],
     heading: wp.array[wp.vec2],
     integral: wp.array[wp.vec3],
-    crashed: wp.array[wp.int32],
+    out: wp.array[wp.int32],
     ext_force: wp.array[wp.vec3],
     params: QuadParams,
     control_mode: wp.int32,
@@ -93,7 +93,7 @@ def control_and_integrate(
     tid = wp.tid()
     p0 = pos[tid]
     prev_pos[tid] = p0
-    if crashed[tid] != 0 and params.freeze_crashed != 0:
+    if out[tid] != 0 and params.freeze_crashed != 0:
         vel[tid] = wp.vec3(0.0)
         omega[tid] = wp.vec3(0.0)
         return
@@ -136,7 +136,7 @@ def control_and_integrate(
 @wp.kernel
 def drone_downwash(
     pos: wp.array[wp.vec3],
-    crashed: wp.array[wp.int32],
+    out: wp.array[wp.int32],
     params: QuadParams,
     drones_per_world: wp.int32,
     ext_force: wp.array[wp.vec3],
@@ -146,6 +146,6 @@ def drone_downwash(
     first = (tid / drones_per_world) * drones_per_world
     force = wp.vec3(0.0)
     for j in range(first, first + drones_per_world):
-        if j != tid and crashed[j] == 0:
+        if j != tid and out[j] == 0:
             force = force - wp.vec3(0.0, 0.0, downwash_force(pos[tid], pos[j], params))
     ext_force[tid] = force

@@ -160,12 +160,13 @@ def _gate_hits(pos: np.ndarray, gates: GateArrays, radius: float) -> np.ndarray:
     return hit
 
 
-def contact_bits(pos: np.ndarray, crashed: np.ndarray, gates: GateArrays, radius: float,
+def contact_bits(pos: np.ndarray, out: np.ndarray, gates: GateArrays, radius: float,
                  drones_per_world: int) -> np.ndarray:
-    """Collision bits ``(n,)`` of each flying drone's sphere (``collisions.collision_bits``); 0 for crashed."""
+    """Collision bits ``(n,)`` of each racing drone's sphere (``collisions.collision_bits``); 0 for drones out of the
+    race."""
     bits = np.where(pos[:, 2] < radius, COLLISION_KINDS["ground"], 0)
-    out = (pos < gates.bounds_min).any(axis=1) | (pos > gates.bounds_max).any(axis=1)
-    bits |= np.where(out, COLLISION_KINDS["bounds"], 0)
+    outside = (pos < gates.bounds_min).any(axis=1) | (pos > gates.bounds_max).any(axis=1)
+    bits |= np.where(outside, COLLISION_KINDS["bounds"], 0)
     hit_gate = _gate_hits(pos, gates, radius)
     bits |= np.where(hit_gate, COLLISION_KINDS["gate"], 0)
     if drones_per_world > 1:
@@ -173,9 +174,9 @@ def contact_bits(pos: np.ndarray, crashed: np.ndarray, gates: GateArrays, radius
         d = p[:, :, None, :] - p[:, None, :, :]
         close = d[..., 0] ** 2 + d[..., 1] ** 2 + d[..., 2] ** 2 < 4.0 * radius * radius
         close &= ~np.eye(drones_per_world, dtype=bool)[None]
-        close &= (crashed.reshape(-1, drones_per_world) == 0)[:, None, :]
+        close &= (out.reshape(-1, drones_per_world) == 0)[:, None, :]
         bits |= np.where(close.any(axis=2).reshape(-1), COLLISION_KINDS["drone"], 0)
-    return np.where(crashed == 0, bits, 0).astype(np.int32)
+    return np.where(out == 0, bits, 0).astype(np.int32)
 
 
 class ReferenceSim:
@@ -220,7 +221,7 @@ class ReferenceSim:
         self.prev_pos = np.zeros((n, 3), dtype)
         self.next_gate, self.gates_passed = np.zeros(n, np.int32), np.zeros(n, np.int32)
         self.step_passes, self.pass_time = np.zeros(n, np.int32), np.zeros(n, dtype)
-        self.step_collision, self.crashed = np.zeros(n, np.int32), np.zeros(n, np.int32)
+        self.step_collision, self.out = np.zeros(n, np.int32), np.zeros(n, np.int32)
         self.crash_time = np.zeros(n, dtype)
         self.world_substeps = np.zeros(self.world_count, np.int32)
         self.world_nonfinite = np.zeros(self.world_count, np.int32)
@@ -239,7 +240,7 @@ class ReferenceSim:
         self.quat[d] = np.stack([np.zeros(n), np.zeros(n), np.sin(half), np.cos(half)], axis=1).astype(self.dtype)[d]
         self.omega[d], self.rpm[d], self.integral[d] = 0.0, self.hover_rpm, 0.0
         self.next_gate[d] = 0 if next_gate is None else np.asarray(next_gate)[d]
-        self.gates_passed[d], self.crashed[d] = 0, 0
+        self.gates_passed[d], self.out[d] = 0, 0
         self.world_substeps[mask], self.world_nonfinite[mask] = 0, 0
 
     @property
@@ -257,7 +258,7 @@ class ReferenceSim:
                 ext_force = self._downwash() if self.sim.downwash else None
                 self._control_and_integrate(cmd, ext_force)
                 if self.gates is not None:
-                    contact = contact_bits(self.pos, self.crashed, self.gates, self.radius, self.drones_per_world)
+                    contact = contact_bits(self.pos, self.out, self.gates, self.radius, self.drones_per_world)
                     self._gate_crossing(k)
                     self._apply_contacts(contact, k)
         self.world_substeps += self.sim.substeps
@@ -297,7 +298,7 @@ class ReferenceSim:
         """Controller and semi-implicit Euler step in place (``dynamics.control_and_integrate``)."""
         dt, m = self.dt, self.mass
         self.prev_pos[:] = self.pos
-        frozen = (self.crashed != 0) & self.sim.freeze_crashed
+        frozen = (self.out != 0) & self.sim.freeze_crashed
         live = ~frozen
         rot = quat_to_matrix(self.quat)
         if self.sim.control_mode == "pid":
@@ -341,7 +342,7 @@ class ReferenceSim:
         alpha = 2267.18 * (self.prop_radius / (4.0 * dz_c)) ** 2
         beta = 0.16 * dz_c - 0.11
         force = alpha * np.exp(-0.5 * (dxy / beta) ** 2)
-        other = ~np.eye(d, dtype=bool)[None] & (self.crashed.reshape(-1, d) == 0)[:, None, :] & (dz > 0.0)
+        other = ~np.eye(d, dtype=bool)[None] & (self.out.reshape(-1, d) == 0)[:, None, :] & (dz > 0.0)
         ext = np.zeros_like(self.pos)
         ext[:, 2] = -np.where(other, force, 0.0).sum(axis=2).reshape(-1)
         return ext
@@ -349,7 +350,7 @@ class ReferenceSim:
     def _gate_crossing(self, substep: int) -> None:
         """Advance the next gate of each flying drone that passed it (``gates.pass_next_gate``)."""
         t = segment_gate_crossing(self.prev_pos, self.pos, self.next_gate, self.gates)
-        passed = (t >= 0.0) & (self.crashed == 0)
+        passed = (t >= 0.0) & (self.out == 0)
         self.next_gate[passed] = (self.next_gate[passed] + 1) % len(self.gates.half)
         self.gates_passed[passed] += 1
         self.step_passes[passed] += 1
@@ -359,7 +360,7 @@ class ReferenceSim:
     def _apply_contacts(self, contact: np.ndarray, substep: int) -> None:
         """Record the substep's contacts and crash the drones that had any (``collisions.apply_contacts``)."""
         self.step_collision |= contact
-        new = (contact != 0) & (self.crashed == 0)
-        self.crashed[new] = 1
+        new = (contact != 0) & (self.out == 0)
+        self.out[new] = 1
         ticks = (np.repeat(self.world_substeps, self.drones_per_world) + substep + 1).astype(self.dtype)
         self.crash_time[new] = (ticks * self.dt)[new]

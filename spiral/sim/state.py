@@ -19,7 +19,7 @@ __all__ = [
     "COLLISION_KINDS",
     "QuadParams",
     "QuadState",
-    "RaceState",
+    "RaceCounters",
     "TrackArrays",
     "make_quad_params",
     "make_track_arrays",
@@ -130,7 +130,7 @@ class QuadState:
         """Position before the last substep, for swept gate tests [m]."""
 
 
-class RaceState:
+class RaceCounters:
     """Per-drone race bookkeeping and per-world clocks and health flags."""
 
     def __init__(self, world_count: int, drone_count: int, device: str) -> None:
@@ -147,8 +147,10 @@ class RaceState:
         """Collision bits found in the current substep."""
         self.step_collision = zeros_i(drone_count)
         """Collision bits found during the last control step."""
-        self.crashed = zeros_i(drone_count)
-        """1 once a drone has collided since its reset."""
+        self.out = zeros_i(drone_count)
+        """1 once a drone is out of the race since its reset: the simulator sets it at a collision, the race env also
+        for a drone that finished or whose slot is absent. Out drones are no obstacle, make no gate passes and, with
+        ``freeze_crashed``, hold still."""
         self.crash_time = wp.zeros(drone_count, dtype=wp.float32, device=device)
         """Time of the first collision [s]."""
         self.world_substeps = zeros_i(world_count)

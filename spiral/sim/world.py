@@ -18,7 +18,7 @@ from spiral.sim.options import MODULE_OPTIONS
 from spiral.sim.pid import command_heading
 from spiral.sim.rotations import quat_to_rpy, yaw_quat
 from spiral.sim.runtime import init_warp
-from spiral.sim.state import QuadParams, QuadState, RaceState, make_quad_params, make_track_arrays
+from spiral.sim.state import QuadParams, QuadState, RaceCounters, make_quad_params, make_track_arrays
 
 __all__ = ["World"]
 
@@ -45,7 +45,7 @@ def reset_drones(
     integral: wp.array[wp.vec3],
     next_gate: wp.array[wp.int32],
     gates_passed: wp.array[wp.int32],
-    crashed: wp.array[wp.int32],
+    out: wp.array[wp.int32],
     world_substeps: wp.array[wp.int32],
     world_nonfinite: wp.array[wp.int32],
 ):
@@ -63,7 +63,7 @@ def reset_drones(
     integral[tid] = wp.vec3(0.0)
     next_gate[tid] = init_next_gate[tid]
     gates_passed[tid] = 0
-    crashed[tid] = 0
+    out[tid] = 0
     if tid % drones_per_world == 0:
         world_substeps[w] = 0
         world_nonfinite[w] = 0
@@ -113,7 +113,7 @@ class World:
         self.params = make_quad_params(airframe, sim)
         self.track = make_track_arrays(track, self.device)
         self.state = QuadState(self.drone_count, self.device)
-        self.race = RaceState(world_count, self.drone_count, self.device)
+        self.race = RaceCounters(world_count, self.drone_count, self.device)
         n = self.drone_count
         self.cmd = wp.zeros(n, dtype=wp.vec4, device=self.device)
         """Command of the next control step (pid: x, y, z [m], yaw [rad]; rpm: four motor speeds)."""
@@ -212,16 +212,16 @@ class World:
             launch(command_heading, n, [v.cmd], [v.heading])
         for k in range(self.sim.substeps):
             if self.sim.downwash:
-                launch(drone_downwash, n, [s.pos, r.crashed, self.params, d], [v.ext_force])
+                launch(drone_downwash, n, [s.pos, r.out, self.params, d], [v.ext_force])
             launch(control_and_integrate, n,
-                   [s.pos, s.vel, s.quat, s.omega, s.rpm, v.cmd, v.heading, v.integral, r.crashed,
+                   [s.pos, s.vel, s.quat, s.omega, s.rpm, v.cmd, v.heading, v.integral, r.out,
                     v.ext_force, self.params, mode, d, dt],
                    [s.prev_pos, r.world_nonfinite])
             launch(detect_collisions_and_gate_passes, n,
-                   [s.prev_pos, s.pos, r.crashed, self.track, self.params, r.world_substeps, d, k, dt],
+                   [s.prev_pos, s.pos, r.out, self.track, self.params, r.world_substeps, d, k, dt],
                    [r.contact, r.next_gate, r.gates_passed, r.step_passes, r.pass_time])
             launch(apply_contacts, n, [r.contact, r.world_substeps, d, k, dt],
-                   [r.step_collision, r.crashed, r.crash_time])
+                   [r.step_collision, r.out, r.crash_time])
         launch(advance_clocks, v.world_count, [self.sim.substeps], [r.world_substeps])
         launch(euler_angles, n, [s.quat], [v.rpy])
         return launches
@@ -243,7 +243,7 @@ class World:
         wp.launch(reset_drones, self.drone_count,
                   inputs=[world_mask, init_pos, zeros_v, init_yaw, gates, self.params, self.drones_per_world],
                   outputs=[s.pos, s.vel, s.quat, s.omega, s.rpm, s.prev_pos, self.integral, r.next_gate,
-                           r.gates_passed, r.crashed, r.world_substeps, r.world_nonfinite],
+                           r.gates_passed, r.out, r.world_substeps, r.world_nonfinite],
                   device=self.device)
         wp.launch(euler_angles, self.drone_count, inputs=[s.quat], outputs=[self.rpy], device=self.device)
 

@@ -110,7 +110,7 @@ def test_kernel_profile_restores_the_state_it_times_from_bit_for_bit(make_world)
     world.cmd.assign(np.tile(np.array([[0.0, 0.0, -5.0, 1.0]], np.float32), (4, 1)))  # into the ground
     for _ in range(40):
         world.step()
-    assert world.race.crashed.numpy().any() and not np.array_equal(world.state.pos.numpy(), before["pos"])
+    assert world.race.out.numpy().any() and not np.array_equal(world.state.pos.numpy(), before["pos"])
     restore()
     for name, arr in (*vars(world.state).items(), *vars(world.race).items(), ("integral", world.integral)):
         if isinstance(arr, wp.array):

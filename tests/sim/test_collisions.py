@@ -26,7 +26,7 @@ def test_ground_and_bounds_contacts(make_world, cf2x):
     positions = [[0, 1.5, R - 0.01], [0, 1.5, R + 0.01], [4.01, 1.5, 1], [-1, -4.01, 1], [-1, 1.5, 4.01], [1, 1.5, 3.9]]
     world = one_substep(make_world, cf2x, positions)
     assert world.race.step_collision.numpy().tolist() == [GROUND, 0, BOUNDS, BOUNDS, BOUNDS, 0]
-    assert world.race.crashed.numpy().tolist() == [1, 0, 1, 1, 1, 0]
+    assert world.race.out.numpy().tolist() == [1, 0, 1, 1, 1, 0]
     np.testing.assert_allclose(world.race.crash_time.numpy()[[0, 2, 3, 4]], DT, rtol=1e-6)
 
 
@@ -94,7 +94,7 @@ def test_crashed_drones_freeze_only_when_configured(make_world, cf2x, freeze):
     world.state.vel.assign(np.float32([[1.0, 0.0, -1.0], [1.0, 0.0, 0.0]]))
     world.cmd.fill_(cf2x.hover_rpm)
     world.step()
-    assert world.race.crashed.numpy().tolist() == [1, 0]
+    assert world.race.out.numpy().tolist() == [1, 0]
     crash_pos = world.state.pos.numpy()[0].copy()
     assert world.race.crash_time.numpy()[0] == pytest.approx(3 * DT, rel=1e-6)  # z = 0.07 − k/240 < R at k = 3
     world.step()

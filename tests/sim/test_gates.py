@@ -85,7 +85,7 @@ def test_world_reports_forward_pass_with_interpolated_time(make_world, cf2x_no_d
     assert r.next_gate.numpy()[0] == 1
     assert r.pass_time.numpy()[0] == pytest.approx(0.01, abs=1e-6)
     assert r.step_collision.numpy()[0] == 0
-    assert r.crashed.numpy()[0] == 0
+    assert r.out.numpy()[0] == 0
 
 
 def test_world_ignores_backward_beside_and_bar_paths(make_world, cf2x_no_drag):
@@ -98,7 +98,7 @@ def test_world_ignores_backward_beside_and_bar_paths(make_world, cf2x_no_drag):
     assert [w.race.next_gate.numpy()[0] for w in worlds] == [0, 0, 0]
     assert [w.race.step_collision.numpy()[0] for w in worlds] == [0, 0, gate]
     bar_world = worlds[2]
-    assert bar_world.race.crashed.numpy()[0] == 1
+    assert bar_world.race.out.numpy()[0] == 1
     # x = −0.14 + 0.05·k; the sphere (r = 0.06) touches the bar (faces at x = ±0.025) once x > −0.085: k = 2
     assert bar_world.race.crash_time.numpy()[0] == pytest.approx(2 * DT, abs=1e-6)
 
@@ -122,7 +122,7 @@ def test_crashed_drone_passes_no_gate(make_world, cf2x_no_drag):
     world = make_world(airframe=cf2x_no_drag, control_mode="rpm", freeze_crashed=False)
     world.reset_all(np.array([[-0.12, 0.0, 1.5]]))
     world.state.vel.assign(np.float32([[12.0, 0.0, 0.0]]))
-    world.race.crashed.fill_(1)
+    world.race.out.fill_(1)
     world.cmd.fill_(cf2x_no_drag.hover_rpm)
     world.step()
     assert world.state.pos.numpy()[0, 0] > 0.1  # it did fly through

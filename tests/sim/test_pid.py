@@ -16,7 +16,7 @@ def step_response(make_world, run, target: tuple[float, float, float, float], se
     world = make_world()
     world.reset_all(START[None])
     out = run(world, np.tile(np.asarray(target, np.float32), (round(seconds * 48), 1, 1)))
-    assert world.race.crashed.numpy()[0] == 0
+    assert world.race.out.numpy()[0] == 0
     return out
 
 

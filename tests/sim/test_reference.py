@@ -66,10 +66,10 @@ def test_warp_matches_reference_over_2s_of_random_targets(make_world, circuit6, 
     cmds = targets(rng, 96, 16, lo=(-2.5, -3.0, 0.8), hi=(3.5, 2.0, 2.5))
     worst = compare(world, ref, cmds)
     assert max(worst.values()) < 1.0, worst
-    assert np.array_equal(world.race.crashed.numpy(), ref.crashed)  # exact: integer events
+    assert np.array_equal(world.race.out.numpy(), ref.out)  # exact: integer events
     assert np.array_equal(world.race.gates_passed.numpy(), ref.gates_passed)  # exact: integer events
     assert np.array_equal(world.race.next_gate.numpy(), ref.next_gate)  # exact: integer events
-    crashed = ref.crashed == 1
+    crashed = ref.out == 1
     assert crashed.any()  # gates and contacts were exercised
     np.testing.assert_allclose(world.race.crash_time.numpy()[crashed], ref.crash_time[crashed], atol=1e-6)
     np.testing.assert_allclose(world.rpy.numpy(), ref.rpy, atol=1e-4)

@@ -10,7 +10,7 @@ from pydantic import ValidationError
 from spiral.config import SimCfg
 
 STATE = ("pos", "vel", "quat", "omega", "rpm")
-RACE = ("next_gate", "gates_passed", "crashed", "crash_time", "pass_time", "step_collision", "world_substeps")
+RACE = ("next_gate", "gates_passed", "out", "crash_time", "pass_time", "step_collision", "world_substeps")
 
 
 def snapshot(world) -> dict[str, np.ndarray]:
@@ -65,7 +65,7 @@ def test_same_seed_gives_bit_identical_runs(make_world, run, targets):
         results.append(snapshot(world))
     for k in results[0]:
         np.testing.assert_array_equal(results[0][k], results[1][k], err_msg=k)
-    assert results[0]["crashed"].any() or results[0]["gates_passed"].any()  # the run had events to reproduce
+    assert results[0]["out"].any() or results[0]["gates_passed"].any()  # the run had events to reproduce
 
 
 @pytest.mark.bitwise
@@ -83,7 +83,7 @@ def test_reset_of_a_subset_leaves_other_worlds_untouched(make_world, run, target
                 wp.array(new_yaw.astype(np.float32), dtype=wp.float32))
     after = snapshot(world)
     keep = np.array([0, 1, 4, 5])
-    for k in (*STATE, "integral", "next_gate", "gates_passed", "crashed"):
+    for k in (*STATE, "integral", "next_gate", "gates_passed", "out"):
         np.testing.assert_array_equal(after[k][keep], before[k][keep], err_msg=k)
     assert after["world_substeps"].tolist() == [100, 0, 100]
     np.testing.assert_allclose(after["pos"][2:4], new_pos[2:4].astype(np.float32))
@@ -157,7 +157,7 @@ def test_replayed_launches_give_exactly_the_plain_launch_path(make_world, target
             wp.copy(world.cmd, wp.array(cmd, dtype=wp.vec4, device=world.device))
             world.step()
         out[replay] = snapshot(world)
-    assert out[True]["crashed"].any() and (out[True]["crashed"] == 0).any() and out[True]["gates_passed"][0] == 1
+    assert out[True]["out"].any() and (out[True]["out"] == 0).any() and out[True]["gates_passed"][0] == 1
     for key, value in out[False].items():
         np.testing.assert_array_equal(out[True][key], value, err_msg=key)
 
@@ -188,7 +188,7 @@ def test_worlds_stepped_in_threads_give_exactly_the_one_thread_state(make_world,
             world.step()
         out[count] = snapshot(world) | {"rpy": world.rpy.numpy().copy(),
                                          "nonfinite": world.race.world_nonfinite.numpy().copy()}
-    assert out[1]["crashed"].any() and (out[1]["crashed"] == 0).any() and out[1]["gates_passed"][0] == 1
+    assert out[1]["out"].any() and (out[1]["out"] == 0).any() and out[1]["gates_passed"][0] == 1
     assert out[1]["nonfinite"].tolist() == [0] * (world_count - 1) + [1]
     for key, value in out[1].items():
         np.testing.assert_array_equal(out[threads][key], value, err_msg=key)
