@@ -28,7 +28,7 @@ LINE2 = TrackSpec.model_validate({
 def max_tracking_error(**cfg: float) -> float:
     """Largest distance [m] between the drone and the reference while flying the straight plan."""
     env = RaceEnv(LINE2, AIRFRAMES["cf2x"], SimCfg(), EnvCfg(), world_count=1, drones_per_world=1, seed=0,
-                  auto_reset=False)
+                  training=False)
     env.reset()
     planner = SEIBRPlanner(env, **cfg)
     p0 = np.array([-2.0, 0.0, 1.0])

@@ -57,7 +57,7 @@ def main() -> None:
     # Race the best policy: 16 seeded races from the start box, no resets.
     policy = load_policy(result.best_path, device=args.device)
     env = RaceEnv(TRACK, airframe, sim, stage.env, world_count=16, drones_per_world=1, device=args.device, seed=1,
-                  auto_reset=False)
+                  training=False)
     races = run_races(env, policy)
     print(f"success {races.finished.float().mean():.2f}, gates passed per race "
           f"{races.gates_passed.float().mean():.2f}, crashes {races.crashed.float().mean():.2f}")

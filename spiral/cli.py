@@ -38,7 +38,7 @@ DeviceOpt = Annotated[str, typer.Option("--device", help="cpu or cuda:N")]
 """A command's device; its body checks it first (``check_device``), so a missing GPU is one ``Error:`` line."""
 JsonOut = Annotated[Path | None, typer.Option("--json", help="Also write the numbers as JSON to this file")]
 RunsDir = Annotated[Path, typer.Option("--runs-dir", help="Folder of run outputs")]
-CkptDir = Annotated[Path, typer.Option("--checkpoints-dir", help="Folder of promoted policies")]
+CkptDir = Annotated[Path, typer.Option("--checkpoints-dir", help="Folder of published policies")]
 SimThreads = Annotated[int, typer.Option("--sim-threads", min=1, help="CPU threads stepping the simulator, each a "
                                          "share of the worlds (a Warp CPU launch uses one core); same results")]
 

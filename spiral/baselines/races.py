@@ -22,7 +22,7 @@ __all__ = ["duel_statistics", "head_to_head", "paired_duel", "race_progress", "s
 
 def _env(track: TrackSpec, drones: int, runs: int, seed: int, learners: list[int]) -> RaceEnv:
     return RaceEnv(track, AIRFRAMES["cf2x"], SimCfg(), EnvCfg(), world_count=runs, drones_per_world=drones,
-                   learner_slots=learners, seed=seed, auto_reset=False)
+                   learner_slots=learners, seed=seed, training=False)
 
 
 def self_match(track: TrackSpec, drones: int, *, runs: int = 50, seed: int = 0, **kw: Any

@@ -84,7 +84,7 @@ def make_race_env(
     learner_slots: Sequence[int] | None = None,
     device: str = "cpu",
     seed: int = 0,
-    auto_reset: bool = True,
+    training: bool = True,
     env_class: type[RaceEnv] = RaceEnv,
     named_opponents: Mapping[str, OpponentFactory] | None = None,
 ) -> RaceEnv:
@@ -102,7 +102,9 @@ def make_race_env(
         learner_slots: Slots the caller drives; the race format's learner team when None (slot 0, or 0 and 1 in 2v2).
         device: ``cpu`` or ``cuda:N``.
         seed: Seed of the start placements.
-        auto_reset: Reset a world in ``step`` when its race ends (training); False freezes finished drones.
+        training: Training mode: a world resets in ``step`` when its race ends, from training starts (with the
+            shield, start cuts and contact margin of ``env``); False is evaluation mode: every world races once from
+            ``episode.eval_starts`` and drones that are done stay frozen.
         env_class: ``RaceEnv`` or a subclass.
         named_opponents: Opponents chosen by name, built for the env (the gymnasium adapter's ``"se-ibr"``).
     """
@@ -117,7 +119,7 @@ def make_race_env(
     air = airframe if isinstance(airframe, AirframeCfg) else resolve_airframe(airframe)
     env = env_class(resolve_track(track), air, _model(sim, SimCfg, "sim"), _model(env_cfg, EnvCfg, "env_cfg"),
                     world_count=world_count, drones_per_world=drones, learner_slots=slots, device=device, seed=seed,
-                    auto_reset=auto_reset)
+                    training=training)
     policy = factory(env) if factory is not None else policy
     if policy is not None:
         layout = getattr(policy, "obs_layout", None)

@@ -108,7 +108,7 @@ class PassageStarts:
     @classmethod
     def of(cls, env: RaceState, radius: float) -> PassageStarts:
         """The passage starts of ``env`` (its ``episode.passage_starts``; training only), for drones of ``radius``."""
-        return cls(env.cfg.episode.passage_starts, env.track, radius, training=env.auto_reset, device=env.device)
+        return cls(env.cfg.episode.passage_starts, env.track, radius, training=env.training, device=env.device)
 
     def set_training_progress(self, fraction: float) -> None:
         """Move the share of passage starts along the stage's schedule."""

@@ -51,7 +51,7 @@ class RaceParallelEnv(ParallelEnv):
     ) -> None:
         drones = SCENARIO_DRONES.get(scenario, 0)
         self.race = make_race_env(track, scenario=scenario, env_cfg=env_cfg, sim=sim, airframe=airframe,
-                                  learner_slots=range(drones), device=device, seed=seed, auto_reset=False)
+                                  learner_slots=range(drones), device=device, seed=seed, training=False)
         self.possible_agents = [f"drone_{i}" for i in range(drones)]
         self.agents: list[str] = []
         self._index = {agent: i for i, agent in enumerate(self.possible_agents)}

@@ -43,19 +43,19 @@ class RaceEnv(RaceState):
     """``world_count`` races of ``drones_per_world`` drones; the learner drives ``learner_slots`` of each world.
 
     Each learner drone is one PPO environment (``num_envs = world_count · len(learner_slots)``); opponent slots act
-    from an injected :class:`~spiral.core.policy.OpponentPolicy`, or are absent without one. A world is reset when
-    one of its learner drones crashes or finishes, at its time limit, or on a non-finite state
-    (``health/nonfinite_resets``); learner drones cut short by another's end get ``time_outs``. With
-    ``auto_reset=False`` (evaluation) drones that are done stay frozen. :meth:`step` runs apply action → simulate →
-    race events → rewards → dones → reset → observe on :class:`~spiral.env.state.RaceState`'s state."""
+    from an injected :class:`~spiral.core.policy.OpponentPolicy`, or are absent without one. A world resets when one
+    of its learner drones crashes or finishes, at its time limit, or on a non-finite state (``nonfinite_resets``);
+    learner drones cut short by another's end get ``time_outs``. ``training=False`` is evaluation mode (starts from
+    ``episode.eval_starts``, no shield, start cuts or contact margin): every world races once, done drones stay
+    frozen. :meth:`step` runs apply action → simulate → race events → rewards → dones → reset → observe."""
 
     def __init__(self, track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, cfg: EnvCfg, *, world_count: int,
                  drones_per_world: int, learner_slots: Sequence[int] = (0,), device: str = "cpu", seed: int = 0,
-                 auto_reset: bool = True) -> None:
+                 training: bool = True) -> None:
         super().__init__(track, airframe, sim, cfg, world_count=world_count, drones_per_world=drones_per_world,
-                         learner_slots=learner_slots, device=device, seed=seed, auto_reset=auto_reset)
+                         learner_slots=learner_slots, device=device, seed=seed, training=training)
         self.action_map = ActionMap(cfg, track, world_count=world_count, drones_per_world=drones_per_world,
-                                    training=auto_reset, device=self.device)
+                                    training=training, device=self.device)
         self._obs_source = ObsSource(**{f.name: getattr(self, f.name) for f in fields(ObsSource)})
         self.observer = Observer(cfg, self._obs_source, device=self.device)
         self.obs_builder = self.observer.builder
@@ -172,7 +172,7 @@ class RaceEnv(RaceState):
         if ends.worlds.any() and isinstance(self.opponent_policy, RecordingOpponent):
             ended = ends.worlds.nonzero().squeeze(1)
             self.opponent_policy.record(ended, self.learner_won()[ended])
-        if self.auto_reset and ends.worlds.any():
+        if self.training and ends.worlds.any():
             self.stats["nonfinite_resets"] += float((self.world_nonfinite != 0).sum())
             self.before_auto_reset(ends.worlds)
             self._reset_worlds(ends.worlds)
@@ -205,7 +205,7 @@ class RaceEnv(RaceState):
         every world draws what it always did) and reset them in the simulator."""
         d, idx = self.drones_per_world, worlds.nonzero().squeeze(1)
         starts = self.passages.apply(draw_starts(self.track, self.cfg.episode, idx.numel(), d, self.generator,
-                                                 training=self.auto_reset, device=self.device), self.generator)
+                                                 training=self.training, device=self.device), self.generator)
         buf, t = self._wp_starts, wp.to_torch
         t(buf["mask"]).copy_(worlds.int())
         for name in ("pos", "vel", "yaw", "gate"):
@@ -217,7 +217,7 @@ class RaceEnv(RaceState):
             self.priority[drones] = torch.rand(idx.numel() * d, generator=self.generator, device=self.device)
         driven = self.learner_slots + (self.opponent_slots if self.opponent_policy is not None else [])
         self.contested[idx] = starts.box & (len({int(self.race_team[s]) for s in driven}) > 1)
-        if self.auto_reset and self.cfg.episode.start_cut_prob > 0:
+        if self.training and self.cfg.episode.start_cut_prob > 0:
             cut = starts.box & (torch.rand(idx.numel(), generator=self.generator, device=self.device)
                                 < self.cfg.episode.start_cut_prob)
             self.cut_time[idx] = torch.where(cut, self.cfg.episode.start_cut_s, math.inf)

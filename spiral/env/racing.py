@@ -102,8 +102,8 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
     ``teams`` lists the slots of each team (default: the learner slots against the opponent slots); a self-match,
     where every slot is a learner, passes the scenario's teams.
     """
-    if env.auto_reset:
-        raise ValueError("run_races needs a RaceEnv built with auto_reset=False")
+    if env.training:
+        raise ValueError("run_races needs a RaceEnv built with training=False")
     obs = env.reset()
     w, d = env.world_count, env.drones_per_world
     distance = torch.zeros(env.drone_count, device=env.device)

@@ -41,10 +41,10 @@ class RaceState:
 
     def __init__(self, track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, cfg: EnvCfg, *, world_count: int,
                  drones_per_world: int, learner_slots: Sequence[int] = (0,), device: str = "cpu", seed: int = 0,
-                 auto_reset: bool = True) -> None:
+                 training: bool = True) -> None:
         if sim.control_mode != "pid":
             raise UsageError("RaceEnv drives the PID: sim.control_mode must be 'pid'")
-        self.track, self.cfg, self.auto_reset = track.with_laps(cfg.episode.laps or track.laps), cfg, auto_reset
+        self.track, self.cfg, self.training = track.with_laps(cfg.episode.laps or track.laps), cfg, training
         self.world = World(track, airframe, sim, world_count=world_count, drones_per_world=drones_per_world,
                            device=device)
         self.device = torch.device(device)
@@ -206,7 +206,7 @@ class RaceState:
         """Training with ``episode.contact_margin``: ``racing`` drones without a collision in this step that are
         within :attr:`margin_distance` of another such drone collide now (drone-drone kind), as if their spheres had
         touched."""
-        if not (self.auto_reset and self.cfg.episode.contact_margin > 0):
+        if not (self.training and self.cfg.episode.contact_margin > 0):
             return
         candidates = racing & (self.step_collision == 0)
         gap = nearest_distance(self.pos, (~candidates).to(torch.int32), world_count=self.world_count,

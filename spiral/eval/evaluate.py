@@ -186,7 +186,7 @@ def _race_env(layout: EvalLayout, track: TrackSpec, scenario: str, runs: int, se
     drones = SCENARIO_DRONES[scenario]
     slots = TEAMS[scenario][0] if team_a_only else list(range(drones))
     return RaceEnv(track, layout.airframe, layout.sim, layout.env, world_count=runs, drones_per_world=drones,
-                   learner_slots=slots, device=device, seed=seed, auto_reset=False)
+                   learner_slots=slots, device=device, seed=seed, training=False)
 
 
 def setup_race(track: TrackSpec, scenario: str, runs: int, seed: int, agent: Agent, opponent: Agent | None = None,

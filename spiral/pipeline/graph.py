@@ -1,4 +1,4 @@
-"""Expand a pipeline spec into ordered steps: train, eval and promote per stage."""
+"""Expand a pipeline spec into ordered steps: train, eval and publish per stage."""
 
 from __future__ import annotations
 
@@ -40,7 +40,7 @@ class PipelinePlan:
 
     @property
     def publish_root(self) -> Path:
-        """Folder of this pipeline's promoted policies."""
+        """Folder of this pipeline's published policies."""
         return self.checkpoints_dir / self.spec.name
 
     @property
@@ -61,10 +61,10 @@ class PipelinePlan:
                          self._train_section(stage), resumable=True)
             evaluate = Step(f"eval:{stage.name}", self._eval_fn(stage), [train.name],
                             {"scenario": stage.scenario, **self.spec.evaluation.model_dump(include={"runs", "seed"})})
-            promote = Step(f"promote:{stage.name}", self._promote_fn(stage), [train.name, evaluate.name],
+            publish = Step(f"publish:{stage.name}", self._publish_fn(stage), [train.name, evaluate.name],
                            {"stage": stage.name, "dest": str(self.publish_root / stage.name),
                             "publish_as": stage.publish_as})
-            steps += [train, evaluate, promote]
+            steps += [train, evaluate, publish]
         return report_steps(self, steps)
 
     def _last_pool_stage(self) -> str | None:
@@ -110,7 +110,7 @@ class PipelinePlan:
             return {"eval": out}, {"success_ratio": m["success_ratio"], "lap_time_mean": m["lap_time_mean"]}
         return run
 
-    def _promote_fn(self, stage: StageSpec):
+    def _publish_fn(self, stage: StageSpec):
         def run(ctx: StepContext) -> tuple[dict[str, Path], dict[str, Any]]:
             dest = self.publish_root / stage.name
             dest.mkdir(parents=True, exist_ok=True)
@@ -131,7 +131,7 @@ class PipelinePlan:
                 shutil.rmtree(self.publish_root / "pool", ignore_errors=True)
                 shutil.copytree(pool, self.publish_root / "pool")
                 outputs["pool"] = self.publish_root / "pool" / "pool.json"
-            ctx.log(f"promote:{stage.name}: published {dest / 'best.pt'}")
+            ctx.log(f"publish:{stage.name}: published {dest / 'best.pt'}")
             return outputs, {"dest": str(dest)}
         return run
 

@@ -58,7 +58,7 @@ class PlanView(Protocol):
 
 
 def report_steps(plan: PlanView, steps: list[Step]) -> list[Step]:
-    """``steps`` (the stages' train, eval and promote steps) with the report's steps added: the planner's
+    """``steps`` (the stages' train, eval and publish steps) with the report's steps added: the planner's
     self-matches first (``--jobs`` runs them beside the first training step), its pairings, the report's races among
     learned policies and the report last."""
     report = plan.spec.report
@@ -71,9 +71,9 @@ def report_steps(plan: PlanView, steps: list[Step]) -> list[Step]:
             out += _pairing_steps(plan)
         out += _planner_racing_steps(plan)
     section = {"report": report, **plan.spec.evaluation.model_dump()}
-    stage_steps = [s.name for s in steps if not s.name.startswith("promote:")]
+    stage_steps = [s.name for s in steps if not s.name.startswith("publish:")]
     out.append(Step(LEARNED_STEP, _learned_fn(plan), stage_steps, section))
-    out.append(Step("report", _report_fn(plan), [s.name for s in out if not s.name.startswith("promote:")], section))
+    out.append(Step("report", _report_fn(plan), [s.name for s in out if not s.name.startswith("publish:")], section))
     return out
 
 

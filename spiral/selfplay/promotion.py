@@ -107,12 +107,12 @@ class PromotionSelector:
         d = stage.drones_per_world
         self.env = RaceEnv(track, airframe, sim, stage.env, world_count=self.cfg.races, drones_per_world=d,
                            learner_slots=stage.learner_slots(), device=device, seed=stream_seed(seed, "promotion"),
-                           auto_reset=False)
+                           training=False)
         self.interval = self.cfg.interval
         self.format_envs = {
             fmt: RaceEnv(track, airframe, sim, stage.env, world_count=self.cfg.races,
                          drones_per_world=SCENARIO_DRONES[fmt], learner_slots=list(range(SCENARIO_DRONES[fmt])),
-                         device=device, seed=stream_seed(seed, "formats", i), auto_reset=False)
+                         device=device, seed=stream_seed(seed, "formats", i), training=False)
             for i, fmt in enumerate(sorted(stage.mix))} if self.cfg.formats else {}
 
     def __call__(self, trainer: StageTrainer, it: int) -> dict[str, float]:

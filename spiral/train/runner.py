@@ -100,7 +100,7 @@ class StageTrainer:
         d = stage.drones_per_world
         self.eval_env = RaceEnv(track, airframe, sim, stage.env, world_count=stage.selection.races,
                                 drones_per_world=d, learner_slots=list(range(d)), device=device,
-                                seed=stream_seed(seed, "selection"), auto_reset=False)
+                                seed=stream_seed(seed, "selection"), training=False)
         self.vec_env = RaceVecEnv(self.env)
         with contextlib.redirect_stdout(io.StringIO()):  # rsl-rl prints the model architecture
             self.runner = distributed.GroupRunner(self.vec_env, stage.ppo.to_rsl_rl(), log_dir=None, device=device)

@@ -49,7 +49,7 @@ def test_final_obs_is_the_last_observation_before_the_reset(small_env):
     """Put the crash-step observation of a non-resetting race in infos['final_obs'], the new race in obs."""
     envs = RaceVectorEnv(1, track="oval4", env_cfg=small_env, seed=3)
     ref = RaceEnv(load_track(SHIPPED_TRACKS / "oval4.yaml"), AIRFRAMES["cf2x"], SimCfg(), small_env, world_count=1,
-                  drones_per_world=1, seed=3, auto_reset=False)
+                  drones_per_world=1, seed=3, training=False)
     first, _ = envs.reset()
     np.testing.assert_allclose(first[0], ref.reset()["policy"][0].numpy(), atol=1e-6)
     for _ in range(200):

@@ -21,7 +21,7 @@ CF2X = AIRFRAMES["cf2x"]
 def make_env(track: TrackSpec, *, worlds: int = 1, drones: int = 1, learners=None) -> RaceEnv:
     learners = list(range(drones)) if learners is None else learners
     return RaceEnv(track, CF2X, SimCfg(), EnvCfg(), world_count=worlds, drones_per_world=drones,
-                   learner_slots=learners, seed=0, auto_reset=False)
+                   learner_slots=learners, seed=0, training=False)
 
 
 def place(env: RaceEnv, pos: list[list[float]], vel: list[list[float]] | None = None) -> None:

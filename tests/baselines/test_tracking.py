@@ -39,7 +39,7 @@ def test_reference_passes_the_waypoints_with_the_planned_accelerations():
 def test_pid_follows_a_straight_plan_within_45_millimetres(line2):
     """Fly a hand-made plan (to 2.9 m/s through gate 0) through the env and PID: within 0.045 m of the reference."""
     env = RaceEnv(line2, AIRFRAMES["cf2x"], SimCfg(), EnvCfg(), world_count=1, drones_per_world=1, seed=0,
-                  auto_reset=False)
+                  training=False)
     env.reset()
     planner = SEIBRPlanner(env)
     p0 = np.array([-2.0, 0.0, 1.0])

@@ -10,12 +10,12 @@ from spiral.env import RaceEnv
 CF2X = AIRFRAMES["cf2x"]
 
 
-def make_env(track: TrackSpec, *, worlds: int = 2, drones: int = 1, learners=(0,), auto_reset: bool = True,
+def make_env(track: TrackSpec, *, worlds: int = 2, drones: int = 1, learners=(0,), training: bool = True,
              obs: ObsCfg | None = None, **env_kw) -> RaceEnv:
     env_kw.setdefault("episode", {"track_start_prob": 0.0})
     cfg = EnvCfg(obs=obs or ObsCfg(history_len=3), **env_kw)
     return RaceEnv(track, CF2X, SimCfg(), cfg, world_count=worlds, drones_per_world=drones, learner_slots=learners,
-                   seed=3, auto_reset=auto_reset)
+                   seed=3, training=training)
 
 
 def place(env: RaceEnv, positions: list[list[float]]) -> None:

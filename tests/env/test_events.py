@@ -114,7 +114,7 @@ def test_race_outcome_pays_the_first_finishers_team_and_charges_the_other_once(o
     """One drone flies the lap while the other holds its position far from the line: at the step the flyer
     completes the lap it gets +w and the other team's racing drone −w, and nothing more afterwards."""
     reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, lap=0.0, collision=0.0, win=5.0)
-    env = make_env(oval2, worlds=1, drones=2, learners=(0,), auto_reset=False, reward=reward)
+    env = make_env(oval2, worlds=1, drones=2, learners=(0,), training=False, reward=reward)
     flyer = 0 if winner == "learner" else 1
     fly = waypoint_policy(env, torch.tensor([flyer]))
     hold = torch.zeros(1, 4)
@@ -142,7 +142,7 @@ def test_race_outcome_between_two_learner_drones_pays_by_race_team(oval2):
     """A mirror world whose two drones are both learners (no opponent policy): the race is contested, and when slot
     1 finishes first it gets +w and slot 0, still racing, −w."""
     reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, lap=0.0, collision=0.0, win=5.0)
-    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), auto_reset=False, reward=reward)
+    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), training=False, reward=reward)
     fly = waypoint_policy(env, torch.tensor([1]))
     obs = env.reset()
     assert env.contested.all()
@@ -160,7 +160,7 @@ def test_a_crash_forfeits_an_undecided_race_only_when_asked(oval2, forfeit):
     """The opponent dives into the ground while the race is undecided: with ``forfeit`` it is charged the loss
     (−w) at the crash, otherwise nothing; the hovering learner is paid nothing either way."""
     reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, lap=0.0, collision=0.0, win=5.0, forfeit=forfeit)
-    env = make_env(oval2, worlds=1, drones=2, learners=(0,), auto_reset=False, reward=reward)
+    env = make_env(oval2, worlds=1, drones=2, learners=(0,), training=False, reward=reward)
     env.set_opponent_policy(lambda obs: torch.tensor([[0.0, 0.0, -1.0, 0.0]]))
     env.reset()
     for _ in range(100):

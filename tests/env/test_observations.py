@@ -168,9 +168,9 @@ def test_opponents_with_their_own_layout_read_what_an_env_of_that_layout_shows_t
         widths.append(obs["policy"].shape[1])
         return torch.full((obs.batch_size[0], 4), 0.2)
 
-    env = make_env(oval2, worlds=2, drones=2, learners=(0,), auto_reset=False, obs=mine)
+    env = make_env(oval2, worlds=2, drones=2, learners=(0,), training=False, obs=mine)
     env.set_opponent_policy(opponent, obs=theirs)
-    ref = make_env(oval2, worlds=2, drones=2, learners=(0, 1), auto_reset=False, obs=theirs)
+    ref = make_env(oval2, worlds=2, drones=2, learners=(0, 1), training=False, obs=theirs)
     obs, _ = env.reset(), ref.reset()
     act = torch.tensor([[0.1, 0.0, 0.0, 0.0], [0.2, 0.2, 0.2, 0.2]]).repeat(2, 1)  # per world: learner, opponent
     for _ in range(3):

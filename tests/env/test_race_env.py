@@ -35,7 +35,7 @@ def test_contact_margin_makes_drones_closer_than_it_collide_in_training_only(ova
     drone-drone crash in a training env with a 0.05 m margin; neither does at 0.25 m, nor without the margin, nor in
     an evaluation env."""
     def ended(margin: float, *, training: bool = True) -> tuple:
-        env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), auto_reset=training,
+        env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), training=training,
                        episode={"track_start_prob": 0.0, "contact_margin": margin})
         env.reset()
         place(env, [[-1.0, -1.0, 1.0], [-1.0, -1.0 + gap, 1.0]])
@@ -96,7 +96,7 @@ def test_absent_opponent_slots_do_not_race(oval2):
     env = make_env(oval2, worlds=2, drones=2, learners=(0,))
     assert env.num_envs == 2
     assert env.absent.view(2, 2)[:, 1].all() and not env.absent.view(2, 2)[:, 0].any()
-    res = run_races(make_env(oval2, worlds=2, drones=2, learners=(0,), auto_reset=False), lambda o: torch.zeros(2, 4))
+    res = run_races(make_env(oval2, worlds=2, drones=2, learners=(0,), training=False), lambda o: torch.zeros(2, 4))
     assert not res.present[:, 1].any()
 
 

@@ -13,7 +13,7 @@ from tests.env.helpers import make_env, place, waypoint_policy
 
 def test_race_results_time_every_gate_passage_and_end_with_the_lap_time(oval2):
     """Split times of a scripted lap rise gate by gate, the last one is the lap time, and the summary averages them."""
-    env = make_env(oval2, worlds=2, auto_reset=False)
+    env = make_env(oval2, worlds=2, training=False)
     res = run_races(env, waypoint_policy(env))
     assert res.finished.all()
     splits = res.split_time[:, 0]
@@ -27,7 +27,7 @@ def test_race_results_time_every_gate_passage_and_end_with_the_lap_time(oval2):
 def test_race_results_name_the_drone_each_crashed_drone_touched(oval2, partner):
     """Fly drone 0 and one other drone into each other in a 2v2 race: each records the other as its crash partner
     and the crash time; the two hovering drones record none, and the contacts count under the right team."""
-    env = make_env(oval2, worlds=1, drones=4, learners=(0, 1), auto_reset=False)
+    env = make_env(oval2, worlds=1, drones=4, learners=(0, 1), training=False)
     chase = {0: partner, partner: 0}
 
     def act(idx: torch.Tensor) -> torch.Tensor:
@@ -57,7 +57,7 @@ def test_race_results_name_the_drone_each_crashed_drone_touched(oval2, partner):
 def test_race_results_charge_a_contact_to_the_drone_that_flew_into_a_hovering_one(oval2):
     """Drone 0 flies at drone 1, which hovers where it started: drone 0's share of the contact is 1 (``own``),
     drone 1's is 0 (``other``); the summary of either team counts its own drone's side only."""
-    env = make_env(oval2, worlds=1, drones=2, learners=(0,), auto_reset=False)
+    env = make_env(oval2, worlds=1, drones=2, learners=(0,), training=False)
     env.set_opponent_policy(lambda obs: torch.zeros(1, 4))
     res = run_races(env, lambda obs: torch.cat([((env.pos[1] - env.pos[0]) / env.cfg.action.pos_scale).clamp(-1, 1),
                                                 torch.zeros(1)])[None])
@@ -71,7 +71,7 @@ def test_race_results_charge_a_contact_to_the_drone_that_flew_into_a_hovering_on
 def test_race_results_count_a_pass_of_a_hovering_drone_for_both_sides(oval2):
     """Drone 0 starts 1.4 m before gate 0, behind drone 1, which hovers 0.4 m off the line 1 m before the gate; drone
     0 flies through the gate and on: it passes drone 1 once and is never passed, drone 1 the other way round."""
-    env = make_env(oval2, worlds=1, drones=2, learners=(0,), auto_reset=False)
+    env = make_env(oval2, worlds=1, drones=2, learners=(0,), training=False)
     env.set_opponent_policy(lambda obs: torch.zeros(1, 4))
     reset = env.reset
 

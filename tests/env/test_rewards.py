@@ -55,14 +55,14 @@ def test_proximity_penalty_grows_linearly_inside_the_safe_distance(oval2):
     """Pay −w·(1 − d/d_safe) for the nearest racing drone: 0.2 m apart with d_safe 0.5 m costs 0.6·w per step,
     1 m apart costs nothing, and a lone drone pays nothing."""
     reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, proximity=0.1, proximity_distance=0.5)
-    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), auto_reset=False, reward=reward)
+    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), training=False, reward=reward)
     env.reset()
     for gap, expected in ((0.2, -0.06), (1.0, 0.0)):
         place(env, [[-1.5, -1.0, 1.0], [-1.5, -1.0 + gap, 1.0]])
         hold = torch.zeros(2, 4)
         _, rewards, _, _ = env.step(hold)
         assert rewards.tolist() == pytest.approx([expected, expected], abs=2e-3)
-    solo = make_env(oval2, worlds=1, auto_reset=False, reward=reward)
+    solo = make_env(oval2, worlds=1, training=False, reward=reward)
     _, rewards, _, _ = solo.step(torch.zeros(1, 4))
     assert float(solo.term_sums["proximity"][0]) == pytest.approx(0.0, abs=1e-12)  # clamped to 0
 
@@ -72,7 +72,7 @@ def test_proximity_leader_share_charges_the_drone_behind_in_full_and_the_leader_
     pays the share ``proximity_leader`` of it; abreast both pay in full."""
     reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, proximity=0.1, proximity_distance=0.5,
                        proximity_leader=0.25)
-    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), auto_reset=False, reward=reward)
+    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), training=False, reward=reward)
     env.reset()
     hold = torch.zeros(2, 4)
     place(env, [[-1.7, -1.0, 1.0], [-1.5, -1.0, 1.0]])  # drone 1 leads towards the gate
@@ -89,7 +89,7 @@ def test_contact_penalty_charges_the_drone_that_runs_into_another_by_its_share_o
     """Two drones 0.13 m apart on one line (contact below 0.12 m): the one behind at 3 m/s runs into one ahead at
     1 m/s and pays the whole contact weight, the one ahead nothing; flying into each other alike, each pays half."""
     reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, collision=0.0, contact=4.0)
-    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), auto_reset=False, reward=reward)
+    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), training=False, reward=reward)
     env.reset()
     place(env, [[-1.70, -1.0, 1.0], [-1.57, -1.0, 1.0]])
     env.vel[:2] = torch.tensor([[v0, 0.0, 0.0], [v1, 0.0, 0.0]])
@@ -102,7 +102,7 @@ def test_closing_penalty_is_weighted_into_the_reward(oval2):
     """Two drones 0.5 m apart on one line, the one behind 1 m/s faster: with weight 2 and a 1 m window it pays
     2 · 1 · 1 · (1 − 0.5) = 1 after the step (the gap shrinks a little), the one ahead nothing."""
     reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, closing=2.0, closing_distance=1.0)
-    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), auto_reset=False, reward=reward)
+    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), training=False, reward=reward)
     env.reset()
     place(env, [[-1.70, -1.0, 1.0], [-1.20, -1.0, 1.0]])
     env.vel[:2] = torch.tensor([[2.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
@@ -115,7 +115,7 @@ def test_a_pass_in_a_start_box_race_is_paid_to_both_drones_at_the_step_it_happen
     0.1 m ahead of it: at the step it passes, the overtake term pays it +w and the other −w; the step before and
     the steps after nothing."""
     reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, lap=0.0, overtake=1.5)
-    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), auto_reset=False, reward=reward)
+    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), training=False, reward=reward)
     env.reset()
     assert bool(env.contested[0])
     place(env, [[-0.60, -1.15, 1.0], [-0.50, -0.85, 1.0]])
@@ -133,7 +133,7 @@ def test_a_pass_in_a_start_box_race_is_paid_to_both_drones_at_the_step_it_happen
 
 def test_scripted_lap_pays_each_gate_once_and_the_lap_bonus_once(oval2):
     """Fly gate 0, gate 1, gate 0 again: three gate bonuses, one lap bonus of 100 / lap time, success."""
-    env = make_env(oval2, worlds=1, auto_reset=False, reward=RewardCfg(progress=0.0, alignment=0.0))
+    env = make_env(oval2, worlds=1, training=False, reward=RewardCfg(progress=0.0, alignment=0.0))
     policy = waypoint_policy(env)
     obs = env.reset()
     steps = 0
@@ -150,7 +150,7 @@ def test_scripted_lap_pays_each_gate_once_and_the_lap_bonus_once(oval2):
 def test_three_lap_race_pays_the_lap_bonus_for_each_lap_by_its_own_time(oval2):
     """A scripted 3-lap race on the two-gate oval: the lap term pays 100 / T at each of the three laps, T that lap's
     time (first lap from the start, the others gate 0 to gate 0), and the three times add up to the race time."""
-    env = make_env(oval2, worlds=1, auto_reset=False, reward=RewardCfg(progress=0.0, alignment=0.0),
+    env = make_env(oval2, worlds=1, training=False, reward=RewardCfg(progress=0.0, alignment=0.0),
                    episode={"track_start_prob": 0.0, "laps": 3})
     res = run_races(env, waypoint_policy(env))
     assert bool(res.finished[0, 0]) and env.passes_needed == 2 * 3 + 1

@@ -87,7 +87,7 @@ def test_filter_keeps_two_drones_flying_into_each_other_apart(line2: TrackSpec, 
     cfg = EnvCfg(obs=ObsCfg(history_len=1), action={"separation": separation},
                  episode={"track_start_prob": 0.0, "time_limit_s": 3.0})
     env = RaceEnv(line2, AIRFRAMES["cf2x"], SimCfg(), cfg, world_count=1, drones_per_world=2, learner_slots=(0,),
-                  seed=0, auto_reset=False)
+                  seed=0, training=False)
     start, goal = torch.tensor(start), torch.tensor(goal)
 
     def fly(idx: torch.Tensor) -> torch.Tensor:

@@ -26,14 +26,14 @@ def test_an_intervention_cost_without_a_shield_is_refused_naming_the_field():
         EnvCfg(reward={"intervention": 0.5})
 
 
-def closing_pair(track: TrackSpec, *, auto_reset: bool, weight: float = 0.5) -> RaceEnv:
+def closing_pair(track: TrackSpec, *, training: bool, weight: float = 0.5) -> RaceEnv:
     """Two drones 0.4 m apart along x and 0.1 m along y, closing at 2 m/s (the separation tests' hand-made case:
     a full-gain shift of 0.9 m each, sideways and in opposite directions)."""
     cfg = EnvCfg(obs=ObsCfg(history_len=1), episode={"track_start_prob": 0.0},
                  shield={"filter": {"distance": 0.25, "horizon_s": 0.4, "gain": 1.5}},
                  reward={"intervention": weight})
     env = RaceEnv(track, AIRFRAMES["cf2x"], SimCfg(), cfg, world_count=1, drones_per_world=2, learner_slots=(0, 1),
-                  seed=0, auto_reset=auto_reset)
+                  seed=0, training=training)
     env.pos[:] = torch.tensor([[0.0, 0.0, 1.0], [0.4, 0.1, 1.0]])
     env.vel[:] = torch.tensor([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
     return env
@@ -43,7 +43,7 @@ def closing_pair(track: TrackSpec, *, auto_reset: bool, weight: float = 0.5) -> 
 def test_training_shield_shifts_targets_by_its_faded_gain_and_charges_the_full_shift(line2, progress):
     """Zero actions ask for the drones' own positions; the shield adds (1 − progress/0.5) · 0.9 m sideways, and each
     drone pays 0.5 · 0.9 for the step whatever the fade."""
-    env = closing_pair(line2, auto_reset=True)
+    env = closing_pair(line2, training=True)
     env.set_training_progress(progress)
     pos = env.pos.clone()
     _, rewards, _, _ = env.step(torch.zeros(2, 4))
@@ -55,7 +55,7 @@ def test_training_shield_shifts_targets_by_its_faded_gain_and_charges_the_full_s
 
 def test_evaluation_envs_fly_without_the_training_shield(line2):
     """A non-resetting env (evaluation, promotion, deployment) leaves the targets alone and charges nothing."""
-    env = closing_pair(line2, auto_reset=False)
+    env = closing_pair(line2, training=False)
     pos = env.pos.clone()
     env.step(torch.zeros(2, 4))
     torch.testing.assert_close(env.cmd[:, :3], pos)

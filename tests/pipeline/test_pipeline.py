@@ -69,7 +69,7 @@ def test_changing_a_stage_parameter_reruns_that_step_and_downstream_only(tmp_pat
     path.write_text(yaml.safe_dump(data))
     runner = runner_for(path, tmp_path)
     assert [s.status for s in runner.status()][:3] == ["complete"] * 3
-    assert runner.run() == ["train:1v1", "eval:1v1", "promote:1v1"]
+    assert runner.run() == ["train:1v1", "eval:1v1", "publish:1v1"]
 
 
 def test_a_change_to_the_spiral_source_makes_finished_steps_stale_unless_accepted(tmp_path, monkeypatch):
@@ -85,7 +85,7 @@ def test_a_change_to_the_spiral_source_makes_finished_steps_stale_unless_accepte
     kept = PipelineRunner(path, runs_dir=tmp_path / "runs", checkpoints_dir=tmp_path / "ckpt", progress=False,
                           log=lambda _: None, accept_code_changes=True)
     assert {s.status for s in kept.status()} == {"complete"} and kept.run() == []
-    assert runner_for(path, tmp_path).run() == ["train:solo", "eval:solo", "promote:solo"]
+    assert runner_for(path, tmp_path).run() == ["train:solo", "eval:solo", "publish:solo"]
 
 
 def test_fingerprints_differ_by_source_and_share_their_spec_part():
@@ -242,7 +242,7 @@ def test_held_out_check_and_head_to_head_sides_are_the_reports_alone(tmp_path):
         data["evaluation"] = {**data.get("evaluation", {}), **change}
         path.write_text(yaml.safe_dump(data))
         before, after = runner._fingerprints(), runner_for(path, tmp_path)._fingerprints()
-        assert list(after) == ["train:solo", "eval:solo", "promote:solo", "eval:report", "report"]
+        assert list(after) == ["train:solo", "eval:solo", "publish:solo", "eval:report", "report"]
         assert [name for name in after if after[name] != before[name]] == ["eval:report", "report"]
         runner = runner_for(path, tmp_path)
 

@@ -74,7 +74,7 @@ def test_a_solo_stage_with_a_tolerance_writes_the_faster_best_pt(oval2, tmp_path
 def test_a_self_match_pair_scores_each_policy_on_its_own_races(oval2):
     """The promotion's format check races two policies from the same placements: a scripted lap finishes every race
     and a drone that dives into the ground none, in either order (the first score is not the second race's)."""
-    env = make_env(oval2, worlds=2, auto_reset=False)
+    env = make_env(oval2, worlds=2, training=False)
     lap, dive = waypoint_policy(env), (lambda obs: torch.tensor([[0.0, 0.0, -1.0, 0.0]]).expand(2, 4))
     assert tuple(score.success for score in paired_scores(env, lap, dive)) == pytest.approx((1.0, 0.0))
     assert tuple(score.success for score in paired_scores(env, dive, lap)) == pytest.approx((0.0, 1.0))
