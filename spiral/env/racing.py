@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 
 import torch
 
@@ -75,24 +75,18 @@ class RaceResults:
         idx = torch.tensor(order)
         new_slot = torch.empty_like(idx)
         new_slot[idx] = torch.arange(d)
-        partner = None
+        changes = {f.name: getattr(self, f.name).index_select(_SLOT_DIM.get(f.name, 1), idx) for f in fields(self)
+                   if f.name not in _PER_RACE_SET and getattr(self, f.name) is not None}
         if self.crash_partner is not None:
-            p = self.crash_partner[:, idx]
-            partner = torch.where(p >= 0, new_slot[p.clamp(min=0)], p)
-        return RaceResults(
-            finished=self.finished[:, idx], crashed=self.crashed[:, idx], crash_kind=self.crash_kind[:, idx],
-            lap_time=self.lap_time[:, idx], gates_passed=self.gates_passed[:, idx], distance=self.distance[:, idx],
-            present=self.present[:, idx],
-            trajectory=None if self.trajectory is None else self.trajectory[:, :, idx],
-            crash_time=None if self.crash_time is None else self.crash_time[:, idx],
-            crash_partner=partner, team=self.team,
-            split_time=None if self.split_time is None else self.split_time[:, idx],
-            contact_bearing=None if self.contact_bearing is None else self.contact_bearing[:, idx],
-            contact_fault=None if self.contact_fault is None else self.contact_fault[:, idx],
-            racing_steps=None if self.racing_steps is None else self.racing_steps[:, idx],
-            beyond_steps=None if self.beyond_steps is None else self.beyond_steps[:, idx],
-            passes=None if self.passes is None else self.passes[:, idx], laps=self.laps,
-        )
+            p = changes["crash_partner"]
+            changes["crash_partner"] = torch.where(p >= 0, new_slot[p.clamp(min=0)], p)
+        return replace(self, **changes)
+
+
+_PER_RACE_SET = ("team", "laps")
+"""Fields of :class:`RaceResults` that hold for every race of a set (neither reordered by slot nor joined)."""
+_SLOT_DIM = {"trajectory": 2}
+"""Dimension of the slot in each per-drone field of :class:`RaceResults` where it is not 1."""
 
 
 def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
@@ -210,21 +204,12 @@ def concat_results(parts: list[RaceResults]) -> RaceResults:
            for p in parts):
         raise ValueError("concat_results: the parts have different teams")
 
-    def cat(name: str) -> torch.Tensor:
-        return torch.cat([getattr(p, name) for p in parts])
-
-    def cat_optional(name: str) -> torch.Tensor | None:
-        return None if any(getattr(p, name) is None for p in parts) else cat(name)
-
-    return RaceResults(
-        finished=cat("finished"), crashed=cat("crashed"), crash_kind=cat("crash_kind"), lap_time=cat("lap_time"),
-        gates_passed=cat("gates_passed"), distance=cat("distance"), present=cat("present"),
-        crash_time=cat_optional("crash_time"), crash_partner=cat_optional("crash_partner"), team=first.team,
-        split_time=cat_optional("split_time"), contact_bearing=cat_optional("contact_bearing"),
-        contact_fault=cat_optional("contact_fault"),
-        racing_steps=cat_optional("racing_steps"), beyond_steps=cat_optional("beyond_steps"),
-        passes=cat_optional("passes"), laps=first.laps,
-    )
+    joined = {}
+    for f in fields(RaceResults):
+        values = [getattr(p, f.name) for p in parts]
+        if f.name not in _PER_RACE_SET:
+            joined[f.name] = None if any(v is None for v in values) else torch.cat(values)
+    return replace(first, **joined)
 
 
 def contact_bearing(rel: torch.Tensor, vel: torch.Tensor) -> torch.Tensor:
