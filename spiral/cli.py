@@ -416,7 +416,7 @@ def report(
     device = check_device(device)
     from spiral.config.pipeline import RacingCfg
     from spiral.eval.evaluate import KEEP, parse_separation
-    from spiral.eval.report import build_report, track_of_run
+    from spiral.eval.report import ReportOptions, build_report, track_of_run
 
     spec = load_track(track) if track is not None else track_of_run(run_dir)
     filter_row = parse_separation(separation)
@@ -435,10 +435,10 @@ def report(
     if racing_laps:
         racing = RacingCfg(laps=racing_laps, planner_runs=planner_runs)
         command += f" --racing-laps {racing_laps}" + (f" --planner-runs {planner_runs}" if planner_runs != 8 else "")
-    path = build_report(run_dir, spec, out or run_dir / "report", runs=runs, device=device, se_ibr=se_ibr,
-                        command=command, holdout=(holdout_runs, holdout_seed) if holdout_runs else None, sides=sides,
-                        separation=filter_row, robustness=robustness, racing=racing,
-                        jobs=jobs)  # type: ignore[arg-type]
+    options = ReportOptions(runs=runs, device=device, se_ibr=se_ibr, command=command, sides=sides,
+                            holdout=(holdout_runs, holdout_seed) if holdout_runs else None,
+                            separation=filter_row, robustness=robustness, racing=racing, jobs=jobs)  # type: ignore[arg-type]
+    path = build_report(run_dir, spec, out or run_dir / "report", options)
     typer.echo(f"wrote {path}")
 
 

@@ -14,6 +14,7 @@ import csv
 import json
 import subprocess
 from collections.abc import Callable
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -41,8 +42,8 @@ from spiral.eval.runs import (
     track_of_run,
 )
 
-__all__ = ["APPROACHES", "PAPER", "SCENARIOS", "StageRun", "build_report", "find_stages", "race_learned_policies",
-           "race_planner_pairing", "race_planner_racing", "read_train_log", "track_of_run"]
+__all__ = ["APPROACHES", "PAPER", "SCENARIOS", "ReportOptions", "StageRun", "build_report", "find_stages",
+           "race_learned_policies", "race_planner_pairing", "race_planner_racing", "read_train_log", "track_of_run"]
 
 APPROACHES: dict[str, str] = {"spiral": "PPO Selfplay (SPIRAL)", "se-ibr": "SE-IBR (Baseline)",
                               "noselfplay": "PPO No Selfplay"}
@@ -63,96 +64,98 @@ PAPER: dict[str, dict[str, tuple[float, float, str, str]]] = {
 }
 """The paper's Tables 1 (1v1) and 2 (2v2): lap time, success ratio, and both as printed."""
 
-def build_report(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int | None = None,
-                 seed: int | None = None, device: str = "cpu", se_ibr: bool = False, cross_play: bool = True,
-                 airframe: AirframeCfg | None = None, bound_steps: int = 24, command: str | None = None,
-                 holdout: tuple[int, int] | None = None, sides: str = "both",
-                 separation: SeparationCfg | None = None, robustness: bool = True, racing: RacingCfg | None = None,
-                 jobs: int = 1, log: Callable[[str], None] = print) -> Path:
-    """Write ``results.md``, ``results.csv``, ``bound.json`` and the figures for ``run_root`` into ``out_dir``.
+@dataclass(frozen=True)
+class ReportOptions:
+    """What a report races and how: ``spiral report``'s options, or a pipeline's ``evaluation`` and ``report``."""
 
-    Args:
-        run_root: A pipeline's run folder, ``runs/<pipeline>``.
-        track: The pipeline's track.
-        out_dir: Folder for the report (created); evaluations run here are cached in ``out_dir/evals``.
-        runs: Races per evaluation; the pipeline's (from its eval.json files) when None.
-        seed: Seed of the start placements; the pipeline's when None.
-        device: Device of evaluations run by the report.
-        se_ibr: Run the SE-IBR planner where no evaluation of it exists (minutes per scenario on a CPU).
-        cross_play: Compute the cross-play win-rate matrices (running what is missing).
-        airframe: Airframe of the lap-time reference; the pipeline's when None.
-        bound_steps: Mean time steps per segment of the lap-time reference.
-        command: Command line quoted in results.md.
-        holdout: ``(runs, seed)`` of a held-out check: the learned approaches' self-matches and their head-to-head
-            raced again from other placements (cached under ``out_dir/evals/holdout-*``); None: no check.
-        sides: Head-to-head races: ``both`` races every placement from both sides, ``a`` with the row method on team
-            A only (see :func:`spiral.eval.evaluate.cross_play`).
-        separation: A separation filter raced as an extra row under each table, with the same checkpoints (an
-            opt-in deployment layer, not part of the methods); None: no such rows.
-        robustness: Add the sections of :mod:`spiral.eval.robustness` (final policy in every format, racing
-            strangers, downwash), raced from the held-out placements when given, else the protocol's.
-        racing: Add the racing section (:mod:`spiral.eval.racing_section`), raced from the held-out placements
-            (needs ``holdout``); with ``se_ibr`` also SPIRAL's duels against the planner.
-        jobs: Processes that race SE-IBR's head-to-head pairings side by side (with ``se_ibr``), while this one
-            races the learned policies.
-        log: Progress messages.
+    runs: int | None = None
+    """Races per evaluation; the pipeline's (from its eval.json files) when None."""
+    seed: int | None = None
+    """Seed of the start placements; the pipeline's when None."""
+    device: str = "cpu"
+    """Device of the evaluations the report runs."""
+    se_ibr: bool = False
+    """Run the SE-IBR planner where no evaluation of it exists (minutes per scenario on a CPU)."""
+    cross_play: bool = True
+    """Compute the cross-play win-rate matrices (running what is missing)."""
+    airframe: AirframeCfg | None = None
+    """Airframe of the lap-time reference and of planner-only races; the pipeline's when None."""
+    holdout: tuple[int, int] | None = None
+    """``(runs, seed)`` of a held-out check: the learned approaches' self-matches and their head-to-head raced again
+    from other placements (cached under ``evals/holdout-*``); None: no check."""
+    sides: str = "both"
+    """Head-to-head races: ``both`` races every placement from both sides, ``a`` with the row method on team A only
+    (see :func:`spiral.eval.evaluate.cross_play`)."""
+    separation: SeparationCfg | None = None
+    """A separation filter raced as an extra row under each table, with the same checkpoints (an opt-in deployment
+    layer, not part of the methods); None: no such rows."""
+    robustness: bool = True
+    """Add the sections of :mod:`spiral.eval.robustness` (final policy in every format, racing strangers, downwash),
+    raced from the held-out placements when given, else the protocol's."""
+    racing: RacingCfg | None = None
+    """Add the racing section (:mod:`spiral.eval.racing_section`), raced from the held-out placements (needs
+    ``holdout``); with ``se_ibr`` also SPIRAL's duels against the planner."""
+    bound_steps: int = 24
+    """Mean time steps per segment of the lap-time reference."""
+    command: str | None = None
+    """Command line quoted in results.md."""
+    jobs: int = 1
+    """Processes that race SE-IBR's head-to-head pairings side by side (with ``se_ibr``) while the report's own
+    process races the learned policies."""
 
-    Returns:
-        The path of ``results.md``.
-    """
-    run_root, out_dir = Path(run_root), Path(out_dir)
-    _check_racing(racing, holdout)
-    ev = _protocol(run_root, track, out_dir, runs=runs, seed=seed, device=device, se_ibr=se_ibr, airframe=airframe,
-                   holdout=holdout, sides=sides, log=log)
+    def __post_init__(self) -> None:
+        check_sides(self.sides)
+        if self.racing is not None and self.holdout is None:
+            raise UsageError("the racing section races the held-out placements: give holdout (runs, seed)")
+
+
+def build_report(run_root: Path, track: TrackSpec, out_dir: Path, options: ReportOptions = ReportOptions(), *,
+                 log: Callable[[str], None] = print) -> Path:
+    """Write ``results.md``, ``results.csv``, ``bound.json`` and the figures for ``run_root`` (a pipeline's run
+    folder, ``runs/<pipeline>``; ``track`` its track) into ``out_dir`` (created; the evaluations run here are cached
+    in ``out_dir/evals``), as ``options`` say; ``log`` takes progress messages. Returns the path of ``results.md``."""
+    run_root, out_dir, o = Path(run_root), Path(out_dir), options
+    ev = _protocol(run_root, track, out_dir, o, se_ibr=o.se_ibr, log=log)
     stages, runs, seed, airframe = ev.stages, ev.runs, ev.seed, ev.airframe
     table = {s: [ev.self_match(s, key) for key in APPROACHES] for s in SCENARIOS}
-    held_ev = None if holdout is None else ev.held_out(*holdout)
-    planner_pairings = _se_ibr_pairings(table) if se_ibr and (cross_play or robustness) else []
-    with crosses_in_workers(ev, planner_pairings, jobs=jobs):  # everything else meanwhile, in this process
-        held, filtered, rb, raced = _race_learned(ev, held_ev, table, stages, cross_play=cross_play,
-                                                  separation=separation, robustness=robustness, racing=racing)
-        bound = _write_files(out_dir, track, airframe, stages, table, bound_steps)
-    matrices = {s: _cross_matrix(ev, s, table[s]) for s in SCENARIOS} if cross_play else {}
-    if rb is not None and se_ibr:
+    held_ev = None if o.holdout is None else ev.held_out(*o.holdout)
+    planner_pairings = _se_ibr_pairings(table) if o.se_ibr and (o.cross_play or o.robustness) else []
+    with crosses_in_workers(ev, planner_pairings, jobs=o.jobs):  # everything else meanwhile, in this process
+        held, filtered, rb, raced = _race_learned(ev, held_ev, table, o)
+        bound = _write_files(out_dir, track, airframe, stages, table, o.bound_steps)
+    matrices = {s: _cross_matrix(ev, s, table[s]) for s in SCENARIOS} if o.cross_play else {}
+    if rb is not None and o.se_ibr:
         race_se_ibr(rb, ev)
-    if raced is not None and held_ev is not None and racing is not None and se_ibr:
-        race_planner_duels(held_ev, stages, racing, raced)
-    text = _markdown(run_root, track, stages, table, matrices, bound, runs=runs, seed=seed, command=command,
-                     held=held, sides=sides, filtered=filtered, separation=separation)
-    text = _with_racing(_with_robustness(text, rb, sides), raced, sides)
+    if raced is not None and held_ev is not None and o.racing is not None and o.se_ibr:
+        race_planner_duels(held_ev, stages, o.racing, raced)
+    text = _markdown(run_root, track, stages, _Tables(table, matrices, held, filtered), bound,
+                     replace(o, runs=runs, seed=seed))
+    text = _with_racing(_with_robustness(text, rb, o.sides), raced, o.sides)
     (out_dir / "results.md").write_text(text)
     return out_dir / "results.md"
 
 
-def race_learned_policies(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int | None = None,
-                          seed: int | None = None, device: str = "cpu", cross_play: bool = True,
-                          airframe: AirframeCfg | None = None, holdout: tuple[int, int] | None = None,
-                          sides: str = "both", separation: SeparationCfg | None = None, robustness: bool = True,
-                          racing: RacingCfg | None = None, log: Callable[[str], None] = print) -> Path:
+def race_learned_policies(run_root: Path, track: TrackSpec, out_dir: Path, options: ReportOptions = ReportOptions(),
+                          *, log: Callable[[str], None] = print) -> Path:
     """Race, on one torch thread, what :func:`build_report` races among the learned policies (cross-play, held-out,
-    filter and robustness races), caching it under ``out_dir/evals``, where a later report of ``run_root`` finds it
-    (arguments as :func:`build_report`'s). A pipeline runs it as a step of its own, beside the planner's pairings.
-    Returns that cache folder."""
-    _check_racing(racing, holdout)
-    ev = _protocol(Path(run_root), track, Path(out_dir), runs=runs, seed=seed, device=device, se_ibr=False,
-                   airframe=airframe, holdout=holdout, sides=sides, log=log)
+    filter, robustness and racing races), caching it under ``out_dir/evals``, where a later report of ``run_root``
+    finds it. A pipeline runs it as a step of its own, beside the planner's pairings. Returns that cache folder."""
+    ev = _protocol(Path(run_root), track, Path(out_dir), options, se_ibr=False, log=log)
     with one_torch_thread():
         table = {s: [ev.self_match(s, key) for key in APPROACHES if key in MODE_OF] for s in SCENARIOS}
-        _race_learned(ev, None if holdout is None else ev.held_out(*holdout), table, ev.stages,
-                      cross_play=cross_play, separation=separation, robustness=robustness, racing=racing)
+        holdout = options.holdout
+        _race_learned(ev, None if holdout is None else ev.held_out(*holdout), table, options)
     return ev.cache
 
 
-def race_planner_pairing(run_root: Path, track: TrackSpec, out_dir: Path, scenario: str, key: str, *,
-                         runs: int | None = None, seed: int | None = None, device: str = "cpu",
-                         airframe: AirframeCfg | None = None, sides: str = "both",
+def race_planner_pairing(run_root: Path, track: TrackSpec, out_dir: Path, scenario: str, key: str,
+                         options: ReportOptions = ReportOptions(), *,
                          log: Callable[[str], None] = print) -> dict[str, Any]:
     """Race, on one torch thread, learned approach ``key``'s head-to-head pairing with SE-IBR in ``scenario`` as
-    :func:`build_report` races it, caching it under ``out_dir/evals`` (arguments as :func:`build_report`'s). A
-    pipeline runs each pairing as a step of its own as soon as the stage it races has trained. Returns the approach's
-    entry (with SE-IBR's under ``opponent``)."""
-    ev = _protocol(Path(run_root), track, Path(out_dir), runs=runs, seed=seed, device=device, se_ibr=True,
-                   airframe=airframe, holdout=None, sides=sides, log=log)
+    :func:`build_report` races it, caching it under ``out_dir/evals``. A pipeline runs each pairing as a step of its
+    own as soon as the stage it races has trained. Returns the approach's entry (with SE-IBR's under ``opponent``)."""
+    ev = _protocol(Path(run_root), track, Path(out_dir), replace(options, holdout=None, racing=None), se_ibr=True,
+                   log=log)
     agent = ev.agent(scenario, key)
     if agent is None:
         raise FileNotFoundError(f"{run_root}: no best.pt of a {MODE_OF[key]}-mode {scenario} stage")
@@ -160,52 +163,44 @@ def race_planner_pairing(run_root: Path, track: TrackSpec, out_dir: Path, scenar
         return ev.cross(scenario, (key, agent), ("se-ibr", SE_IBR))
 
 
-def race_planner_racing(run_root: Path, track: TrackSpec, out_dir: Path, racing: RacingCfg, *,
-                        holdout: tuple[int, int], device: str = "cpu", airframe: AirframeCfg | None = None,
-                        sides: str = "both", log: Callable[[str], None] = print) -> dict[str, Any]:
-    """Race, on one torch thread, SPIRAL's duels against SE-IBR of the racing section as :func:`build_report` races
-    them, caching them under ``out_dir/evals`` (arguments as :func:`build_report`'s). A pipeline runs them as a step
-    of its own once SPIRAL's final stage has trained. Returns starts -> scenario -> SPIRAL's entry."""
-    ev = _protocol(Path(run_root), track, Path(out_dir), runs=None, seed=None, device=device, se_ibr=True,
-                   airframe=airframe, holdout=holdout, sides=sides, log=log)
+def race_planner_racing(run_root: Path, track: TrackSpec, out_dir: Path, options: ReportOptions, *,
+                        log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Race, on one torch thread, SPIRAL's duels against SE-IBR of the racing section (``options.racing``) as
+    :func:`build_report` races them, caching them under ``out_dir/evals``. A pipeline runs them as a step of its own
+    once SPIRAL's final stage has trained. Returns starts -> scenario -> SPIRAL's entry."""
+    if options.racing is None or options.holdout is None:
+        raise UsageError("race_planner_racing: options without a racing section")
+    ev = _protocol(Path(run_root), track, Path(out_dir), options, se_ibr=True, log=log)
     with one_torch_thread():
-        return race_planner_duels(ev.held_out(*holdout), ev.stages, racing)
+        return race_planner_duels(ev.held_out(*options.holdout), ev.stages, options.racing)
 
 
-def _protocol(run_root: Path, track: TrackSpec, out_dir: Path, *, runs: int | None, seed: int | None, device: str,
-              se_ibr: bool, airframe: AirframeCfg | None, holdout: tuple[int, int] | None, sides: str,
+def _protocol(run_root: Path, track: TrackSpec, out_dir: Path, options: ReportOptions, *, se_ibr: bool,
               log: Callable[[str], None]) -> Evaluations:
     """The run folder's evaluations with the report's races, seed, airframe and simulator, cached in ``out_dir``."""
-    check_sides(sides)
     out_dir.mkdir(parents=True, exist_ok=True)
     stages = find_stages(run_root)
-    runs, seed = run_protocol(stages, runs, seed)
-    if holdout is not None and holdout[1] == seed:
+    runs, seed = run_protocol(stages, options.runs, options.seed)
+    if options.holdout is not None and options.holdout[1] == seed:
         raise UsageError(f"holdout seed {seed} is the evaluation's own seed: held-out placements need another")
     stage_airframe, sim = run_setup(stages)
-    return Evaluations(run_root, track, out_dir, stages, runs=runs, seed=seed, device=device, se_ibr=se_ibr,
-                       airframe=airframe or stage_airframe, sim=sim, log=log, sides=sides)
+    return Evaluations(run_root, track, out_dir, stages, runs=runs, seed=seed, device=options.device, se_ibr=se_ibr,
+                       airframe=options.airframe or stage_airframe, sim=sim, log=log, sides=options.sides)
 
 
-def _race_learned(ev: Evaluations, held_ev: Evaluations | None, table: dict, stages: list[StageRun], *,
-                  cross_play: bool, separation: SeparationCfg | None, robustness: bool, racing: RacingCfg | None
+def _race_learned(ev: Evaluations, held_ev: Evaluations | None, table: dict, o: ReportOptions
                   ) -> tuple[dict[str, Any] | None, dict[str, list[RowResult]], Robustness | None, Racing | None]:
     """What the report races without the planner: the cross-play pairings among learned methods (into the cache),
     the held-out races, the filter rows, the robustness races and the racing section's races among learned
     methods."""
-    if cross_play:
+    if o.cross_play:
         for s in SCENARIOS:
             _cross_matrix(ev, s, table[s], planner=False)
     held = None if held_ev is None else _held_out(held_ev)
-    filtered = filter_rows(ev, separation) if separation is not None else {}
-    rb = race_learned(held_ev or ev, stages, separation) if robustness else None
-    raced = race_racing(held_ev, stages, racing) if racing is not None and held_ev is not None else None
+    filtered = filter_rows(ev, o.separation) if o.separation is not None else {}
+    rb = race_learned(held_ev or ev, ev.stages, o.separation) if o.robustness else None
+    raced = race_racing(held_ev, ev.stages, o.racing) if o.racing is not None and held_ev is not None else None
     return held, filtered, rb, raced
-
-
-def _check_racing(racing: RacingCfg | None, holdout: tuple[int, int] | None) -> None:
-    if racing is not None and holdout is None:
-        raise UsageError("the racing section races the held-out placements: give holdout (runs, seed)")
 
 
 def _write_files(out_dir: Path, track: TrackSpec, airframe: AirframeCfg, stages: list[StageRun], table: dict,
@@ -341,10 +336,26 @@ _FIGURES_HEADING = "## Lap-time reference"
 """The robustness sections go before this heading."""
 
 
-def _markdown(run_root: Path, track: TrackSpec, stages: list[StageRun], table: dict[str, list[RowResult]],
-              matrices: dict[str, Any], bound: LapBound, *, runs: int, seed: int, command: str | None,
-              held: dict[str, Any] | None = None, sides: str = "both",
-              filtered: dict[str, list[RowResult]] | None = None, separation: SeparationCfg | None = None) -> str:
+@dataclass
+class _Tables:
+    """What the report's own sections show."""
+
+    table: dict[str, list[RowResult]]
+    """Scenario -> the paper's rows."""
+    matrices: dict[str, Any]
+    """Scenario -> cross-play matrix (empty without cross-play)."""
+    held: dict[str, Any] | None
+    """The held-out check, when raced."""
+    filtered: dict[str, list[RowResult]]
+    """Scenario -> the rows raced with the separation filter."""
+
+
+def _markdown(run_root: Path, track: TrackSpec, stages: list[StageRun], tables: _Tables, bound: LapBound,
+              o: ReportOptions) -> str:
+    """``results.md`` without the robustness and racing sections; ``o`` with the races and seed actually used."""
+    table, matrices, held, filtered = tables.table, tables.matrices, tables.held, tables.filtered
+    runs, seed, command, sides, separation = o.runs, o.seed, o.command, o.sides, o.separation
+    assert runs is not None and seed is not None
     lines = [f"# Results: `{run_root.name}` on {track.name}", ""]
     lines += [f"Generated by `{command or f'spiral report {run_root}'}` at commit `{_git_commit()}` from "
               f"`{run_root}` (stages: {', '.join(s.name for s in stages) or 'none'}).",

@@ -22,6 +22,7 @@ from spiral.core.files import atomic_write_bytes
 from spiral.eval.evaluate import evaluate_methods
 from spiral.eval.report import (
     SCENARIOS,
+    ReportOptions,
     build_report,
     race_learned_policies,
     race_planner_pairing,
@@ -119,10 +120,8 @@ def _pairing_steps(plan: PlanView) -> list[Step]:
 
 def _pairing_fn(plan: PlanView, name: str, scenario: str, key: str):
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
-        ev = plan.spec.evaluation
-        entry = race_planner_pairing(plan.run_root, plan.track, ctx.step_dir, scenario, key, runs=ev.runs,
-                                     seed=ev.seed, device=plan.spec.device, sides=ev.sides,
-                                     airframe=plan.airframe, log=ctx.log)
+        entry = race_planner_pairing(plan.run_root, plan.track, ctx.step_dir, scenario, key,
+                                     _report_options(plan), log=ctx.log)
         ctx.log(f"{name}: win rate {entry['win_rate']:.2f}, success {entry['success_ratio']:.2f} against SE-IBR")
         return {}, {"win_rate": entry["win_rate"], "success_ratio": entry["success_ratio"]}
     return run
@@ -146,27 +145,26 @@ def _planner_racing_steps(plan: PlanView) -> list[Step]:
     section = {"racing": racing, **ev.model_dump(include={"holdout_seed", "sides"})}
 
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
-        duels = race_planner_racing(plan.run_root, plan.track, ctx.step_dir, racing,
-                                    holdout=(ev.holdout_runs, ev.holdout_seed), device=plan.spec.device,
-                                    airframe=plan.airframe, sides=ev.sides, log=ctx.log)
+        duels = race_planner_racing(plan.run_root, plan.track, ctx.step_dir, _report_options(plan), log=ctx.log)
         info = {f"{starts}-{s}": entry["win_rate"] for starts, by in duels.items() for s, entry in by.items()}
         ctx.log(f"{PLANNER_RACING_STEP}: SPIRAL's win rate against SE-IBR {info}")
         return {}, info
     return [Step(PLANNER_RACING_STEP, run, [f"train:{final}"], section)]
 
 
-def _report_options(plan: PlanView) -> dict[str, Any]:
-    """The arguments that :func:`build_report` and :func:`race_learned_policies` take alike, from the pipeline."""
+def _report_options(plan: PlanView) -> ReportOptions:
+    """The report's options from the pipeline's ``evaluation`` and ``report``."""
     cfg, ev = plan.spec.report, plan.spec.evaluation
-    return {"runs": ev.runs, "seed": ev.seed, "device": plan.spec.device, "cross_play": cfg.cross_play,
-            "holdout": (ev.holdout_runs, ev.holdout_seed) if ev.holdout_runs else None, "sides": ev.sides,
-            "separation": cfg.separation, "robustness": cfg.robustness, "racing": cfg.racing,
-            "airframe": plan.airframe}
+    return ReportOptions(runs=ev.runs, seed=ev.seed, device=plan.spec.device, se_ibr=cfg.se_ibr,
+                         cross_play=cfg.cross_play, airframe=plan.airframe, sides=ev.sides,
+                         holdout=(ev.holdout_runs, ev.holdout_seed) if ev.holdout_runs else None,
+                         separation=cfg.separation, robustness=cfg.robustness, racing=cfg.racing,
+                         command=f"spiral run {plan.source}", jobs=REPORT_JOBS)
 
 
 def _learned_fn(plan: PlanView):
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
-        race_learned_policies(plan.run_root, plan.track, ctx.step_dir, log=ctx.log, **_report_options(plan))
+        race_learned_policies(plan.run_root, plan.track, ctx.step_dir, _report_options(plan), log=ctx.log)
         return {}, {}
     return run
 
@@ -174,9 +172,7 @@ def _learned_fn(plan: PlanView):
 def _report_fn(plan: PlanView):
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
         with one_torch_thread():  # all is raced by the steps before; anything left races as they race it
-            results = build_report(plan.run_root, plan.track, ctx.step_dir, se_ibr=plan.spec.report.se_ibr,
-                                   jobs=REPORT_JOBS, command=f"spiral run {plan.source}", log=ctx.log,
-                                   **_report_options(plan))
+            results = build_report(plan.run_root, plan.track, ctx.step_dir, _report_options(plan), log=ctx.log)
         ctx.log(f"report: {results}")
         return {"results": results, "csv": results.with_name("results.csv")}, {}
     return run

@@ -6,6 +6,7 @@ import csv
 import json
 import shutil
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -13,7 +14,14 @@ import torch
 
 from spiral.config import AIRFRAMES, SeparationCfg, SimCfg, TrackSpec
 from spiral.config.pipeline import RacingCfg
-from spiral.eval.report import _flight_stack, build_report, find_stages, race_learned_policies, race_planner_pairing
+from spiral.eval.report import (
+    ReportOptions,
+    _flight_stack,
+    build_report,
+    find_stages,
+    race_learned_policies,
+    race_planner_pairing,
+)
 from spiral.eval.runs import Evaluations, crosses_in_workers, run_setup
 from tests.eval.conftest import tiny_stage
 
@@ -50,7 +58,7 @@ def test_report_builds_tables_figures_and_csv_from_a_tiny_run(sprint, tiny_check
     root, out = tmp_path / "runs" / "tiny", tmp_path / "report"
     fake_run(root, sprint, tiny_checkpoint)
     logs: list[str] = []
-    md_path = build_report(root, sprint, out, bound_steps=8, log=logs.append)
+    md_path = build_report(root, sprint, out, ReportOptions(bound_steps=8), log=logs.append)
     md = md_path.read_text()
     bound = json.loads((out / "bound.json").read_text())["lap_time"]
 
@@ -88,7 +96,7 @@ def test_report_builds_tables_figures_and_csv_from_a_tiny_run(sprint, tiny_check
         assert (out / name).read_bytes()[:8] == PNG
 
     again: list[str] = []
-    second = build_report(root, sprint, out, bound_steps=8, log=again.append).read_text()
+    second = build_report(root, sprint, out, ReportOptions(bound_steps=8), log=again.append).read_text()
     assert second.split("\n")[3:] == md.split("\n")[3:]  # line 3 names the git commit, which others may move
     assert again == []
 
@@ -113,7 +121,8 @@ def test_report_races_the_learned_policies_again_from_held_out_placements(sprint
     root, out = tmp_path / "runs" / "tiny", tmp_path / "report"
     fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("1v1-noselfplay", "1v1", "frozen")))
     logs: list[str] = []
-    md = build_report(root, sprint, out, bound_steps=8, cross_play=False, holdout=(3, 7), log=logs.append).read_text()
+    md = build_report(root, sprint, out,
+                      ReportOptions(bound_steps=8, cross_play=False, holdout=(3, 7)), log=logs.append).read_text()
 
     assert "report: running holdout-self-1v1-spiral (3 races, seed 7)" in logs  # not the eval.json of seed 0
     self_1v1 = json.loads((out / "evals" / "holdout-self-1v1-spiral.json").read_text())
@@ -131,7 +140,7 @@ def test_report_races_the_learned_policies_again_from_held_out_placements(sprint
     assert "(seed 7)" in section and "protocol's placements (seed 0)" in section
 
     with pytest.raises(ValueError, match="holdout seed 0"):
-        build_report(root, sprint, out, bound_steps=8, cross_play=False, holdout=(3, 0))
+        build_report(root, sprint, out, ReportOptions(bound_steps=8, cross_play=False, holdout=(3, 0)))
 
 
 def test_report_races_each_pairing_once_when_both_sides_are_raced(sprint, tiny_checkpoint, tmp_path):
@@ -139,7 +148,7 @@ def test_report_races_each_pairing_once_when_both_sides_are_raced(sprint, tiny_c
     root = tmp_path / "runs" / "tiny"
     fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("1v1-noselfplay", "1v1", "frozen")))
     logs: list[str] = []
-    md = build_report(root, sprint, tmp_path / "both", bound_steps=8, log=logs.append).read_text()
+    md = build_report(root, sprint, tmp_path / "both", ReportOptions(bound_steps=8), log=logs.append).read_text()
     crosses = sorted(line.split("running ")[1].split(" (")[0] for line in logs if "cross-1v1" in line)
     assert crosses == ["cross-1v1-noselfplay-vs-noselfplay", "cross-1v1-spiral-vs-noselfplay",
                        "cross-1v1-spiral-vs-spiral"]
@@ -149,7 +158,7 @@ def test_report_races_each_pairing_once_when_both_sides_are_raced(sprint, tiny_c
     assert duel["sides"] == "both" and duel["races"] == 4
     duel["methods"]["spiral"].update(win_rate=0.75, loss_rate=0.25, draws=0.0)  # the hovering policies never finish
     cached.write_text(json.dumps(duel))
-    md = build_report(root, sprint, tmp_path / "both", bound_steps=8, log=logs.append).read_text()
+    md = build_report(root, sprint, tmp_path / "both", ReportOptions(bound_steps=8), log=logs.append).read_text()
     rows = md[md.index("### 1v1"):].splitlines()
     spiral_row = next(r for r in rows if r.startswith("| PPO Selfplay (SPIRAL) |"))
     other_row = next(r for r in rows if r.startswith("| PPO No Selfplay |"))
@@ -157,11 +166,12 @@ def test_report_races_each_pairing_once_when_both_sides_are_raced(sprint, tiny_c
     assert other_row.split(" | ")[1] == "0.25 (draws 0.00)"
 
     logs.clear()
-    md = build_report(root, sprint, tmp_path / "a", bound_steps=8, sides="a", log=logs.append).read_text()
+    md = build_report(root, sprint, tmp_path / "a",
+                      ReportOptions(bound_steps=8, sides="a"), log=logs.append).read_text()
     assert sum("cross-1v1" in line for line in logs) == 4
     assert "the row method flies team A's start slots in all 2 races" in md
     with pytest.raises(ValueError, match="sides"):
-        build_report(root, sprint, tmp_path / "a", bound_steps=8, sides="swap")
+        build_report(root, sprint, tmp_path / "a", ReportOptions(bound_steps=8, sides="swap"))
 
 
 def test_report_races_the_filter_rows_final_policies_strangers_and_downwash(sprint, tiny_checkpoint, tmp_path):
@@ -172,7 +182,8 @@ def test_report_races_the_filter_rows_final_policies_strangers_and_downwash(spri
     fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("1v1-noselfplay", "1v1", "frozen"),
                                                     ("2v2", "2v2", "pool")))
     separation = SeparationCfg(distance=0.25, horizon_s=0.4, gain=1.5)
-    md = build_report(root, sprint, out, bound_steps=8, cross_play=False, holdout=(2, 5), separation=separation,
+    md = build_report(root, sprint, out,
+                      ReportOptions(bound_steps=8, cross_play=False, holdout=(2, 5), separation=separation),
                       log=lambda _: None).read_text()
     evals = out / "evals"
     filtered = json.loads((evals / "self-1v1-spiral-filter.json").read_text())
@@ -225,8 +236,9 @@ def test_racing_section_races_final_policies_over_laps_from_box_and_track_ahead_
     fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("1v1-noselfplay", "1v1", "frozen"),
                                                     ("2v2", "2v2", "pool")))
     racing = RacingCfg(laps=2)
-    md = build_report(root, sprint, out, bound_steps=8, cross_play=False, robustness=False, holdout=(2, 5),
-                      racing=racing, log=lambda _: None).read_text()
+    md = build_report(root, sprint, out,
+                      ReportOptions(bound_steps=8, cross_play=False, robustness=False, holdout=(2, 5), racing=racing),
+                      log=lambda _: None).read_text()
     evals = out / "evals"
     box = json.loads((evals / "racing-2laps-box-self-solo-spiral-final.json").read_text())
     track = json.loads((evals / "racing-2laps-track-self-solo-spiral-final.json").read_text())
@@ -247,7 +259,7 @@ def test_racing_section_races_final_policies_over_laps_from_box_and_track_ahead_
     assert "against SE-IBR" not in section
 
     with pytest.raises(ValueError, match="held-out placements"):
-        build_report(root, sprint, out, bound_steps=8, cross_play=False, racing=racing)
+        build_report(root, sprint, out, ReportOptions(bound_steps=8, cross_play=False, racing=racing))
 
 
 def test_racing_section_races_spirals_duels_against_se_ibr_with_the_planner(sprint, tiny_checkpoint, tmp_path):
@@ -256,8 +268,10 @@ def test_racing_section_races_spirals_duels_against_se_ibr_with_the_planner(spri
     root, out = tmp_path / "runs" / "tiny", tmp_path / "report"
     fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("2v2", "2v2", "pool")))
     racing = RacingCfg(laps=2, starts=["box"], planner_runs=1)
-    md = build_report(root, sprint, out, bound_steps=8, cross_play=False, robustness=False, holdout=(2, 5),
-                      racing=racing, se_ibr=True, log=lambda _: None).read_text()
+    md = build_report(root, sprint, out,
+                      ReportOptions(bound_steps=8, cross_play=False, robustness=False, holdout=(2, 5), racing=racing,
+                                    se_ibr=True),
+                      log=lambda _: None).read_text()
     duel = json.loads((out / "evals" / "racing-2laps-box-cross-1v1-spiral-vs-se-ibr.json").read_text())
     assert (duel["runs"], duel["races"], duel["seed"], duel["laps"]) == (1, 2, 5, 2)
     section = md[md.index("## Racing: 2-lap races"):md.index("## Two-drone (1v1) race")]
@@ -271,8 +285,8 @@ def test_report_races_se_ibr_in_both_tables_and_prints_its_planning_cost(sprint,
     root = tmp_path / "runs" / "tiny"
     fake_run(root, sprint, tiny_checkpoint)
     logs: list[str] = []
-    md = build_report(root, sprint, tmp_path / "out", bound_steps=8, se_ibr=True, robustness=False, jobs=2,
-                      log=logs.append).read_text()
+    md = build_report(root, sprint, tmp_path / "out",
+                      ReportOptions(bound_steps=8, se_ibr=True, robustness=False, jobs=2), log=logs.append).read_text()
     for scenario in ("1v1", "2v2"):
         table = md[md.index(f"({scenario}) "):md.index("## ", md.index(f"({scenario}) "))]
         row = next(r for r in table.splitlines() if r.startswith("| SE-IBR (Baseline) |"))
@@ -293,24 +307,26 @@ def test_a_report_finds_what_steps_raced_ahead_in_the_run_folder_and_writes_the_
     folder (as a pipeline's steps race them), are found by the report: it races nothing and writes the results.md of
     a report that raced everything itself."""
     stages = (*STAGES, ("1v1-noselfplay", "1v1", "frozen"), ("2v2", "2v2", "pool"))
-    options = {"bound_steps": 8, "holdout": (2, 5), "separation": SeparationCfg(distance=0.25, horizon_s=0.4, gain=1.5)}
+    options = ReportOptions(bound_steps=8, holdout=(2, 5), separation=SeparationCfg(distance=0.25, horizon_s=0.4,
+                                                                                      gain=1.5))
     reference_root, root = tmp_path / "alone" / "tiny", tmp_path / "runs" / "tiny"
     for folder in (reference_root, root):
         fake_run(folder, sprint, tiny_checkpoint, stages=stages)
-    reference = build_report(reference_root, sprint, reference_root / "report", se_ibr=True, jobs=2,
-                             log=lambda _: None, **options).read_text()
+    reference = build_report(reference_root, sprint, reference_root / "report", replace(options, se_ibr=True, jobs=2),
+                             log=lambda _: None).read_text()
     for scenario in ("1v1", "2v2"):  # the planner's self-matches, as the pipeline's eval:se-ibr step writes them
         (root / "eval-se-ibr").mkdir(exist_ok=True)
         shutil.copyfile(reference_root / "report" / "evals" / f"self-{scenario}-se-ibr.json",
                         root / "eval-se-ibr" / f"eval-{scenario}.json")
-    race_learned_policies(root, sprint, root / "eval-report", holdout=(2, 5), separation=options["separation"],
+    race_learned_policies(root, sprint, root / "eval-report", ReportOptions(holdout=(2, 5),
+                                                                          separation=options.separation),
                           log=lambda _: None)
     for name, scenario, mode in stages:
         key = "spiral" if mode == "pool" else "noselfplay"
         entry = race_planner_pairing(root, sprint, root / f"eval-se-ibr-vs-{name}", scenario, key, log=lambda _: None)
         assert {"win_rate", "opponent"} <= set(entry)
     logs: list[str] = []
-    md = build_report(root, sprint, root / "report", se_ibr=True, jobs=2, log=logs.append, **options).read_text()
+    md = build_report(root, sprint, root / "report", replace(options, se_ibr=True, jobs=2), log=logs.append).read_text()
     assert not [line for line in logs if line.startswith("report: running")]
     # the same report but for its list of sources: each number now read from the folder it was raced in
     head, sources = md.split("## Sources")
