@@ -187,3 +187,11 @@ def test_an_error_that_is_not_the_users_keeps_its_traceback(monkeypatch):
                                  "--runs", "1"])
     assert isinstance(result.exception, ValueError) and not isinstance(result.exception, UsageError)
     assert "Error:" not in result.output
+
+
+def test_report_refuses_a_racing_section_without_held_out_placements(tmp_path):
+    """`spiral report --racing-laps 3` races the held-out placements: without --holdout-runs it is one Error line."""
+    result = runner.invoke(app, ["report", str(tmp_path), "--racing-laps", "3", "--track",
+                                 str(ROOT / "tracks" / "oval4.yaml")])
+    assert result.exit_code == 1
+    assert "Error: the racing section races the held-out placements" in result.output
