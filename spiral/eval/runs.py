@@ -276,7 +276,6 @@ class Evaluations:
         atomic_write_bytes(path, (json.dumps(data, indent=2) + "\n").encode())  # other steps may be reading the run
         return data, path
 
-
     def _flight(self, flight: FlightOverride | None) -> FlightOverride | None:
         """``flight`` with these evaluations' starts."""
         if self.starts == "box":
