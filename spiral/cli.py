@@ -16,6 +16,7 @@ from pydantic import ValidationError
 
 from spiral.config import KINDS, PipelineSpec, SpecError, load_pipeline, load_spec, load_track
 from spiral.config.errors import format_validation_error
+from spiral.config.pipeline import RacingCfg
 from spiral.core.device import check_device
 from spiral.core.errors import UsageError
 from spiral.core.numerics import cpu_target
@@ -34,6 +35,8 @@ F = TypeVar("F", bound=Callable[..., Any])
 Device = Annotated[str | None, typer.Option("--device", help="cpu or cuda:N (default: the pipeline's)")]
 Laps = Annotated[int | None, typer.Option("--laps", min=1, help="Laps of each race (default: the track's; its time "
                                           "limit scaled to them)")]
+PLANNER_RUNS = RacingCfg.model_fields["planner_runs"].default
+"""The racing section's default placements of SPIRAL's duels against SE-IBR."""
 DeviceOpt = Annotated[str, typer.Option("--device", help="cpu or cuda:N")]
 """A command's device; its body checks it first (``check_device``), so a missing GPU is one ``Error:`` line."""
 JsonOut = Annotated[Path | None, typer.Option("--json", help="Also write the numbers as JSON to this file")]
@@ -407,14 +410,13 @@ def report(
         "from the start box and track starts (needs --holdout-runs; 0: none)")] = 0,
     planner_runs: Annotated[int, typer.Option(
         "--planner-runs", min=0,
-        help="Placements of the racing section's 1v1 duels against SE-IBR (with --se-ibr)")] = 8,
+        help="Placements of the racing section's 1v1 duels against SE-IBR (with --se-ibr)")] = PLANNER_RUNS,
     jobs: Annotated[int, typer.Option("--jobs", "-j", min=1, help="Processes racing SE-IBR's head-to-head "
                                       "pairings side by side (with --se-ibr)")] = 1,
     device: DeviceOpt = "cpu",
 ) -> None:
     """Write results.md (the paper's tables, cross-play, lap-time reference), results.csv and figures."""
     device = check_device(device)
-    from spiral.config.pipeline import RacingCfg
     from spiral.eval.evaluate import KEEP, parse_separation
     from spiral.eval.report import ReportOptions, build_report, track_of_run
 
@@ -434,7 +436,8 @@ def report(
     racing = None
     if racing_laps:
         racing = RacingCfg(laps=racing_laps, planner_runs=planner_runs)
-        command += f" --racing-laps {racing_laps}" + (f" --planner-runs {planner_runs}" if planner_runs != 8 else "")
+        command += f" --racing-laps {racing_laps}" + (
+            f" --planner-runs {planner_runs}" if planner_runs != PLANNER_RUNS else "")
     options = ReportOptions(runs=runs, device=device, se_ibr=se_ibr, command=command, sides=sides,
                             holdout=(holdout_runs, holdout_seed) if holdout_runs else None,
                             separation=filter_row, robustness=robustness, racing=racing, jobs=jobs)  # type: ignore[arg-type]

@@ -35,6 +35,14 @@ class Racing:
     """Starts -> scenario -> opponent approach -> SPIRAL's entry against it (the opponent's under ``opponent``)."""
     planner_runs: int = 0
 
+    def add_planner_duels(self, duels: dict[str, dict[str, dict[str, Any]]], runs: int) -> None:
+        """Add SPIRAL's duels against SE-IBR (starts -> scenario -> entry, :func:`race_planner_duels`), raced from
+        ``runs`` placements."""
+        for starts, by_scenario in duels.items():
+            for scenario, entry in by_scenario.items():
+                self.duels.setdefault(starts, {}).setdefault(scenario, {})["se-ibr"] = entry
+        self.planner_runs = runs
+
 
 def _variants(held: Evaluations, cfg: RacingCfg, runs: int | None = None) -> dict[str, Evaluations]:
     return {starts: held.racing(runs or held.runs, held.seed, cfg.laps, starts) for starts in cfg.starts}
@@ -57,22 +65,16 @@ def race_racing(held: Evaluations, stages: list[StageRun], cfg: RacingCfg) -> Ra
     return out
 
 
-def race_planner_duels(held: Evaluations, stages: list[StageRun], cfg: RacingCfg,
-                       racing: Racing | None = None) -> dict[str, dict[str, dict[str, Any]]]:
+def race_planner_duels(held: Evaluations, stages: list[StageRun], cfg: RacingCfg
+                       ) -> dict[str, dict[str, dict[str, Any]]]:
     """SPIRAL's final policy against SE-IBR in ``cfg.planner_formats``, from ``cfg.planner_runs`` placements of
-    ``held``'s seed and every start of ``cfg`` (into ``racing``'s duels when given): starts -> scenario -> SPIRAL's
-    entry."""
+    ``held``'s seed and every start of ``cfg``: starts -> scenario -> SPIRAL's entry."""
     final = final_stages(stages).get("spiral")
     out: dict[str, dict[str, dict[str, Any]]] = {}
     if final is None or cfg.planner_runs == 0:
         return out
     for starts, ev in _variants(held, cfg, cfg.planner_runs).items():
         out[starts] = {s: ev.cross(s, ("spiral", str(final.best)), ("se-ibr", SE_IBR)) for s in cfg.planner_formats}
-        if racing is not None:
-            for scenario, entry in out[starts].items():
-                racing.duels.setdefault(starts, {}).setdefault(scenario, {})["se-ibr"] = entry
-    if racing is not None:
-        racing.planner_runs = cfg.planner_runs
     return out
 
 

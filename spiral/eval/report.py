@@ -127,7 +127,7 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, options: Repor
     if rb is not None and o.se_ibr:
         race_se_ibr(rb, ev)
     if raced is not None and held_ev is not None and o.racing is not None and o.se_ibr:
-        race_planner_duels(held_ev, stages, o.racing, raced)
+        raced.add_planner_duels(race_planner_duels(held_ev, stages, o.racing), o.racing.planner_runs)
     text = _markdown(run_root, track, stages, _Tables(table, matrices, held, filtered), bound,
                      replace(o, runs=runs, seed=seed))
     text = _with_racing(_with_robustness(text, rb, o.sides), raced, o.sides)

@@ -9,7 +9,7 @@ from typing import Any
 from spiral.config.env import SeparationCfg
 from spiral.core.scenario import SCENARIO_DRONES
 from spiral.eval.evaluate import SE_IBR, FlightOverride
-from spiral.eval.runs import MODE_OF, Evaluations, RowResult, StageRun
+from spiral.eval.runs import MODE_OF, Evaluations, RowResult, StageRun, final_stage
 
 __all__ = ["FORMATS", "Robustness", "filter_rows", "final_stages", "race_learned", "race_se_ibr", "robustness_markdown"]
 
@@ -42,13 +42,10 @@ class Robustness:
 def final_stages(stages: list[StageRun]) -> dict[str, StageRun]:
     """Each learned approach's final policy: the stage published under a name (``publish_as``), else its last
     stage."""
-    out = {}
-    for key, mode in MODE_OF.items():
-        own = [s for s in stages if s.mode == mode and s.best.is_file()]
-        published = [s for s in own if s.spec["stage"].get("publish_as")]
-        if published or own:
-            out[key] = (published or own)[-1]
-    return out
+    trained = {s.name: s for s in stages if s.best.is_file()}
+    listed = [(s.name, s.mode, bool(s.spec["stage"].get("publish_as"))) for s in trained.values()]
+    names = {key: final_stage(listed, mode) for key, mode in MODE_OF.items()}
+    return {key: trained[name] for key, name in names.items() if name is not None}
 
 
 def filter_rows(ev: Evaluations, separation: SeparationCfg) -> dict[str, list[RowResult]]:

@@ -32,6 +32,7 @@ __all__ = [
     "StageRun",
     "approach_stage",
     "crosses_in_workers",
+    "final_stage",
     "find_stages",
     "load_json",
     "one_torch_thread",
@@ -83,6 +84,14 @@ def approach_stage(stages: Iterable[tuple[str, str, str]], scenario: str, key: s
     found = sorted((name not in (scenario, f"{scenario}-noselfplay"), name)
                    for name, stage_scenario, mode in stages if stage_scenario == scenario and mode == MODE_OF[key])
     return found[0][1] if found else None
+
+
+def final_stage(stages: Iterable[tuple[str, str, bool]], mode: str) -> str | None:
+    """Name of the stage whose best is the final policy of self-play ``mode``, among ``stages`` given as ``(name,
+    self-play mode, published under a name)`` in curriculum order: the last published one, else the last one."""
+    own = [(name, published) for name, stage_mode, published in stages if stage_mode == mode]
+    chosen = [name for name, published in own if published] or [name for name, _ in own]
+    return chosen[-1] if chosen else None
 
 
 @contextlib.contextmanager

@@ -28,7 +28,7 @@ from spiral.eval.report import (
     race_planner_pairing,
     race_planner_racing,
 )
-from spiral.eval.runs import MODE_OF, approach_stage, one_torch_thread
+from spiral.eval.runs import MODE_OF, approach_stage, final_stage, one_torch_thread
 from spiral.pipeline.step import Step, StepContext
 
 __all__ = ["LEARNED_STEP", "PLANNER_RACING_STEP", "PLANNER_STEP", "report_steps"]
@@ -127,19 +127,12 @@ def _pairing_fn(plan: PlanView, name: str, scenario: str, key: str):
     return run
 
 
-def _final_stage(plan: PlanView, mode: str) -> str | None:
-    """The stage of self-play ``mode`` whose best is the approach's final policy: the last one published under a
-    name, else the last one (as :func:`spiral.eval.robustness.final_stages` finds it in a run folder)."""
-    own = [s for s in plan.spec.stages if s.selfplay.mode == mode]
-    published = [s for s in own if s.publish_as]
-    return (published or own)[-1].name if own else None
-
-
 def _planner_racing_steps(plan: PlanView) -> list[Step]:
     """SPIRAL's duels against SE-IBR for the racing section, once SPIRAL's final stage has trained (none without a
     racing section, planner races or a SPIRAL stage)."""
     racing, ev = plan.spec.report.racing, plan.spec.evaluation
-    final = _final_stage(plan, MODE_OF["spiral"])
+    final = final_stage(((s.name, s.selfplay.mode, bool(s.publish_as)) for s in plan.spec.stages),
+                        MODE_OF["spiral"])
     if racing is None or not racing.planner_runs or final is None:
         return []
     section = {"racing": racing, **ev.model_dump(include={"holdout_seed", "sides"})}
