@@ -76,6 +76,13 @@ class PromotionCfg(StrictModel):
         "than max_success_drop below the best's is not promoted, so that the stage's best races every format it "
         "trains",
     )
+    track_starts: bool = Field(
+        default=False,
+        description="Also race the learner and the best in self-matches from track starts (every drone at a random "
+        "point between two gates; the stage's format and, with `formats`, each other format of its `mix`; `races` "
+        "races each, the same placements for both): a learner more than max_success_drop below the best's in one of "
+        "them is not promoted, so that the stage's best still races from anywhere on the track (not in the paper)",
+    )
 
 
 class SelfPlayCfg(StrictModel):

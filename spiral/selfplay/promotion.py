@@ -21,7 +21,7 @@ from spiral.selfplay.pool import Pool
 from spiral.train.runner import StageTrainer
 from spiral.train.selection import paired_scores
 
-__all__ = ["HeadToHead", "PromotionSelector", "elo_update", "head_to_head", "should_promote"]
+__all__ = ["HeadToHead", "PromotionSelector", "elo_update", "head_to_head", "self_match_envs", "should_promote"]
 
 
 @dataclass
@@ -67,8 +67,8 @@ def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[floa
     ``cfg.self_match``, self-match success not below the best's by more than that either). Safer (with
     ``cfg.self_match`` and ``cfg.self_match_gain``): self-match success at least ``self_match_gain`` above the
     best's over at least ``min_races`` races, head-to-head success not below the best's by more than
-    ``max_success_drop`` and win rate at least ``safer_min_win_rate``. Either way, given ``formats`` (format →
-    (learner, best) self-match success ratios in the stage's other formats), none of them more than
+    ``max_success_drop`` and win rate at least ``safer_min_win_rate``. Either way, given ``formats`` (key →
+    (learner, best) success ratios in the other self-matches of :func:`self_match_envs`), none of them more than
     ``max_success_drop`` below the best's.
     """
     if any(own < best - cfg.max_success_drop for own, best in (formats or {}).values()):
@@ -82,6 +82,27 @@ def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[floa
     safer = (cfg.self_match_gain is not None and enough and as_safe and own >= best + cfg.self_match_gain
              and result.win_rate >= cfg.safer_min_win_rate)
     return (faster and own >= best - cfg.max_success_drop) or safer
+
+
+def self_match_envs(stage: StageSpec, track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, *, device: str,
+                    seed: int) -> dict[str, RaceEnv]:
+    """The self-match races a promotion also weighs, by key: each other format of the stage's mix from the start box
+    (``promotion.formats``; key: the format) and, with ``promotion.track_starts``, the stage's format and those from
+    track starts (key: ``track-<format>``). Each has ``promotion.races`` worlds and a seed of its own."""
+    cfg = stage.selfplay.promotion
+    runs = [(fmt, "box") for fmt in sorted(stage.mix)] if cfg.formats else []
+    if cfg.track_starts:
+        runs += [(fmt, "track") for fmt in [stage.scenario, *(sorted(stage.mix) if cfg.formats else [])]]
+    envs = {}
+    for i, (fmt, starts) in enumerate(runs):
+        env_cfg = stage.env
+        if starts == "track":
+            env_cfg = env_cfg.model_copy(update={"episode": env_cfg.episode.model_copy(update={"eval_starts": "track"})})
+        drones = SCENARIO_DRONES[fmt]
+        envs[fmt if starts == "box" else f"track-{fmt}"] = RaceEnv(
+            track, airframe, sim, env_cfg, world_count=cfg.races, drones_per_world=drones,
+            learner_slots=list(range(drones)), device=device, seed=stream_seed(seed, "formats", i), training=False)
+    return envs
 
 
 def elo_update(rating_a: float, rating_b: float, score_a: float, k: float) -> tuple[float, float]:
@@ -109,19 +130,15 @@ class PromotionSelector:
                            learner_slots=stage.learner_slots(), device=device, seed=stream_seed(seed, "promotion"),
                            training=False)
         self.interval = self.cfg.interval
-        self.format_envs = {
-            fmt: RaceEnv(track, airframe, sim, stage.env, world_count=self.cfg.races,
-                         drones_per_world=SCENARIO_DRONES[fmt], learner_slots=list(range(SCENARIO_DRONES[fmt])),
-                         device=device, seed=stream_seed(seed, "formats", i), training=False)
-            for i, fmt in enumerate(sorted(stage.mix))} if self.cfg.formats else {}
+        self.format_envs = self_match_envs(stage, track, airframe, sim, device=device, seed=seed)
 
     def __call__(self, trainer: StageTrainer, it: int) -> dict[str, float]:
         """Race the learner against the best and in a self-match; promote it when the rule holds."""
         own, best_own = trainer.selection.evaluate_pair(it, self.best)
         learner = trainer.selection.candidate_policy()
         result = head_to_head(self.env, learner, self.best)
-        formats = {fmt: tuple(score.success for score in paired_scores(env, learner, self.best))
-                   for fmt, env in self.format_envs.items()}
+        formats = {key: tuple(score.success for score in paired_scores(env, learner, self.best))
+                   for key, env in self.format_envs.items()}
         trainer.runner.alg.train_mode()
         learner_rating, best_rating = elo_update(self.best_rating, self.best_rating, result.score, self.cfg.elo_k)
         row = {"h2h/win_rate": result.win_rate, "h2h/draws": result.draws / max(result.races, 1),
@@ -129,8 +146,8 @@ class PromotionSelector:
                "h2h/promoted": 0.0, "eval/success": own.success,
                "eval/lap_time": own.lap_time if own.lap_time is not None else float("nan"),
                "eval/best_success": best_own.success}
-        for fmt, (mine, theirs) in formats.items():
-            row[f"formats/{fmt}_success"], row[f"formats/{fmt}_best_success"] = mine, theirs
+        for key, (mine, theirs) in formats.items():
+            row[f"formats/{key}_success"], row[f"formats/{key}_best_success"] = mine, theirs
         if should_promote(result, self.cfg, (own.success, best_own.success), formats):
             path = trainer.save_best(it)
             if self.pool is not None:

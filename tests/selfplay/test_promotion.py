@@ -9,6 +9,7 @@ import pytest
 
 from spiral.config import PromotionCfg, SimCfg, StageSpec
 from spiral.selfplay import HeadToHead, elo_update, run_stage, should_promote
+from spiral.selfplay.promotion import self_match_envs
 from tests.selfplay.helpers import CF2X, COMMON, PERMISSIVE
 
 
@@ -86,3 +87,25 @@ def test_promotion_with_formats_races_the_learner_and_the_best_in_each_other_for
     assert set(logged[True]) == {"formats/solo_success", "formats/solo_best_success"}
     assert all(v in (0.0, 0.25, 0.5, 0.75, 1.0) for v in logged[True].values())
     assert logged[False] == {}
+
+
+def test_promotion_with_track_starts_also_races_self_matches_from_the_track(line2):
+    """`promotion.track_starts` adds self-matches from track starts of the stage's format and, with `formats`, of
+    each other format of its mix; box self-matches of the other formats keep their seeds. A learner that wins its
+    duels but races 0.60 from the track where the best races 0.90 is not promoted."""
+    spec = {"name": "1v1", "scenario": "1v1", "iterations": 1, "mix": {"solo": 0.25}, **COMMON}
+
+    def envs(**promotion):
+        stage = StageSpec.model_validate({**spec, "selfplay": {"promotion": promotion}})
+        return self_match_envs(stage, line2, CF2X, SimCfg(), device="cpu", seed=0)
+
+    both = envs(formats=True, track_starts=True)
+    assert list(both) == ["solo", "track-1v1", "track-solo"]
+    assert [both[k].drones_per_world for k in both] == [1, 2, 1]
+    assert [both[k].cfg.episode.eval_starts for k in both] == ["box", "track", "track"]
+    assert both["solo"].generator.initial_seed() == envs(formats=True)["solo"].generator.initial_seed()
+    assert list(envs(track_starts=True)) == ["track-1v1"]
+    assert envs() == {}
+    cfg, win = PromotionCfg(max_success_drop=0.05), HeadToHead(64, 40, 20, 4, 0.98, 0.98)
+    assert not should_promote(win, cfg, (0.97, 0.96), {"track-1v1": (0.60, 0.90)})
+    assert should_promote(win, cfg, (0.97, 0.96), {"track-1v1": (0.88, 0.90)})
