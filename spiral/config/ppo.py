@@ -57,44 +57,50 @@ class PPOCfg(StrictModel):
 
     def to_rsl_rl(self) -> dict:
         """The ``train_cfg`` dictionary of rsl-rl's ``OnPolicyRunner``."""
-
-        def model(hidden: list[int], distribution: bool) -> dict:
-            cfg: dict = {
-                "class_name": "rsl_rl.models.MLPModel",
-                "hidden_dims": list(hidden),
-                "activation": self.activation,
-                "obs_normalization": self.obs_normalization,
-            }
-            if distribution:
-                cfg["distribution_cfg"] = {
-                    "class_name": "rsl_rl.modules.distribution.GaussianDistribution",
-                    "init_std": self.init_noise_std,
-                    "std_range": (self.min_noise_std, self.max_noise_std),
-                }
-                if self.bound_loss_coef > 0:  # the same Gaussian, its mean's gradient with the bound loss's
-                    cfg["distribution_cfg"].update(class_name="spiral.train.distribution:BoundedGaussianDistribution",
-                                                   bound_coef=self.bound_loss_coef)
-            return cfg
-
         return {
             "num_steps_per_env": self.num_steps_per_env,
             "save_interval": self.save_interval,
             "obs_groups": {"actor": ["policy"], "critic": ["critic"]},
-            "actor": model(self.actor_hidden_dims, distribution=True),
-            "critic": model(self.critic_hidden_dims, distribution=False),
-            "algorithm": {
-                "class_name": "rsl_rl.algorithms.PPO",
-                "num_learning_epochs": self.num_learning_epochs,
-                "num_mini_batches": self.num_mini_batches,
-                "clip_param": self.clip_param,
-                "gamma": self.gamma,
-                "lam": self.lam,
-                "value_loss_coef": self.value_loss_coef,
-                "entropy_coef": self.entropy_coef,
-                "learning_rate": self.learning_rate,
-                "max_grad_norm": self.max_grad_norm,
-                "schedule": self.schedule,
-                "desired_kl": self.desired_kl,
-                "use_mixed_precision": self.mixed_precision,
-            },
+            "actor": {**self._model(self.actor_hidden_dims), "distribution_cfg": self._distribution()},
+            "critic": self._model(self.critic_hidden_dims),
+            "algorithm": self._algorithm(),
+        }
+
+    def _model(self, hidden: list[int]) -> dict:
+        """rsl-rl's MLP of ``hidden`` layers, with this config's activation and observation normaliser."""
+        return {
+            "class_name": "rsl_rl.models.MLPModel",
+            "hidden_dims": list(hidden),
+            "activation": self.activation,
+            "obs_normalization": self.obs_normalization,
+        }
+
+    def _distribution(self) -> dict:
+        """The actor's Gaussian action noise."""
+        cfg: dict = {
+            "class_name": "rsl_rl.modules.distribution.GaussianDistribution",
+            "init_std": self.init_noise_std,
+            "std_range": (self.min_noise_std, self.max_noise_std),
+        }
+        if self.bound_loss_coef > 0:  # the same Gaussian, its mean's gradient with the bound loss's
+            cfg.update(class_name="spiral.train.distribution:BoundedGaussianDistribution",
+                       bound_coef=self.bound_loss_coef)
+        return cfg
+
+    def _algorithm(self) -> dict:
+        """rsl-rl's PPO with these hyperparameters."""
+        return {
+            "class_name": "rsl_rl.algorithms.PPO",
+            "num_learning_epochs": self.num_learning_epochs,
+            "num_mini_batches": self.num_mini_batches,
+            "clip_param": self.clip_param,
+            "gamma": self.gamma,
+            "lam": self.lam,
+            "value_loss_coef": self.value_loss_coef,
+            "entropy_coef": self.entropy_coef,
+            "learning_rate": self.learning_rate,
+            "max_grad_norm": self.max_grad_norm,
+            "schedule": self.schedule,
+            "desired_kl": self.desired_kl,
+            "use_mixed_precision": self.mixed_precision,
         }
