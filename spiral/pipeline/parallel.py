@@ -18,6 +18,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
@@ -76,20 +77,9 @@ def run_parallel(runner, todo: list[Step], fresh: set[str], jobs: int, *, cores:
                                             thread_share(cores, jobs, alone), log_dir)
                 pending.remove(step)
             time.sleep(POLL_S)
-            for name, proc in list(running.items()):
-                if proc.process.poll() is None:
-                    continue
-                proc.relay.join()
-                del running[name]
-                if proc.process.returncode == 0:
-                    done.append(name)
-                else:
-                    failed.append(proc)
+            _reap(running, done, failed)
     except KeyboardInterrupt:
-        for proc in running.values():
-            proc.process.terminate()
-        for proc in running.values():
-            proc.process.wait()
+        _stop(running.values())
         raise PipelineError(f"interrupted while running {', '.join(running)}\n"
                             f"resume with: spiral run {runner.path} --jobs {jobs}") from None
     if failed:
@@ -97,6 +87,27 @@ def run_parallel(runner, todo: list[Step], fresh: set[str], jobs: int, *, cores:
         raise PipelineError(f"step '{step.step.name}' failed (exit code {step.process.returncode}; its output: "
                             f"{step.log_path})\nresume with: spiral run {runner.path} --jobs {jobs}")
     return done
+
+
+def _reap(running: dict[str, StepProcess], done: list[str], failed: list[StepProcess]) -> None:
+    """Move the workers that have ended from ``running`` to ``done`` (exit code 0, by name) or ``failed``."""
+    for name, proc in list(running.items()):
+        if proc.process.poll() is None:
+            continue
+        proc.relay.join()
+        del running[name]
+        if proc.process.returncode == 0:
+            done.append(name)
+        else:
+            failed.append(proc)
+
+
+def _stop(workers: Collection[StepProcess]) -> None:
+    """Terminate ``workers`` and wait for them to exit."""
+    for proc in workers:
+        proc.process.terminate()
+    for proc in workers:
+        proc.process.wait()
 
 
 def _spawn(runner, step: Step, fresh: bool, threads: int, log_dir: Path) -> StepProcess:
