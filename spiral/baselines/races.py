@@ -94,15 +94,12 @@ def duel_statistics(track: TrackSpec, res: RaceResults, *, a: int = 0, b: int = 
     assert traj is not None, "duel statistics need recorded trajectories"
     step = (traj[1:] - traj[:-1]).norm(dim=-1).numpy()  # frozen (crashed or finished) drones do not move
     both = np.concatenate([np.ones((1, runs), bool), (step[:, :, a] > 0) & (step[:, :, b] > 0)])
-    sep = np.where(both, (traj[:, :, a] - traj[:, :, b]).norm(dim=-1).numpy(), np.inf).min(axis=0)
+    gap = np.where(both, (traj[:, :, a] - traj[:, :, b]).norm(dim=-1).numpy(), np.inf)  # (T, W), inf unless both fly
+    sep = gap.min(axis=0)
     prog = race_progress(track, traj)
     lead = prog[:, :, a] - prog[:, :, b]
-    sign = np.sign(np.where(np.abs(lead) < 0.1, 0.0, lead))
-    changes = []
-    for w in range(runs):
-        s = sign[:, w][sign[:, w] != 0]
-        changes.append(int((s[1:] != s[:-1]).sum()))
-    close = both & (np.where(both, (traj[:, :, a] - traj[:, :, b]).norm(dim=-1).numpy(), np.inf) < close_m)
+    changes = _lead_changes(lead)
+    close = both & (gap < close_m)
     lap_a, lap_b = lap[fin[:, a], a], lap[fin[:, b], b]
     return {
         "races": runs, "a_wins": int(a_wins.sum()), "b_wins": int(b_wins.sum()),
@@ -118,6 +115,17 @@ def duel_statistics(track: TrackSpec, res: RaceResults, *, a: int = 0, b: int = 
         "close_share": float(close.sum() / max(both.sum(), 1)),
         "a_ahead_when_close": float((lead[close] > 0).mean()) if close.any() else None,
     }
+
+
+def _lead_changes(lead: np.ndarray) -> list[int]:
+    """How often the lead changed in each race, from ``lead`` (T, W), the progress of one drone over the other's:
+    changes of its sign, ignoring swings under 0.1 m."""
+    sign = np.sign(np.where(np.abs(lead) < 0.1, 0.0, lead))
+    changes = []
+    for w in range(lead.shape[1]):
+        s = sign[:, w][sign[:, w] != 0]
+        changes.append(int((s[1:] != s[:-1]).sum()))
+    return changes
 
 
 def winners(res: RaceResults, *, a: int = 0, b: int = 1) -> np.ndarray:
