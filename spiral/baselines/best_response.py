@@ -42,7 +42,7 @@ import scipy.sparse as sp
 
 from spiral.baselines.tracking import integrate_plan
 
-__all__ = ["BestResponseQP", "PlanLimits", "RowData", "Solution"]
+__all__ = ["BestResponseQP", "PlanLimits", "RowData", "Solution", "SolverSettings"]
 
 _SOLVED = ("Solved", "AlmostSolved")
 _SLACK_WEIGHT = {"geometry": 5.0, "separation": 2.0, "dynamics": 1.0}
@@ -77,6 +77,28 @@ class PlanLimits:
     """Whether the target bounds are absolute positions (absolute action mode) rather than offsets."""
     jerk: float = float("inf")
     """Bound on the rate of change of the acceleration [m/s³] (the attitude loop turns the thrust gradually)."""
+
+
+@dataclass(frozen=True)
+class SolverSettings:
+    """How a best response is solved: the fallback's slack penalty and Clarabel's tolerance and refinement."""
+
+    soft_penalty: float = 1e3
+    """Linear penalty per unit of slack in the soft-constraint fallback."""
+    tol: float = 1e-7
+    """Clarabel's feasibility and gap tolerances."""
+    refine: bool = False
+    """Clarabel's iterative refinement."""
+
+    def to_clarabel(self) -> clarabel.DefaultSettings:
+        """Clarabel's settings: quiet, no presolve, these tolerances and refinement."""
+        settings = clarabel.DefaultSettings()
+        settings.verbose = False
+        settings.presolve_enable = False
+        settings.iterative_refinement_enable = self.refine
+        for name in ("tol_gap_abs", "tol_gap_rel", "tol_feas"):
+            setattr(settings, name, self.tol)
+        return settings
 
 
 @dataclass
@@ -167,16 +189,11 @@ class BestResponseQP:
     of the solve's time)."""
 
     def __init__(self, *, steps: int, others: int, dt: float, limits: PlanLimits, smooth: float, lo: np.ndarray,
-                 hi: np.ndarray, soft_penalty: float = 1e3, tol: float = 1e-7, refine: bool = False) -> None:
+                 hi: np.ndarray, solver: SolverSettings = SolverSettings()) -> None:
         self.N, self.O, self.dt, self.limits = steps, others, dt, limits
         self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
-        self.soft_penalty = soft_penalty
-        self.settings = clarabel.DefaultSettings()
-        self.settings.verbose = False
-        self.settings.presolve_enable = False
-        self.settings.iterative_refinement_enable = refine
-        for name in ("tol_gap_abs", "tol_gap_rel", "tol_feas"):
-            setattr(self.settings, name, tol)
+        self.soft_penalty = solver.soft_penalty
+        self.settings = solver.to_clarabel()
         N = steps
         self.n = 9 * N
         self.ip = np.arange(3 * N).reshape(N, 3)

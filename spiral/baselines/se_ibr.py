@@ -22,7 +22,7 @@ import torch
 from pydantic import Field
 from tensordict import TensorDict
 
-from spiral.baselines.best_response import BestResponseQP, PlanLimits
+from spiral.baselines.best_response import BestResponseQP, PlanLimits, SolverSettings
 from spiral.baselines.centreline import Centreline
 from spiral.baselines.game import GameParams, Player, gate_row_table, iterate_best_responses
 from spiral.baselines.limits import PID_THRUST_FLOOR, flight_limits
@@ -140,22 +140,31 @@ class SEIBRPlanner:
         self.own_slots = set(range(env.drones_per_world) if own_slots is None else own_slots)
         """Slots this planner flies; the others are predicted in its game but flown by someone else."""
         self.cfg = SEIBRCfg(**{**(cfg.model_dump() if cfg is not None else {}), **overrides})
-        c, track, air = self.cfg, env.track, env.world.airframe
+        c, air = self.cfg, env.world.airframe
         self.N = max(2, round(c.horizon / c.dt))
         self.W, self.D = env.world_count, env.drones_per_world
         self.ctrl_dt = float(env.dt)
-        self.line = Centreline(track)
         self.kp, self.kd, self.ki = (np.asarray(x, float) for x in (air.pid.pos_p, air.pid.pos_d, air.pid.pos_i))
         self.limits = plan_limits(env, c)
         self.accel_lead = c.accel_lead if c.accel_lead is not None else flight_limits(
             air, env.cfg.action, gravity=env.world.sim.gravity).attitude_lag
         """How far ahead the acceleration feed-forward is read [s]."""
-        self.params = game_params(env, c, self.N)
+        self._init_track()
+        self._init_plans()
+
+    def _init_track(self) -> None:
+        """The track's centreline, the game's geometry and the arena the waypoints stay in."""
+        c, track = self.cfg, self.env.track
+        self.line = Centreline(track)
+        self.params = game_params(self.env, c, self.N)
         self.gate_table = gate_row_table(self.line, self.params)
-        margin = air.radius + c.wall_margin
+        margin = self.env.world.airframe.radius + c.wall_margin
         self.arena_lo, self.arena_hi = np.asarray(track.bounds.min, float), np.asarray(track.bounds.max, float)
         self.lo = np.asarray(track.bounds.min, float) + margin
         self.hi = np.asarray(track.bounds.max, float) - margin
+
+    def _init_plans(self) -> None:
+        """Plan, multiplier and planning-cost buffers, empty."""
         self.plans = np.zeros((self.W, self.D, self.N + 1, 3))
         """Latest plan p_0 … p_N of each drone (world-time ``plan_time`` at p_0)."""
         self.plan_v0 = np.zeros((self.W, self.D, 3))
@@ -228,10 +237,9 @@ class SEIBRPlanner:
         key = (w, s)
         if key not in self._qps:
             c = self.cfg
+            solver = SolverSettings(soft_penalty=c.soft_penalty, tol=c.solver_tol, refine=c.solver_refine)
             self._qps[key] = BestResponseQP(steps=self.N, others=self.D - 1, dt=c.dt, limits=self.limits,
-                                            smooth=c.smooth_weight, lo=self.lo, hi=self.hi,
-                                            soft_penalty=c.soft_penalty, tol=c.solver_tol,
-                                            refine=c.solver_refine)
+                                            smooth=c.smooth_weight, lo=self.lo, hi=self.hi, solver=solver)
         return self._qps[key]
 
     def _shifted(self, w: int, s: int, elapsed: float) -> tuple[np.ndarray, np.ndarray]:

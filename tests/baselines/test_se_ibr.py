@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from spiral.baselines import SEIBRPlanner, opponent_policy, planning_cost, se_ibr_policy
-from spiral.baselines.best_response import BestResponseQP, PlanLimits, RowData
+from spiral.baselines.best_response import BestResponseQP, PlanLimits, RowData, SolverSettings
 from spiral.baselines.game import Player, plan_phases, player_rows
 from spiral.baselines.tracking import integrate_plan
 from spiral.config import AIRFRAMES, EnvCfg, SimCfg, TrackSpec
@@ -101,7 +101,7 @@ def blocked_ahead(*, refine: bool = False) -> tuple[BestResponseQP, RowData]:
     limits = PlanLimits(thrust=20.0, tan_tilt=1.0, floor=3.0, gravity=9.81, drag=np.zeros(3), kp=np.full(3, 8.0),
                         kd=np.full(3, 4.0), target_lo=np.full(3, -2.0), target_hi=np.full(3, 2.0), jerk=60.0)
     qp = BestResponseQP(steps=n, others=2, dt=0.15, limits=limits, smooth=1e-3, lo=np.full(3, -10.0),
-                        hi=np.full(3, 10.0), refine=refine)
+                        hi=np.full(3, 10.0), solver=SolverSettings(refine=refine))
     q = np.zeros((n, 3))
     q[-1, 0] = -1.0  # progress along +x at the horizon
     coll_a = np.zeros((n, 2, 3))
