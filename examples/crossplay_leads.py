@@ -20,7 +20,7 @@ import torch
 from spiral.config import load_track
 from spiral.core.scenario import TEAMS
 from spiral.env import RaceResults
-from spiral.eval.evaluate import race_agents
+from spiral.eval.evaluate import RaceSet, race_agents
 from spiral.sim import COLLISION_KINDS
 from spiral.train import load_policy
 
@@ -52,7 +52,7 @@ def main() -> None:
     parser.add_argument("--passage", type=int, default=3, help="gate passage at which the leader is read")
     args = parser.parse_args()
 
-    res, winner = race_agents(load_track(args.track), args.scenario, args.runs, args.seed,
+    res, winner = race_agents(RaceSet(load_track(args.track), args.scenario, args.runs, args.seed),
                               load_policy(args.a), load_policy(args.b))
     if not 0 <= args.passage < res.split_time.shape[-1]:
         parser.error(f"--passage: the lap has gate passages 0..{res.split_time.shape[-1] - 1}")

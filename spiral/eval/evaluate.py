@@ -46,6 +46,17 @@ SE_IBR = "se-ibr"
 Agent = FrozenPolicy | str
 """A loaded method: a learned policy or :data:`SE_IBR`."""
 
+
+@dataclass(frozen=True)
+class RaceSet:
+    """Seeded evaluation races: ``runs`` races of ``scenario`` on ``track`` from the start placements of ``seed``,
+    the same for every method raced on them."""
+
+    track: TrackSpec
+    scenario: str
+    runs: int
+    seed: int
+
 __all__ = [
     "MIXED_SLOTS",
     "SE_IBR",
@@ -53,6 +64,7 @@ __all__ = [
     "Agent",
     "EvalLayout",
     "FlightOverride",
+    "RaceSet",
     "SlotPolicy",
     "check_sides",
     "cross_play",
@@ -223,48 +235,47 @@ def _check_compatible(a: FrozenPolicy, b: FrozenPolicy, *, same_inputs: bool = T
         raise UsageError("cross-play needs policies with the same action mapping")
 
 
-def race_agents(track: TrackSpec, scenario: str, runs: int, seed: int, agent: Agent, opponent: Agent | None = None,
-                *, device: str = "cpu", layout: EvalLayout | None = None, record: bool = False,
-                flight: FlightOverride | None = None,
+def race_agents(races: RaceSet, agent: Agent, opponent: Agent | None = None, *, device: str = "cpu",
+                layout: EvalLayout | None = None, record: bool = False, flight: FlightOverride | None = None,
                 planners: list | None = None) -> tuple[RaceResults, torch.Tensor | None]:
     """Race ``agent`` (self-match) or team ``agent`` against team ``opponent``; winners only in cross-play.
 
     ``planners``, when given, collects the planner policies that flew (for :func:`~spiral.baselines.planning_cost`).
     """
-    env, policy = setup_race(track, scenario, runs, seed, agent, opponent, device=device, layout=layout,
-                             flight=flight)
-    res = run_races(env, policy, record=record, teams=TEAMS[scenario])
+    env, policy = setup_race(races.track, races.scenario, races.runs, races.seed, agent, opponent, device=device,
+                             layout=layout, flight=flight)
+    teams = TEAMS[races.scenario]
+    res = run_races(env, policy, record=record, teams=teams)
     if planners is not None:
         planners.extend(p for p in (policy, env.opponent_policy) if isinstance(p, PlannerPolicy))
-    return res, race_winner(res.finished, res.lap_time, TEAMS[scenario]) if opponent is not None else None
+    return res, race_winner(res.finished, res.lap_time, teams) if opponent is not None else None
 
 
 def evaluate_policy(policy: FrozenPolicy, track: TrackSpec, scenario: str, runs: int, seed: int, *,
                     device: str = "cpu", record: bool = False) -> RaceResults:
     """Self-match races: every drone of every race runs ``policy``."""
-    return race_agents(track, scenario, runs, seed, policy, device=device, record=record)[0]
+    return race_agents(RaceSet(track, scenario, runs, seed), policy, device=device, record=record)[0]
 
 
-def cross_play(a: Agent, b: Agent, track: TrackSpec, scenario: str, runs: int, seed: int, *,
-               device: str = "cpu", layout: EvalLayout | None = None, sides: str = "both",
-               flight: FlightOverride | None = None, planners: list | None = None) -> tuple[RaceResults, torch.Tensor]:
+def cross_play(a: Agent, b: Agent, races: RaceSet, *, device: str = "cpu", layout: EvalLayout | None = None,
+               sides: str = "both", flight: FlightOverride | None = None,
+               planners: list | None = None) -> tuple[RaceResults, torch.Tensor]:
     """Team ``a`` against team ``b``: per-drone results and each race's winner (0 = ``a``, 1 = ``b``, −1 = none).
 
-    ``sides="a"``: ``runs`` races with ``a`` on team A's slots (the first ones). ``sides="both"``: every placement is
-    raced a second time with the slots swapped (``b`` starts where ``a`` started), so neither method keeps the
-    luckier half of the start box; the swapped races follow the first ``runs``, their drones reordered so that
-    ``a``'s are in team A's slots of the results as well.
+    ``sides="a"``: ``races.runs`` races with ``a`` on team A's slots (the first ones). ``sides="both"``: every
+    placement is raced a second time with the slots swapped (``b`` starts where ``a`` started), so neither method
+    keeps the luckier half of the start box; the swapped races follow the first ``races.runs``, their drones
+    reordered so that ``a``'s are in team A's slots of the results as well.
     """
     check_sides(sides)
-    res, winners = race_agents(track, scenario, runs, seed, a, b, device=device, layout=layout, flight=flight,
-                               planners=planners)
+    res, winners = race_agents(races, a, b, device=device, layout=layout, flight=flight, planners=planners)
     assert winners is not None
     if sides == "a":
         return res, winners
-    swapped, won = race_agents(track, scenario, runs, seed, b, a, device=device, layout=layout,
+    swapped, won = race_agents(races, b, a, device=device, layout=layout,
                                flight=flight.swapped() if flight is not None else None, planners=planners)
     assert won is not None
-    team_a, team_b = TEAMS[scenario][0], TEAMS[scenario][-1]
+    team_a, team_b = TEAMS[races.scenario][0], TEAMS[races.scenario][-1]
     back = swapped.permuted([*team_b, *team_a])
     return concat_results([res, back]), torch.cat([winners, torch.where(won >= 0, 1 - won, won)])
 
@@ -279,49 +290,68 @@ def evaluate_methods(track: TrackSpec, methods: dict[str, str | Path], *, scenar
     (self-match, as in the paper's tables). With ``against = (name, checkpoint or se-ibr)`` the method is team A
     and ``name`` team B; ``win_rate``, ``loss_rate`` and ``draws`` are added, over ``runs`` races per side (``sides``,
     see :func:`cross_play`; ``win_rate_by_side`` splits the win rate by where the method started). Planner-only
-    races use the layout
-    of the first learned method (or ``airframe``/``sim`` and default env settings when there is none); the
-    entry's ``layout`` says which. ``flight`` changes the flight stack of every drone (JSON ``flight``). Where the
-    planner flew, ``planning`` is its cost (:func:`~spiral.baselines.planning_cost`: ms per plan per drone).
+    races use the layout of the first learned method (or ``airframe``/``sim`` and default env settings when there is
+    none); the entry's ``layout`` says which. ``flight`` changes the flight stack of every drone (JSON ``flight``).
+    Where the planner flew, ``planning`` is its cost (:func:`~spiral.baselines.planning_cost`: ms per plan per drone).
     """
-    out: dict[str, Any] = {"track": track.name, "scenario": scenario, "laps": track.laps, "runs": runs, "seed": seed,
-                           "methods": {}}
-    if flight is not None and flight.to_json():
-        out["flight"] = flight.to_json()
+    races = RaceSet(track, scenario, runs, seed)
+    out = _eval_json(races, flight)
     check_sides(sides)
     if against is not None:
         out["against"] = {"name": against[0], "checkpoint": str(against[1])}
         out["sides"], out["races"] = sides, runs * (2 if sides == "both" else 1)
     agents = {name: load_agent(path, device=device) for name, path in methods.items()}
     opponent = load_agent(against[1], device=device) if against is not None else None
-    pairs = [*agents.items(), *([(against[0], opponent)] if against is not None else [])]
-    learned = [(n, a) for n, a in pairs if isinstance(a, FrozenPolicy)]
-    fallback = (EvalLayout.of_policy(learned[0][1], source=learned[0][0]) if learned
-                else EvalLayout.default(airframe=airframe, sim=sim))
-    team_a, team_b = TEAMS[scenario][0], TEAMS[scenario][-1]
+    fallback = _fallback_layout([*agents.items(), *([(against[0], opponent)] if against is not None else [])],
+                                airframe=airframe, sim=sim)
     for name, agent in agents.items():
         entry: dict[str, Any] = {"checkpoint": str(methods[name])}
         planners: list[PlannerPolicy] = []
         if opponent is None:
-            res, _ = race_agents(track, scenario, runs, seed, agent, device=device, layout=fallback, flight=flight,
-                                 planners=planners)
+            res, _ = race_agents(races, agent, device=device, layout=fallback, flight=flight, planners=planners)
             entry.update(summarize_races(res))
         else:
-            res, winners = cross_play(agent, opponent, track, scenario, runs, seed, device=device, layout=fallback,
-                                      sides=sides, flight=flight, planners=planners)
-            won = (winners == 0).float()
-            entry.update({**summarize_races(res, team_a), "win_rate": float(won.mean()),
-                          "loss_rate": float((winners == 1).float().mean()),
-                          "draws": float((winners == -1).float().mean()), "opponent": summarize_races(res, team_b),
-                          "win_rate_by_side": {side: float(part.mean()) for side, part in
-                                               zip(("a", "b"), won.split(runs), strict=False)},
-                          "first_gate": first_gate_order(res, winners, (team_a, team_b))})
+            res, winners = cross_play(agent, opponent, races, device=device, layout=fallback, sides=sides,
+                                      flight=flight, planners=planners)
+            entry.update(_cross_play_metrics(res, winners, races))
         if isinstance(agent, str) and (opponent is None or isinstance(opponent, str)):
             entry["layout"] = fallback.source
         if planners:
             entry["planning"] = planning_cost(*planners)
         out["methods"][name] = entry
     return out
+
+
+def _eval_json(races: RaceSet, flight: FlightOverride | None) -> dict[str, Any]:
+    """The head of an evaluation's JSON: what was raced and the flight changes, with no method yet."""
+    out: dict[str, Any] = {"track": races.track.name, "scenario": races.scenario, "laps": races.track.laps,
+                           "runs": races.runs, "seed": races.seed, "methods": {}}
+    if flight is not None and flight.to_json():
+        out["flight"] = flight.to_json()
+    return out
+
+
+def _fallback_layout(agents: list[tuple[str, Agent | None]], *, airframe: AirframeCfg | None,
+                     sim: SimCfg | None) -> EvalLayout:
+    """The layout of planner-only races: the first learned method's among ``agents`` (name, method), else
+    ``airframe``/``sim`` with default env settings."""
+    learned = [(n, a) for n, a in agents if isinstance(a, FrozenPolicy)]
+    if learned:
+        return EvalLayout.of_policy(learned[0][1], source=learned[0][0])
+    return EvalLayout.default(airframe=airframe, sim=sim)
+
+
+def _cross_play_metrics(res: RaceResults, winners: torch.Tensor, races: RaceSet) -> dict[str, Any]:
+    """A method's entry in cross-play: its team's metrics, its win, loss and draw rates (also by the side it started
+    on), the opponent team's metrics and who led through the first gate."""
+    team_a, team_b = TEAMS[races.scenario][0], TEAMS[races.scenario][-1]
+    won = (winners == 0).float()
+    return {**summarize_races(res, team_a), "win_rate": float(won.mean()),
+            "loss_rate": float((winners == 1).float().mean()),
+            "draws": float((winners == -1).float().mean()), "opponent": summarize_races(res, team_b),
+            "win_rate_by_side": {side: float(part.mean()) for side, part in
+                                 zip(("a", "b"), won.split(races.runs), strict=False)},
+            "first_gate": first_gate_order(res, winners, (team_a, team_b))}
 
 
 MIXED_SLOTS: tuple[list[int], list[int]] = ([0, 2], [1, 3])
@@ -376,6 +406,17 @@ def _num(x: float | None, digits: int = 2) -> str:
 
 def format_eval(result: dict[str, Any]) -> str:
     """A plain-text table of an evaluation result."""
+    time_head = "lap [s]" if result.get("laps", 1) == 1 else "race [s]"
+    lines = [_eval_title(result),
+             f"{'method':<20} {'success':>8} {'95% CI':>15} {'races':>6} {time_head:>14} {'win':>6}  crashes"]
+    lines += [_eval_row(name, m) for name, m in result["methods"].items()]
+    lines.append("success: drones home; 95% CI with the race as the unit; races: share of races with every counted "
+                 "drone home")
+    return "\n".join([*lines, *_eval_notes(result["methods"])])
+
+
+def _eval_title(result: dict[str, Any]) -> str:
+    """What was raced: track, scenario, laps, races, seed, the opponent and changes from training."""
     laps = result.get("laps", 1)
     head = (f"{result['track']} {result['scenario']}{f', {laps} laps' if laps > 1 else ''}, {result['runs']} races, "
             f"seed {result['seed']}")
@@ -385,35 +426,40 @@ def format_eval(result: dict[str, Any]) -> str:
             head += " (each placement raced from both sides)"
     if "flight" in result:
         head += f", changed from training: {json.dumps(result['flight'])}"
-    time_head = "lap [s]" if laps == 1 else "race [s]"
-    lines = [head, f"{'method':<20} {'success':>8} {'95% CI':>15} {'races':>6} {time_head:>14} {'win':>6}  crashes"]
-    for name, m in result["methods"].items():
-        lap = f"{m['lap_time_mean']:.2f} ± {m['lap_time_std']:.2f}" if m["lap_time_mean"] is not None else "-"
-        lo, hi = m["success_ci95"]
-        win = f"{m['win_rate']:.2f}" if "win_rate" in m else "-"
-        crashes = ", ".join(f"{k} {v}" for k, v in m["crashes"].items() if v)
-        lines.append(f"{name:<20} {m['success_ratio']:>8.2f} {f'[{lo:.2f}, {hi:.2f}]':>15} "
-                     f"{m['race_success_ratio']:>6.2f} {lap:>14} {win:>6}  {crashes or 'none'}")
-    lines.append("success: drones home; 95% CI with the race as the unit; races: share of races with every counted "
-                 "drone home")
-    beyond = {name: m["action_beyond_range"] for name, m in result["methods"].items() if m.get("action_beyond_range")}
+    return head
+
+
+def _eval_row(name: str, m: dict[str, Any]) -> str:
+    """A method's row of the table."""
+    lap = f"{m['lap_time_mean']:.2f} ± {m['lap_time_std']:.2f}" if m["lap_time_mean"] is not None else "-"
+    lo, hi = m["success_ci95"]
+    win = f"{m['win_rate']:.2f}" if "win_rate" in m else "-"
+    crashes = ", ".join(f"{k} {v}" for k, v in m["crashes"].items() if v)
+    return (f"{name:<20} {m['success_ratio']:>8.2f} {f'[{lo:.2f}, {hi:.2f}]':>15} "
+            f"{m['race_success_ratio']:>6.2f} {lap:>14} {win:>6}  {crashes or 'none'}")
+
+
+def _eval_notes(methods: dict[str, dict[str, Any]]) -> list[str]:
+    """Lines under the table for the metrics some methods have: actions beyond range, passes, racing, first gate."""
+    lines = []
+    beyond = {name: m["action_beyond_range"] for name, m in methods.items() if m.get("action_beyond_range")}
     if beyond:
         lines.append("commanded action beyond the clamped range, share of racing steps (x / y / z / yaw): " + "; ".join(
             f"{name} {' / '.join(f'{v:.2f}' for v in shares.values())}" for name, shares in beyond.items()))
-    passes = {name: m["passes"] for name, m in result["methods"].items() if m.get("passes") and "win_rate" in m}
+    passes = {name: m["passes"] for name, m in methods.items() if m.get("passes") and "win_rate" in m}
     if passes:
         lines.append("passes in flight per race, made / suffered: " + "; ".join(
             f"{name} {p['made_per_race']:.2f} / {p['suffered_per_race']:.2f}" for name, p in passes.items()))
-    racing = {name: m["racing"] for name, m in result["methods"].items() if m.get("racing")}
+    racing = {name: m["racing"] for name, m in methods.items() if m.get("racing")}
     if racing:
         lines.append("racing, per race: overtakes / lead changes / won from behind the first gate's leader; first lap, "
                      "flying lap [s]; drone contacts per lap: " + "; ".join(
                          f"{name} {_num(r['overtakes_per_race'])} / {_num(r['lead_changes_per_race'])} / "
                          f"{_num(r['won_from_behind'])}; {_num(r['first_lap'])}, {_num(r['flying_lap'])}; "
                          f"{_num(r['drone_contacts_per_lap'], 3)}" for name, r in racing.items()))
-    gates = {name: m["first_gate"] for name, m in result["methods"].items() if m.get("first_gate")}
+    gates = {name: m["first_gate"] for name, m in methods.items() if m.get("first_gate")}
     if gates:
         lines.append("first through the lap's first gate, share of races; the team first there won: " + "; ".join(
             f"{name} {g['led']:.2f}; " + ("-" if g["leader_won"] is None else f"{g['leader_won']:.2f}")
             for name, g in gates.items()))
-    return "\n".join(lines)
+    return lines

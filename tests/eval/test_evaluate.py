@@ -84,7 +84,7 @@ def test_cross_play_compares_action_mappings_as_read_so_older_checkpoints_still_
     """A checkpoint written before an action field existed (the key absent: its default) races one that spells the
     default out; a different mapping is refused."""
     from spiral.core.checkpoint import load_checkpoint, save_checkpoint
-    from spiral.eval.evaluate import cross_play
+    from spiral.eval.evaluate import RaceSet, cross_play
 
     data = load_checkpoint(tiny_checkpoint)
     meta = {k: v for k, v in data.pop("spiral").items() if k not in ("format", "versions")}
@@ -97,22 +97,22 @@ def test_cross_play_compares_action_mappings_as_read_so_older_checkpoints_still_
     action = dict(meta["env"]["action"])
     older = variant("older", {k: v for k, v in action.items() if k != "separation_team"})
     newer = variant("newer", {**action, "separation_team": "all"})
-    res, winners = cross_play(older, newer, sprint, "1v1", 2, 0, sides="a")
+    res, winners = cross_play(older, newer, RaceSet(sprint, "1v1", 2, 0), sides="a")
     assert res.finished.shape == (2, 2) and winners.shape == (2,)
     other = variant("other", {**action, "pos_scale": 1.0})
     with pytest.raises(ValueError, match="same action mapping"):
-        cross_play(older, other, sprint, "1v1", 2, 0, sides="a")
+        cross_play(older, other, RaceSet(sprint, "1v1", 2, 0), sides="a")
 
 
 def test_cross_play_lets_each_team_read_its_own_observation_layout(sprint, tiny_checkpoint,
                                                                    tiny_checkpoint_other_inputs):
     """Two policies trained with different inputs race each other from both sides, each fed rows of its own width;
     mixed teams, which share one layout per env, still refuse them."""
-    from spiral.eval.evaluate import cross_play, evaluate_mixed_teams
+    from spiral.eval.evaluate import RaceSet, cross_play, evaluate_mixed_teams
 
     a, b = load_agent(tiny_checkpoint), load_agent(tiny_checkpoint_other_inputs)
     assert a.obs_layout["obs_dim"] != b.obs_layout["obs_dim"]  # a policy fed the other's rows would not run
-    res, winners = cross_play(a, b, sprint, "1v1", 2, 0, sides="both")
+    res, winners = cross_play(a, b, RaceSet(sprint, "1v1", 2, 0), sides="both")
     assert res.finished.shape == (4, 2) and winners.shape == (4,)
     for agent, opponent in ((a, b), (b, a)):
         env, _ = setup_race(sprint, "1v1", 2, 0, agent, opponent)
