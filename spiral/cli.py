@@ -306,11 +306,11 @@ def bench_sim(
 ) -> None:
     """Simulator throughput (pid mode, gates and collisions on) against the numpy reference."""
     device = check_device(device)
-    from spiral.sim.bench import format_bench_table, run_sim_bench
+    from spiral.sim.bench import BenchExtras, format_bench_table, run_sim_bench
 
     counts = [int(w) for w in worlds.split(",") if w.strip()]
-    result = run_sim_bench(counts, device=device, steps=steps, two_process=two_process, builds=builds,
-                           threads=threads)
+    result = run_sim_bench(counts, device=device, steps=steps,
+                           extras=BenchExtras(two_process=two_process, builds=builds, threads=threads))
     typer.echo(format_bench_table(result))
     _write_json(json_out, result)
 

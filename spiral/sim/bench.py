@@ -16,6 +16,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -32,13 +33,16 @@ from spiral.sim.options import MODULE_OPTIONS
 from spiral.sim.reference import ReferenceSim
 from spiral.sim.world import World
 
-__all__ = ["format_bench_table", "format_kernel_table", "kernel_profile", "machine_info", "run_build_comparison",
-           "run_sim_bench", "run_sim_bench_two_process", "time_world", "two_process_worker"]
+__all__ = ["BenchExtras", "format_bench_table", "format_kernel_table", "kernel_profile", "machine_info",
+           "run_build_comparison", "run_sim_bench", "run_sim_bench_two_process", "time_world", "two_process_worker"]
 
 TARGET_REDRAW_STEPS = 10
 """Control steps between two draws of the random targets (about 0.2 s at 48 Hz)."""
 WARMUP_STEPS = 5
 """Untimed control steps before timing (compiles and loads kernels, fills caches)."""
+NUMPY_BUDGET_S = 2.0
+"""About how long one numpy repeat of a row may take [s]; large rows time fewer numpy steps (``numpy_steps`` in the
+row), never fewer than 3."""
 DEFAULT_TRACK = Path(__file__).resolve().parents[2] / "tracks" / "circuit6.yaml"
 """Track of the benchmark: the paper's 6-gate circuit."""
 
@@ -56,7 +60,7 @@ def machine_info() -> dict[str, Any]:
     return {
         "cpu": model,
         "cores": os.cpu_count(),
-        "load_avg_1min": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,
+        "load_avg_1min": _load_avg(),
         "os": platform.platform(),
         "python": platform.python_version(),
         "numpy": np.__version__,
@@ -64,6 +68,11 @@ def machine_info() -> dict[str, Any]:
         "cpu_target": cpu_target(),
         "sim_cpu_flags": MODULE_OPTIONS["cpu_compiler_flags"],
     }
+
+
+def _load_avg() -> float | None:
+    """The 1-minute load average, where the system has one."""
+    return round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
 
 
 def _bench_cfg() -> SimCfg:
@@ -123,7 +132,7 @@ def _make_world(track: TrackSpec, airframe: AirframeCfg, world_count: int, drone
 
 
 def _bench_row(track: TrackSpec, airframe: AirframeCfg, world_count: int, drones: int, *, device: str, steps: int,
-               seed: int, repeats: int, numpy_budget_s: float) -> dict[str, Any]:
+               seed: int, repeats: int) -> dict[str, Any]:
     """One row: Warp and numpy on the same inputs, repeats interleaved so that load from others hits both alike."""
     n = world_count * drones
     world, targets_wp, start, yaw, targets = _make_world(track, airframe, world_count, drones, device, seed)
@@ -131,7 +140,7 @@ def _bench_row(track: TrackSpec, airframe: AirframeCfg, world_count: int, drones
     ref.reset(start, yaw)
     _time_warp(world, targets_wp, WARMUP_STEPS, 0)
     one = _time_numpy(ref, targets, 1, 0)[0]  # untimed warm-up, also sizes the numpy run
-    np_steps = int(min(steps, max(3, numpy_budget_s / max(one, 1e-9))))
+    np_steps = int(min(steps, max(3, NUMPY_BUDGET_S / max(one, 1e-9))))
     warp_t, np_t = [], []
     for r in range(repeats):
         warp_t.append(_time_warp(world, targets_wp, steps, WARMUP_STEPS + r * steps))
@@ -177,20 +186,22 @@ def _bench_settings(track: TrackSpec, airframe: AirframeCfg, cfg: SimCfg, *, rep
     }
 
 
-def run_sim_bench(
-    worlds: Sequence[int],
-    *,
-    device: str = "cpu",
-    drones: Sequence[int] = (1, 4),
-    steps: int = 100,
-    seed: int = 0,
-    repeats: int = 3,
-    numpy_budget_s: float = 2.0,
-    two_process: bool = False,
-    builds: bool = False,
-    threads: int = 1,
-    track: TrackSpec | None = None,
-) -> dict[str, Any]:
+@dataclass(frozen=True)
+class BenchExtras:
+    """Entries of a :func:`run_sim_bench` result beside its rows, each timing Warp at 4096 worlds × 4 drones."""
+
+    two_process: bool = False
+    """Run it in two processes side by side (``two_process`` entry)."""
+    builds: bool = False
+    """On the CPU, time it with each CPU build (``builds`` entry, :func:`run_build_comparison`)."""
+    threads: int = 1
+    """Above 1, time Warp alone with the worlds stepped on this many threads of one process (``threaded`` entry;
+    the rows use one)."""
+
+
+def run_sim_bench(worlds: Sequence[int], *, device: str = "cpu", drones: Sequence[int] = (1, 4), steps: int = 100,
+                  seed: int = 0, repeats: int = 3, extras: BenchExtras = BenchExtras(),
+                  track: TrackSpec | None = None) -> dict[str, Any]:
     """Measure drone-control-steps per second of Warp and of the numpy reference for each world count and layout.
 
     Args:
@@ -200,37 +211,30 @@ def run_sim_bench(
         steps: Timed control steps of Warp per repeat.
         seed: Seed of start positions and targets.
         repeats: Timed repeats; each row keeps the fastest (other processes may share the cores).
-        numpy_budget_s: About how long one numpy repeat may take; large rows time fewer numpy steps
-            (``numpy_steps`` in the row), never fewer than 3.
-        two_process: Also run the 4096 × 4 row in two processes side by side (``two_process`` entry).
-        builds: On the CPU, also time 4096 × 4 with each CPU build (``builds`` entry, :func:`run_build_comparison`).
-        threads: Above 1, also time Warp alone at 4096 × 4 with the worlds stepped on this many threads of one
-            process (``threaded`` entry; the rows use one).
+        extras: Entries to add beside the rows.
         track: Track of the run; the paper's circuit by default.
 
     Returns:
-        ``{"device", "machine", "settings", "results": [row, ...]}`` and the optional entries above.
+        ``{"device", "machine", "settings", "results": [row, ...]}`` and the entries of ``extras``.
     """
     wp.init()
-    track = track if track is not None else load_track(DEFAULT_TRACK)
-    airframe = AIRFRAMES["cf2x"]
-    cfg = _bench_cfg()
+    track, airframe = track if track is not None else load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"]
     machine = machine_info()
-    rows = [_bench_row(track, airframe, w, d, device=device, steps=steps, seed=seed, repeats=repeats,
-                       numpy_budget_s=numpy_budget_s) for w in worlds for d in drones]
+    rows = [_bench_row(track, airframe, w, d, device=device, steps=steps, seed=seed, repeats=repeats)
+            for w in worlds for d in drones]
     result: dict[str, Any] = {
         "device": str(wp.get_device(device)),
         "machine": machine,
-        "settings": _bench_settings(track, airframe, cfg, repeats=repeats, seed=seed),
+        "settings": _bench_settings(track, airframe, _bench_cfg(), repeats=repeats, seed=seed),
         "results": rows,
     }
-    if threads > 1:
+    if extras.threads > 1:
         result["threaded"] = time_world(4096, 4, device=device, steps=steps, repeats=repeats, seed=seed,
-                                        cpu_threads=threads, track=track)
-    result["machine"]["load_avg_1min_end"] = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
-    if builds and result["device"] == "cpu":
+                                        cpu_threads=extras.threads, track=track)
+    result["machine"]["load_avg_1min_end"] = _load_avg()
+    if extras.builds and result["device"] == "cpu":
         result["builds"] = run_build_comparison(4096, 4, steps=steps, seed=seed, repeats=repeats)
-    if two_process:
+    if extras.two_process:
         result["two_process"] = run_sim_bench_two_process(4096, 4, device=device, steps=steps, seed=seed,
                                                           repeats=repeats)
     return result
@@ -308,18 +312,7 @@ def kernel_profile(world_count: int, drones: int, *, device: str = "cpu", launch
     _time_warp(world, targets_wp, WARMUP_STEPS, 0)
     restore = _restorer(world)
     best_of = partial(_best_per_call, world, restore, repeats=repeats)  # each repeat starts from the snapshot
-    recorded = world._simulate(record=True)  # one control step's launches, arguments packed
-    order: dict[str, list] = {}
-    for cmd in recorded:
-        order.setdefault(cmd.kernel.key, []).append(cmd)
-    n = world.drone_count
-    rows = []
-    for key, cmds in order.items():
-        wall, cpu = best_of(cmds[0].launch, launches)
-        rows.append({"kernel": key, "launches_per_step": len(cmds), "cpu_ms_per_launch": 1e3 * cpu,
-                     "cpu_ns_per_drone": 1e9 * cpu / n, "cpu_ms_per_step": 1e3 * cpu * len(cmds),
-                     "wall_ms_per_launch": 1e3 * wall, "wall_ns_per_drone": 1e9 * wall / n,
-                     "wall_ms_per_step": 1e3 * wall * len(cmds)})
+    rows = _kernel_rows(world, best_of, launches)
     wall, cpu = best_of(lambda: (world.race.out.zero_(), world.step()), launches)
     return {
         "worlds": world_count,
@@ -335,6 +328,24 @@ def kernel_profile(world_count: int, drones: int, *, device: str = "cpu", launch
         "machine": machine_info(),
         "settings": _bench_settings(track, airframe, _bench_cfg(), repeats=repeats, seed=seed),
     }
+
+
+def _kernel_rows(world: World, best_of: Callable[[Callable[[], Any], int], tuple[float, float]],
+                 launches: int) -> list[dict[str, Any]]:
+    """One row per kernel of a control step, in launch order: its recorded launch timed ``launches`` times in a row
+    by ``best_of`` (wall and CPU seconds per call), per launch, per drone and per control step."""
+    order: dict[str, list] = {}
+    for cmd in world._simulate(record=True):  # one control step's launches, arguments packed
+        order.setdefault(cmd.kernel.key, []).append(cmd)
+    n = world.drone_count
+    rows = []
+    for key, cmds in order.items():
+        wall, cpu = best_of(cmds[0].launch, launches)
+        rows.append({"kernel": key, "launches_per_step": len(cmds), "cpu_ms_per_launch": 1e3 * cpu,
+                     "cpu_ns_per_drone": 1e9 * cpu / n, "cpu_ms_per_step": 1e3 * cpu * len(cmds),
+                     "wall_ms_per_launch": 1e3 * wall, "wall_ns_per_drone": 1e9 * wall / n,
+                     "wall_ms_per_step": 1e3 * wall * len(cmds)})
+    return rows
 
 
 def format_kernel_table(result: dict[str, Any]) -> str:
@@ -396,13 +407,33 @@ def run_sim_bench_two_process(
     repeat is both processes' drone-control-steps over the wall time from the first start to the last end; the best
     repeat is kept.
     """
-    procs = []
-    for i in range(2):
-        code = (f"from spiral.sim.bench import two_process_worker; "
-                f"two_process_worker({world_count}, {drones}, {device!r}, {steps}, {seed + i}, {repeats})")
-        procs.append(subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                      text=True))
-    spans: list[list[tuple[float, float]]] = [[], []]
+    procs = [_start_worker(world_count, drones, device, steps, seed + i, repeats) for i in range(2)]
+    spans = _released_spans(procs, repeats)
+    n = world_count * drones
+    aggregates = [2 * n * steps / (max(s[r][1] for s in spans) - min(s[r][0] for s in spans)) for r in range(repeats)]
+    best = int(np.argmax(aggregates))
+    return {
+        "worlds": world_count,
+        "drones": drones,
+        "processes": 2,
+        "steps": steps,
+        "per_process_drone_ctrl_steps_per_s": [round(n * steps / (s[best][1] - s[best][0])) for s in spans],
+        "aggregate_drone_ctrl_steps_per_s": round(aggregates[best]),
+    }
+
+
+def _start_worker(world_count: int, drones: int, device: str, steps: int, seed: int,
+                  repeats: int) -> subprocess.Popen:
+    """A fresh interpreter running :func:`two_process_worker`, talking through pipes."""
+    code = (f"from spiral.sim.bench import two_process_worker; "
+            f"two_process_worker({world_count}, {drones}, {device!r}, {steps}, {seed}, {repeats})")
+    return subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+
+
+def _released_spans(procs: list[subprocess.Popen], repeats: int) -> list[list[tuple[float, float]]]:
+    """Release the workers ``procs`` together for each of ``repeats`` repeats, each once every one is ready; each
+    worker's ``(start, end)`` per repeat. The workers are closed and waited for afterwards."""
+    spans: list[list[tuple[float, float]]] = [[] for _ in procs]
     try:
         for _ in range(repeats):
             for p in procs:
@@ -417,17 +448,7 @@ def run_sim_bench_two_process(
         for p in procs:
             p.stdin.close()
             p.wait()
-    n = world_count * drones
-    aggregates = [2 * n * steps / (max(s[r][1] for s in spans) - min(s[r][0] for s in spans)) for r in range(repeats)]
-    best = int(np.argmax(aggregates))
-    return {
-        "worlds": world_count,
-        "drones": drones,
-        "processes": 2,
-        "steps": steps,
-        "per_process_drone_ctrl_steps_per_s": [round(n * steps / (s[best][1] - s[best][0])) for s in spans],
-        "aggregate_drone_ctrl_steps_per_s": round(aggregates[best]),
-    }
+    return spans
 
 
 def run_build_comparison(world_count: int = 4096, drones: int = 4, *, steps: int = 100, seed: int = 0,
