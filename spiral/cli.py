@@ -9,7 +9,7 @@ import sys
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
 import typer
 from pydantic import ValidationError
@@ -20,6 +20,10 @@ from spiral.config.pipeline import RacingCfg
 from spiral.core.device import check_device
 from spiral.core.errors import UsageError
 from spiral.core.numerics import cpu_target
+
+if TYPE_CHECKING:
+    from spiral.config import StageSpec
+    from spiral.train.profile import StageStart
 
 __all__ = ["app", "main"]
 
@@ -517,41 +521,57 @@ def bench_ppo(
     A multi-drone stage races what it races in the pipeline, from the published checkpoints: its init stage's best,
     the pool (self-play) or the frozen opponent's best (no self-play)."""
     device = check_device(device)
-    from spiral.config.airframe import resolve_airframe
     from spiral.config.load import load_pipeline
     from spiral.pipeline.graph import PipelinePlan
-    from spiral.selfplay.curriculum import published_opponents
     from spiral.train.profile import profile_iteration
 
     _use_sim_threads(sim_threads)
     spec, track = load_pipeline(pipeline)
-    names = [s.name for s in spec.stages]
-    if stage not in names:
-        raise UsageError(f"--stage: {pipeline} has no stage named {stage!r} (stages: {', '.join(names)})")
-    index = names.index(stage)
+    plan = PipelinePlan(spec, track, pipeline, Path("runs"), checkpoints_dir)
+    index = _stage_index(spec, pipeline, stage)
     spec_stage = spec.stages[index] if worlds is None else spec.stages[index].model_copy(update={"worlds": worlds})
-    frozen = None
-    if spec_stage.scenario != "solo":
-        published = PipelinePlan(spec, track, pipeline, Path("runs"), checkpoints_dir).publish_root
-        init, pool, frozen = _published_inputs(spec, index, published, init, pool)
+    inputs = None if spec_stage.scenario == "solo" else _published_inputs(spec, index, plan.publish_root, init, pool)
     with tempfile.TemporaryDirectory() as scratch:
-        opponents = None if spec_stage.scenario == "solo" else published_opponents(
-            spec_stage, init, Path(scratch), pool_dir=pool, opponent_checkpoint=frozen, device=device,
-            seed=spec.seed).worlds
-        r = profile_iteration(track, resolve_airframe(spec.airframe, source=str(pipeline)), spec.sim, spec_stage,
-                              iterations=iterations, device=device, seed=spec.seed, init_checkpoint=init,
-                              opponents=opponents)
+        start = None if inputs is None else _stage_start(spec_stage, *inputs, Path(scratch), device=device,
+                                                         seed=spec.seed)
+        r = profile_iteration(track, plan.airframe, spec.sim, spec_stage, iterations=iterations, device=device,
+                              seed=spec.seed, start=start)
+    typer.echo(_profile_text(r))
+    _write_json(json_out, r)
+
+
+def _stage_index(spec: PipelineSpec, pipeline: Path, name: str) -> int:
+    """Where stage ``name`` is in ``pipeline``'s stages."""
+    names = [s.name for s in spec.stages]
+    if name not in names:
+        raise UsageError(f"--stage: {pipeline} has no stage named {name!r} (stages: {', '.join(names)})")
+    return names.index(name)
+
+
+def _stage_start(stage: StageSpec, init: Path, pool: Path | None, frozen: Path | None, scratch: Path, *,
+                 device: str, seed: int) -> StageStart:
+    """What multi-drone ``stage`` starts from and races, from :func:`_published_inputs`'s checkpoints and pool (the
+    pool copied into ``scratch``)."""
+    from spiral.selfplay.curriculum import published_opponents
+    from spiral.train.profile import StageStart
+
+    opponents = published_opponents(stage, init, scratch, pool_dir=pool, opponent_checkpoint=frozen, device=device,
+                                    seed=seed)
+    return StageStart(init, opponents.worlds)
+
+
+def _profile_text(r: dict[str, Any]) -> str:
+    """``spiral bench ppo``'s summary of a :func:`~spiral.train.profile.profile_iteration` result."""
     rollout = ", ".join(f"{k} {1e3 * v:.0f}" for k, v in r["rollout_parts_s"].items())
     parts = ", ".join(f"{k} {100 * v:.0f}%" for k, v in r["update_parts_share"].items())
-    typer.echo(f"{r['samples_per_iteration']} samples per iteration ({r['worlds']} worlds, {r['learner_drones']} "
-               f"learner drones, {r['obs_dim']} inputs, {r['torch_threads']} torch threads)\n"
-               f"rollout {r['rollout_s']:.3f} s: {rollout} [ms]\n"
-               f"update {r['update_s']:.3f} s ({r['update_cpu_s']:.3f} CPU-s): {parts}\n"
-               f"update {r['update_samples_per_s']:.0f} samples/s; matmul limit {r['matmul_limit_samples_per_s']:.0f}"
-               f" samples/s at {r['matmul_gflops']:.1f} GFLOP/s ({r['matmul_dtype'].removeprefix('torch.')});"
-               f" update / limit {r['update_over_matmul_limit']:.2f}"
-               f" (CPU time {r['update_over_matmul_limit_cpu']:.2f})")
-    _write_json(json_out, r)
+    return (f"{r['samples_per_iteration']} samples per iteration ({r['worlds']} worlds, {r['learner_drones']} "
+            f"learner drones, {r['obs_dim']} inputs, {r['torch_threads']} torch threads)\n"
+            f"rollout {r['rollout_s']:.3f} s: {rollout} [ms]\n"
+            f"update {r['update_s']:.3f} s ({r['update_cpu_s']:.3f} CPU-s): {parts}\n"
+            f"update {r['update_samples_per_s']:.0f} samples/s; matmul limit {r['matmul_limit_samples_per_s']:.0f}"
+            f" samples/s at {r['matmul_gflops']:.1f} GFLOP/s ({r['matmul_dtype'].removeprefix('torch.')});"
+            f" update / limit {r['update_over_matmul_limit']:.2f}"
+            f" (CPU time {r['update_over_matmul_limit_cpu']:.2f})")
 
 
 def _published_inputs(spec: PipelineSpec, index: int, published: Path, init: Path | None,

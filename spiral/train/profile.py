@@ -17,6 +17,7 @@ import tempfile
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +33,7 @@ from spiral.core.policy import OpponentPolicy
 from spiral.env.mixed import MixedRaceEnv
 from spiral.train.runner import StageTrainer
 
-__all__ = ["ENV_HOOKS", "linear_layers", "matmul_seconds", "profile_iteration", "timed_methods",
+__all__ = ["ENV_HOOKS", "StageStart", "linear_layers", "matmul_seconds", "profile_iteration", "timed_methods",
            "update_flops_per_sample"]
 
 ENV_HOOKS = ("apply_actions", "simulate", "race_events", "rewards", "dones", "reset_ended", "get_observations")
@@ -178,52 +179,94 @@ def _traced_update(alg: Any) -> torch.profiler.profile:
     return trace
 
 
+@dataclass(frozen=True)
+class StageStart:
+    """What a multi-drone stage's training starts from and races."""
+
+    init_checkpoint: Path
+    """The checkpoint of the policy the learner starts from."""
+    opponents: dict[str, OpponentPolicy]
+    """The opponents of each part of its worlds, as ``StageTrainer`` takes them
+    (:func:`spiral.selfplay.curriculum.published_opponents` builds a pipeline's)."""
+
+
 def profile_iteration(track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, stage: StageSpec, *,
-                      iterations: int = 3, device: str = "cpu", seed: int = 0, init_checkpoint: Path | None = None,
-                      opponents: dict[str, OpponentPolicy] | None = None) -> dict[str, Any]:
+                      iterations: int = 3, device: str = "cpu", seed: int = 0,
+                      start: StageStart | None = None) -> dict[str, Any]:
     """Profile ``iterations`` PPO iterations of ``stage`` after one warm-up iteration (times are per iteration).
 
-    A multi-drone stage starts from ``init_checkpoint`` and races ``opponents`` (per part of its worlds, as
-    ``StageTrainer`` takes them; :func:`spiral.selfplay.curriculum.published_opponents` builds a pipeline's).
+    A multi-drone stage needs ``start``: the checkpoint it starts from and the opponents it races.
     """
-    opponents = opponents or {}
-    if stage.scenario != "solo" and (init_checkpoint is None or not opponents):
+    opponents = start.opponents if start is not None else {}
+    if stage.scenario != "solo" and (start is None or not opponents):
         raise UsageError(f"stage {stage.name!r}: profiling a {stage.scenario} stage needs the checkpoint it starts "
                          "from and its opponents")
     with tempfile.TemporaryDirectory() as tmp:
         trainer = StageTrainer(track, airframe, sim, stage, Path(tmp), device=device, seed=seed,
-                               init_checkpoint=init_checkpoint, opponent=opponents or None, progress=False,
-                               selector=lambda trainer, it: {}, log=lambda _: None)
+                               init_checkpoint=start.init_checkpoint if start is not None else None,
+                               opponent=opponents or None, progress=False, selector=lambda trainer, it: {},
+                               log=lambda _: None)
         alg = trainer.runner.alg
         alg.train_mode()
         obs = trainer.vec_env.get_observations().to(device)
         obs = _rollout(trainer, obs, defaultdict(float), opponents)
         alg.update()
-        rollout: dict[str, float] = defaultdict(float)
-        rollout_s = update_s = update_cpu_s = 0.0
-        for _ in range(iterations):
-            t0 = time.perf_counter()
-            obs = _rollout(trainer, obs, rollout, opponents)
-            rollout_s += time.perf_counter() - t0
-            t0, c0 = time.perf_counter(), time.process_time()
-            alg.update()
-            update_s, update_cpu_s = update_s + time.perf_counter() - t0, update_cpu_s + time.process_time() - c0
+        obs, timings = _timed_iterations(trainer, obs, opponents, iterations)
         obs = _rollout(trainer, obs, defaultdict(float), opponents)
         parts = _update_parts(_traced_update(alg))
+    return _report(stage, trainer, device, timings, parts)
+
+
+@dataclass
+class _Timings:
+    """Seconds the profiled iterations took, summed over them."""
+
+    iterations: int
+    rollout_parts: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+    """The rollouts' wall time by part."""
+    rollout_s: float = 0.0
+    """The rollouts' wall time."""
+    update_s: float = 0.0
+    """The updates' wall time."""
+    update_cpu_s: float = 0.0
+    """The updates' processor time."""
+
+
+def _timed_iterations(trainer: StageTrainer, obs: Any, opponents: dict[str, OpponentPolicy],
+                      iterations: int) -> tuple[Any, _Timings]:
+    """Run ``iterations`` PPO iterations from ``obs``, timing the rollouts by part and the updates; the observations
+    after them and the times."""
+    alg, t = trainer.runner.alg, _Timings(iterations)
+    for _ in range(iterations):
+        t0 = time.perf_counter()
+        obs = _rollout(trainer, obs, t.rollout_parts, opponents)
+        t.rollout_s += time.perf_counter() - t0
+        t0, c0 = time.perf_counter(), time.process_time()
+        alg.update()
+        t.update_s, t.update_cpu_s = t.update_s + time.perf_counter() - t0, t.update_cpu_s + time.process_time() - c0
+    return obs, t
+
+
+def _report(stage: StageSpec, trainer: StageTrainer, device: str, t: _Timings,
+            parts: dict[str, float]) -> dict[str, Any]:
+    """The profile's numbers: the stage's sizes, the rollout's and the update's times per iteration (the update's
+    parts as shares of the traced one, ``parts``), and the update against the matmul limit."""
+    alg, iterations = trainer.runner.alg, t.iterations
     ppo, samples = stage.ppo, stage.ppo.num_steps_per_env * trainer.env.num_envs
     layers, first = linear_layers(alg.actor, alg.critic), _first_layers(alg.actor, alg.critic)
     mini_batch, passes = samples // ppo.num_mini_batches, ppo.num_mini_batches * ppo.num_learning_epochs
     dtype = torch.bfloat16 if ppo.mixed_precision else torch.float32  # the precision of the update's products
-    mm_s, mm_cpu_s = (t * passes for t in matmul_seconds(layers, first, mini_batch, device=device, dtype=dtype))
+    mm_s, mm_cpu_s = (x * passes for x in matmul_seconds(layers, first, mini_batch, device=device, dtype=dtype))
     flops = update_flops_per_sample(layers, first) * samples * ppo.num_learning_epochs
-    update_s, update_cpu_s = update_s / iterations, update_cpu_s / iterations
+    update_s, update_cpu_s = t.update_s / iterations, t.update_cpu_s / iterations
     traced = sum(parts.values())
     return {
         "stage": stage.name, "device": device, "torch_threads": torch.get_num_threads(), "worlds": stage.worlds,
         "learner_drones": trainer.env.num_envs,
         "obs_dim": trainer.env.obs_dim, "samples_per_iteration": samples, "mini_batch": mini_batch,
         "epochs": ppo.num_learning_epochs, "layers": layers, "update_flops": flops, "matmul_dtype": str(dtype),
-        "rollout_s": rollout_s / iterations, "rollout_parts_s": {k: v / iterations for k, v in rollout.items()},
+        "rollout_s": t.rollout_s / iterations,
+        "rollout_parts_s": {k: v / iterations for k, v in t.rollout_parts.items()},
         "update_s": update_s, "update_cpu_s": update_cpu_s,
         "update_parts_share": {k: v / traced for k, v in parts.items()},
         "update_samples_per_s": samples / update_s, "update_samples_per_cpu_s": samples / update_cpu_s,

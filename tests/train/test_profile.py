@@ -17,6 +17,7 @@ from spiral.selfplay import Pool, PoolOpponents, run_stage
 from spiral.selfplay.curriculum import published_opponents
 from spiral.train.profile import (
     ENV_HOOKS,
+    StageStart,
     linear_layers,
     matmul_seconds,
     profile_iteration,
@@ -87,8 +88,7 @@ def test_a_profiled_self_play_stage_races_a_copy_of_the_pool_and_times_the_oppon
         "mix": {"2v2": 0.5}, "ppo": TINY_PPO, "selection": {"races": 2}, "selfplay": {"p_self": 0.5}})
     (tmp_path / "scratch").mkdir()
     opponents = published_opponents(duel, init, tmp_path / "scratch", pool_dir=tmp_path / "pool").worlds
-    r = profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), duel, iterations=1, init_checkpoint=init,
-                          opponents=opponents)
+    r = profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), duel, iterations=1, start=StageStart(init, opponents))
     assert set(r["rollout_parts_s"]) == {*ENV_HOOKS, "act", "process_env_step", "compute_returns", "opponents"}
     assert r["rollout_parts_s"]["opponents"] > 0 and r["rollout_parts_s"]["apply_actions"] > 0
     assert sum(r["rollout_parts_s"].values()) <= r["rollout_s"]
@@ -98,8 +98,8 @@ def test_a_profiled_self_play_stage_races_a_copy_of_the_pool_and_times_the_oppon
     frozen = duel.model_copy(update={"selfplay": duel.selfplay.model_copy(update={"mode": "frozen"})})
     (tmp_path / "scratch2").mkdir()
     opponents = published_opponents(frozen, init, tmp_path / "scratch2").worlds
-    r = profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), frozen, iterations=1, init_checkpoint=init,
-                          opponents=opponents)
+    r = profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), frozen, iterations=1,
+                          start=StageStart(init, opponents))
     assert r["rollout_parts_s"]["opponents"] > 0
     with pytest.raises(ValueError, match="needs the checkpoint it starts from and its opponents"):
         profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), duel, iterations=1)
