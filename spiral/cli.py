@@ -8,6 +8,7 @@ import os
 import sys
 import tempfile
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
@@ -22,7 +23,9 @@ from spiral.core.errors import UsageError
 from spiral.core.numerics import cpu_target
 
 if TYPE_CHECKING:
-    from spiral.config import StageSpec
+    from spiral.config import SeparationCfg, StageSpec
+    from spiral.eval.evaluate import FlightOverride
+    from spiral.eval.report import ReportOptions
     from spiral.train.profile import StageStart
 
 __all__ = ["app", "main"]
@@ -276,23 +279,32 @@ def evaluate(
     """Race methods from seeded start placements (identical for every method) and report their metrics."""
     device = check_device(device)
     from spiral.core.scenario import SCENARIO_DRONES
-    from spiral.eval.evaluate import FlightOverride, evaluate_methods, format_eval, parse_separation
+    from spiral.eval.evaluate import evaluate_methods, format_eval
 
-    if scenario not in SCENARIO_DRONES:
-        raise UsageError(f"--scenario: expected solo, 1v1 or 2v2, got {scenario!r}")
-    methods = dict(_parse_method(m) for m in method)
-    opponent = _parse_method(against) if against else None
-    if separation_team not in ("all", "a", "b"):
-        raise UsageError(f"--separation-team: expected all, a or b, got {separation_team!r}")
-    if starts not in ("box", "track", "file"):
-        raise UsageError(f"--starts: expected box, track or file, got {starts!r}")
-    flight = FlightOverride(separation=parse_separation(separation), downwash=downwash,
-                            separation_team=separation_team, starts=starts)  # type: ignore[arg-type]
+    _check_choice("--scenario", scenario, tuple(SCENARIO_DRONES))
+    flight = _flight_override(separation, separation_team, downwash, starts)
     spec = load_track(track)
-    result = evaluate_methods(spec.with_laps(laps or spec.laps), methods, scenario=scenario, runs=runs, seed=seed,
-                              device=device, against=opponent, sides=sides, flight=flight)
+    result = evaluate_methods(spec.with_laps(laps or spec.laps), dict(_parse_method(m) for m in method),
+                              scenario=scenario, runs=runs, seed=seed, device=device,
+                              against=_parse_method(against) if against else None, sides=sides, flight=flight)
     typer.echo(format_eval(result))
     _write_json(json_out, result)
+
+
+def _check_choice(option: str, value: str, choices: tuple[str, ...]) -> None:
+    """Raise a ``UsageError`` naming ``option`` unless ``value`` is one of ``choices``."""
+    if value not in choices:
+        raise UsageError(f"{option}: expected {', '.join(choices[:-1])} or {choices[-1]}, got {value!r}")
+
+
+def _flight_override(separation: str, separation_team: str, downwash: bool | None, starts: str) -> FlightOverride:
+    """``spiral eval``'s changes to the flight stack and the starts, from its options."""
+    from spiral.eval.evaluate import FlightOverride, parse_separation
+
+    _check_choice("--separation-team", separation_team, ("all", "a", "b"))
+    _check_choice("--starts", starts, ("box", "track", "file"))
+    return FlightOverride(separation=parse_separation(separation), downwash=downwash,
+                          separation_team=separation_team, starts=starts)  # type: ignore[arg-type]
 
 
 @bench_app.command("sim")
@@ -383,8 +395,7 @@ def track_bound(
     from spiral.config import resolve_airframe
     from spiral.eval.bound import format_bound, lap_time_bound
 
-    if model not in ("thrust", "ball"):
-        raise UsageError(f"--model: expected thrust or ball, got {model!r}")
+    _check_choice("--model", model, ("thrust", "ball"))
     result = lap_time_bound(load_track(track), resolve_airframe(airframe), model=model, steps_per_segment=steps)
     typer.echo(format_bound(result))
     _write_json(json_out, result.to_json(trajectory=True))
@@ -421,32 +432,44 @@ def report(
 ) -> None:
     """Write results.md (the paper's tables, cross-play, lap-time reference), results.csv and figures."""
     device = check_device(device)
-    from spiral.eval.evaluate import KEEP, parse_separation
     from spiral.eval.report import ReportOptions, build_report, track_of_run
 
     spec = load_track(track) if track is not None else track_of_run(run_dir)
+    filter_row = _filter_row(separation)
+    racing = RacingCfg(laps=racing_laps, planner_runs=planner_runs) if racing_laps else None
+    options = ReportOptions(runs=runs, device=device, se_ibr=se_ibr, sides=sides,
+                            holdout=(holdout_runs, holdout_seed) if holdout_runs else None,
+                            separation=filter_row, robustness=robustness, racing=racing, jobs=jobs)
+    options = replace(options, command=_report_command(run_dir, options, separation))
+    typer.echo(f"wrote {build_report(run_dir, spec, out or run_dir / 'report', options)}")
+
+
+def _filter_row(separation: str) -> SeparationCfg | None:
+    """``spiral report --separation``: the filter of the extra table rows, or None (``none``)."""
+    from spiral.eval.evaluate import KEEP, parse_separation
+
     filter_row = parse_separation(separation)
     if filter_row == KEEP:
         raise UsageError("--separation: expected none or DISTANCE,HORIZON_S,GAIN")
-    command = f"spiral report {run_dir}" + (" --se-ibr" if se_ibr else "") + (f" --runs {runs}" if runs else "")
-    if holdout_runs:
-        command += f" --holdout-runs {holdout_runs} --holdout-seed {holdout_seed}"
-    if sides != "both":
-        command += f" --sides {sides}"
-    if filter_row is not None:
+    return filter_row  # type: ignore[return-value]
+
+
+def _report_command(run_dir: Path, o: ReportOptions, separation: str) -> str:
+    """The ``spiral report`` command line that asks for ``o`` (``separation`` as given), quoted in results.md."""
+    command = f"spiral report {run_dir}" + (" --se-ibr" if o.se_ibr else "") + (f" --runs {o.runs}" if o.runs else "")
+    if o.holdout is not None:
+        command += f" --holdout-runs {o.holdout[0]} --holdout-seed {o.holdout[1]}"
+    if o.sides != "both":
+        command += f" --sides {o.sides}"
+    if o.separation is not None:
         command += f" --separation {separation}"
-    if not robustness:
+    if not o.robustness:
         command += " --no-robustness"
-    racing = None
-    if racing_laps:
-        racing = RacingCfg(laps=racing_laps, planner_runs=planner_runs)
-        command += f" --racing-laps {racing_laps}" + (
+    if o.racing is not None:
+        planner_runs = o.racing.planner_runs
+        command += f" --racing-laps {o.racing.laps}" + (
             f" --planner-runs {planner_runs}" if planner_runs != PLANNER_RUNS else "")
-    options = ReportOptions(runs=runs, device=device, se_ibr=se_ibr, command=command, sides=sides,
-                            holdout=(holdout_runs, holdout_seed) if holdout_runs else None,
-                            separation=filter_row, robustness=robustness, racing=racing, jobs=jobs)  # type: ignore[arg-type]
-    path = build_report(run_dir, spec, out or run_dir / "report", options)
-    typer.echo(f"wrote {path}")
+    return command
 
 
 @app.command()
