@@ -97,7 +97,8 @@ def self_match_envs(stage: StageSpec, track: TrackSpec, airframe: AirframeCfg, s
     for i, (fmt, starts) in enumerate(runs):
         env_cfg = stage.env
         if starts == "track":
-            env_cfg = env_cfg.model_copy(update={"episode": env_cfg.episode.model_copy(update={"eval_starts": "track"})})
+            episode = env_cfg.episode.model_copy(update={"eval_starts": "track"})
+            env_cfg = env_cfg.model_copy(update={"episode": episode})
         drones = SCENARIO_DRONES[fmt]
         envs[fmt if starts == "box" else f"track-{fmt}"] = RaceEnv(
             track, airframe, sim, env_cfg, world_count=cfg.races, drones_per_world=drones,
