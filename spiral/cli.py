@@ -49,6 +49,9 @@ DeviceOpt = Annotated[str, typer.Option("--device", help="cpu or cuda:N")]
 JsonOut = Annotated[Path | None, typer.Option("--json", help="Also write the numbers as JSON to this file")]
 RunsDir = Annotated[Path, typer.Option("--runs-dir", help="Folder of run outputs")]
 CkptDir = Annotated[Path, typer.Option("--checkpoints-dir", help="Folder of published policies")]
+Overrides = Annotated[list[str] | None, typer.Option(
+    "--set", metavar="PATH=VALUE", help="Set a field of the pipeline (value as YAML; a stage by its name, e.g. "
+    "stages.1v1.iterations=600; repeatable); the run gets folders of its own, named for the settings")]
 SimThreads = Annotated[int, typer.Option("--sim-threads", min=1, help="CPU threads stepping the simulator, each a "
                                          "share of the worlds (a Warp CPU launch uses one core); same results")]
 
@@ -187,12 +190,13 @@ def run(
     accept_code_changes: Annotated[bool, typer.Option(
         "--accept-code-changes", help="Keep steps that ran with other spiral source code (same spec and inputs) "
         "instead of rerunning them")] = False,
+    overrides: Overrides = None,
 ) -> None:
     """Run a pipeline's steps in order; complete steps are skipped, interrupted training resumes."""
     from spiral.pipeline import PipelineRunner
 
     runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device,
-                            accept_code_changes=accept_code_changes)
+                            accept_code_changes=accept_code_changes, overrides=overrides or ())
     ran = runner.run(start=from_step, only=only, force=force, jobs=jobs)
     typer.echo(f"pipeline '{runner.plan.spec.name}': {len(ran)} step(s) ran, {len(runner.steps) - len(ran)} skipped")
 
@@ -203,12 +207,12 @@ def status(pipeline: Path, json_out: JsonOut = None, runs_dir: RunsDir = Path("r
            checkpoints_dir: CkptDir = Path("checkpoints"),
            accept_code_changes: Annotated[bool, typer.Option(
                "--accept-code-changes", help="Count steps that ran with other spiral source code as complete")] = False,
-           ) -> None:
+           overrides: Overrides = None) -> None:
     """Show each step as complete, stale (why), partial (last checkpoint) or missing."""
     from spiral.pipeline import PipelineRunner
 
     runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir,
-                            accept_code_changes=accept_code_changes)
+                            accept_code_changes=accept_code_changes, overrides=overrides or ())
     steps = runner.status()
     width = max((len(s.name) for s in steps), default=0)
     for s in steps:
@@ -228,6 +232,7 @@ def train(
     distributed: Annotated[bool, typer.Option("--distributed", help="One process per GPU under torchrun "
                                               "(docs/scaling.md)")] = False,
     sim_threads: SimThreads = 1,
+    overrides: Overrides = None,
 ) -> None:
     """Train one stage of a pipeline (its inputs must be complete); resumes from its newest checkpoint."""
     from spiral.pipeline import PipelineRunner
@@ -236,9 +241,11 @@ def train(
     if distributed:
         from spiral.pipeline.distributed import train_stage_distributed
 
-        train_stage_distributed(pipeline, stage, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device)
+        train_stage_distributed(pipeline, stage, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device,
+                                overrides=overrides or ())
         return
-    runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device)
+    runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device,
+                            overrides=overrides or ())
     runner.run(only=f"train:{stage}")
 
 

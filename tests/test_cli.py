@@ -163,6 +163,20 @@ def test_status_lines_up_every_steps_state_after_the_longest_step_name(tmp_path)
     assert len({line.index("missing") for line in lines}) == 1
 
 
+def test_status_with_overrides_names_the_variants_run_and_refuses_a_wrong_one_in_one_line(tmp_path):
+    """`spiral status --set seed=1 --json` reports the run `full-seed-1` with its overrides; a misspelt field is one
+    `Error:` line naming the file, the override and the field."""
+    full, dirs = ROOT / "pipelines" / "full.yaml", ["--runs-dir", str(tmp_path / "runs"),
+                                                  "--checkpoints-dir", str(tmp_path / "ckpt")]
+    result = runner.invoke(app, ["status", str(full), "--set", "seed=1", "--json", str(tmp_path / "s.json"), *dirs])
+    assert result.exit_code == 0, result.output
+    described = json.loads((tmp_path / "s.json").read_text())
+    assert described["pipeline"] == "full-seed-1" and described["overrides"] == ["seed=1"]
+    bad = runner.invoke(app, ["status", str(full), "--set", "stages.1v1.iteratoins=5", *dirs])
+    assert bad.exit_code == 1
+    assert f"Error: {full} with --set stages.1v1.iteratoins=5: stages.1.iteratoins" in bad.output
+
+
 def test_debug_shows_the_traceback_of_an_error_printed_as_one_line_without_it(tmp_path, monkeypatch):
     """A malformed track file is one `Error:` line; under `spiral --debug` the same error keeps its traceback."""
     monkeypatch.setenv("SPIRAL_DEBUG", "0")  # restored after the test, which --debug sets

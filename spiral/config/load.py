@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, TypeVar, overload
 
@@ -10,6 +11,7 @@ from pydantic import BaseModel, ValidationError
 
 from spiral.config.airframe import resolve_airframe
 from spiral.config.errors import SpecError, format_validation_error
+from spiral.config.overrides import apply_overrides, variant_name
 from spiral.config.pipeline import PipelineSpec
 from spiral.config.track import TrackSpec
 
@@ -35,11 +37,12 @@ def _read_yaml(path: Path) -> Any:
 
 
 @overload
-def load_spec(path: str | Path, spec_type: type[SpecT]) -> SpecT: ...
+def load_spec(path: str | Path, spec_type: type[SpecT], overrides: Sequence[str] = ()) -> SpecT: ...
 @overload
-def load_spec(path: str | Path, spec_type: None = None) -> BaseModel: ...
-def load_spec(path: str | Path, spec_type: type[BaseModel] | None = None) -> BaseModel:
-    """Load ``path``, dispatching on its ``kind`` field, and check it is a ``spec_type`` when given.
+def load_spec(path: str | Path, spec_type: None = None, overrides: Sequence[str] = ()) -> BaseModel: ...
+def load_spec(path: str | Path, spec_type: type[BaseModel] | None = None, overrides: Sequence[str] = ()) -> BaseModel:
+    """Load ``path``, dispatching on its ``kind`` field, and check it is a ``spec_type`` when given; ``overrides``
+    (``path.to.field=value``, :mod:`spiral.config.overrides`) are set before validation.
 
     Raises:
         SpecError: naming the file and the dotted field path of every problem.
@@ -49,6 +52,7 @@ def load_spec(path: str | Path, spec_type: type[BaseModel] | None = None) -> Bas
     if not isinstance(data, dict):
         raise SpecError([f"{path}: expected a mapping with a 'kind' field, got {type(data).__name__}"])
     data = {k: v for k, v in data.items() if not (isinstance(k, str) and k.startswith("x-"))}  # YAML anchors
+    data = apply_overrides(data, overrides, source=str(path))
     kind = data.get("kind")
     if kind not in KINDS:
         raise SpecError([f"{path}: kind: expected one of {', '.join(KINDS)}, got {kind!r}"])
@@ -59,7 +63,8 @@ def load_spec(path: str | Path, spec_type: type[BaseModel] | None = None) -> Bas
     try:
         return model.model_validate(data)
     except ValidationError as exc:
-        raise SpecError(format_validation_error(str(path), exc)) from exc
+        where = f"{path} with --set {' --set '.join(overrides)}" if overrides else str(path)
+        raise SpecError(format_validation_error(where, exc)) from exc
 
 
 def load_track(path: str | Path) -> TrackSpec:
@@ -67,10 +72,14 @@ def load_track(path: str | Path) -> TrackSpec:
     return load_spec(path, TrackSpec)
 
 
-def load_pipeline(path: str | Path) -> tuple[PipelineSpec, TrackSpec]:
-    """Load a pipeline and the track it names (relative to the pipeline file)."""
+def load_pipeline(path: str | Path, overrides: Sequence[str] = ()) -> tuple[PipelineSpec, TrackSpec]:
+    """Load a pipeline with ``overrides`` set and the track it names (relative to the pipeline file). With overrides
+    the pipeline's name becomes its variant's (:func:`~spiral.config.overrides.variant_name`), so that its runs and
+    checkpoints get folders of their own."""
     path = Path(path)
-    spec = load_spec(path, PipelineSpec)
+    spec = load_spec(path, PipelineSpec, overrides)
+    if overrides:
+        spec = spec.model_copy(update={"name": variant_name(spec.name, overrides)})
     resolve_airframe(spec.airframe, source=str(path))  # a misspelt override fails here, naming the file
     track_path = spec.track if spec.track.is_absolute() else path.parent / spec.track
     return spec, load_track(track_path)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from spiral.core.errors import UsageError
@@ -35,8 +35,10 @@ def train_stage_distributed(
     checkpoints_dir: Path = Path("checkpoints"),
     device: str | None = None,
     log: Callable[[str], None] = print,
+    overrides: Sequence[str] = (),
 ) -> list[str]:
-    """Train ``stage`` with every torchrun rank; return the steps rank 0 ran (ranks > 0 return ``[]``).
+    """Train ``stage`` of ``pipeline`` with ``overrides`` set with every torchrun rank; return the steps rank 0 ran
+    (ranks > 0 return ``[]``).
 
     Raises:
         ValueError: outside torchrun or with a device that is not this rank's.
@@ -45,14 +47,15 @@ def train_stage_distributed(
     name = f"train:{stage}"
     if info.is_main:
         log(f"distributed training: {info.world_size} processes, rank 0 on {dev}")
-        runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=dev, log=log)
+        runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=dev, log=log,
+                                overrides=overrides)
         ran = runner.run(only=name)
         if name not in ran:  # complete already: release the ranks waiting for rank 0's training state
             cancel_workers()
     else:
         ran = []
         _train_worker(PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=dev,
-                                     log=_quiet, progress=False), name, info.rank)
+                                     log=_quiet, progress=False, overrides=overrides), name, info.rank)
     shutdown()
     return ran
 

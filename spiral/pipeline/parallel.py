@@ -81,11 +81,11 @@ def run_parallel(runner, todo: list[Step], fresh: set[str], jobs: int, *, cores:
     except KeyboardInterrupt:
         _stop(running.values())
         raise PipelineError(f"interrupted while running {', '.join(running)}\n"
-                            f"resume with: spiral run {runner.path} --jobs {jobs}") from None
+                            f"resume with: {runner.command} --jobs {jobs}") from None
     if failed:
         step = failed[0]
         raise PipelineError(f"step '{step.step.name}' failed (exit code {step.process.returncode}; its output: "
-                            f"{step.log_path})\nresume with: spiral run {runner.path} --jobs {jobs}")
+                            f"{step.log_path})\nresume with: {runner.command} --jobs {jobs}")
     return done
 
 
@@ -118,6 +118,7 @@ def _spawn(runner, step: Step, fresh: bool, threads: int, log_dir: Path) -> Step
         cmd.append("--fresh")
     if runner.accept_code_changes:
         cmd.append("--accept-code-changes")
+    cmd += [arg for override in runner.overrides for arg in ("--set", override)]
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
            "PYTHONUNBUFFERED": "1"}
     log_path = log_dir / f"{step.dirname}.log"

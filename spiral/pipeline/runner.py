@@ -3,9 +3,10 @@ training, one run at a time."""
 
 from __future__ import annotations
 
+import shlex
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -41,8 +42,10 @@ class PipelineRunner:
 
     def __init__(self, path: Path, *, runs_dir: Path = Path("runs"), checkpoints_dir: Path = Path("checkpoints"),
                  log: Callable[[str], None] = print, progress: bool = True, device: str | None = None,
-                 accept_code_changes: bool = False) -> None:
-        spec, track = load_pipeline(path)
+                 accept_code_changes: bool = False, overrides: Sequence[str] = ()) -> None:
+        spec, track = load_pipeline(path, overrides)
+        self.overrides = tuple(overrides)
+        """``path.to.field=value`` settings over the file's (``spiral run --set``); the run is named for them."""
         if device is not None:  # asked for now: checked now (a file's device is checked when steps run)
             spec = spec.model_copy(update={"device": check_device(device)})
         self.path, self.log, self.progress = Path(path), log, progress
@@ -128,7 +131,8 @@ class PipelineRunner:
             raise PipelineError(self._resume_hint(step, "interrupted")) from None
         except Exception as exc:
             raise PipelineError(self._resume_hint(step, f"failed: {type(exc).__name__}: {exc}")) from exc
-        info = {"wall_time_s": time.perf_counter() - t0, **info}
+        info = {"wall_time_s": time.perf_counter() - t0, **({"overrides": list(self.overrides)} if self.overrides
+                                                              else {}), **info}
         write_manifest(step_dir, step.name, fp, outputs, info)
         self.log(f"step '{step.name}' done in {info['wall_time_s']:.1f} s")
 
@@ -143,10 +147,15 @@ class PipelineRunner:
     def _step(self, name: str) -> Step:
         return next(s for s in self.steps if s.name == name)
 
+    @property
+    def command(self) -> str:
+        """The ``spiral run`` command of this pipeline and its overrides (for resume hints)."""
+        return " ".join(["spiral run", str(self.path), *(f"--set {shlex.quote(o)}" for o in self.overrides)])
+
     def _resume_hint(self, step: Step, what: str) -> str:
-        return f"step '{step.name}' {what}\nresume with: spiral run {self.path} --from {step.name}"
+        return f"step '{step.name}' {what}\nresume with: {self.command} --from {step.name}"
 
     def describe(self) -> dict[str, Any]:
         """Machine-readable status."""
-        return {"pipeline": self.plan.spec.name, "file": str(self.path),
+        return {"pipeline": self.plan.spec.name, "file": str(self.path), "overrides": list(self.overrides),
                 "steps": [s.__dict__ for s in self.status()]}

@@ -26,11 +26,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, required=True)
     parser.add_argument("--fresh", action="store_true")
     parser.add_argument("--accept-code-changes", action="store_true")
+    parser.add_argument("--set", action="append", default=[], dest="overrides")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     runner = PipelineRunner(args.pipeline, runs_dir=args.runs_dir, checkpoints_dir=args.checkpoints_dir,
                             device=args.device, progress=False, log=lambda m: print(m, flush=True),
-                            accept_code_changes=args.accept_code_changes)
+                            accept_code_changes=args.accept_code_changes, overrides=args.overrides)
     try:
         runner.run_step(args.step, fresh=args.fresh)
     except PipelineError as exc:

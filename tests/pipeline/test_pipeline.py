@@ -295,3 +295,24 @@ def test_the_planners_races_are_steps_that_wait_only_for_what_they_race_and_the_
     data["report"] = {"se_ibr": False}
     path.write_text(yaml.safe_dump(data))
     assert not [name for name in (s.name for s in runner_for(path, tmp_path).steps) if name.startswith("eval:se-ibr")]
+
+
+def test_overrides_run_in_folders_of_their_own_with_their_fingerprints_recorded_in_the_manifests(tmp_path):
+    """`--set seed=1` names the run `smoke-seed-1...` (runs and checkpoints), changes the training step's fingerprint, and
+    reaches the worker processes of a parallel run: its solo stage trains the iterations set, and each step's
+    manifest records the overrides; the plain file's run stays untouched."""
+    from spiral.pipeline.manifest import read_manifest
+
+    path = write_pipeline(tmp_path, iterations=2)
+    plain = runner_for(path, tmp_path)
+    runner = PipelineRunner(path, runs_dir=tmp_path / "runs", checkpoints_dir=tmp_path / "ckpt", progress=False,
+                            log=lambda _: None, overrides=["seed=1", "stages.solo.iterations=1"])
+    assert runner.plan.run_root == tmp_path / "runs" / "smoke-seed-1_stages.solo.iterations-1"
+    assert runner.plan.publish_root == tmp_path / "ckpt" / "smoke-seed-1_stages.solo.iterations-1"
+    assert runner._fingerprints()["train:solo"].full != plain._fingerprints()["train:solo"].full
+    assert runner.command == "spiral run " + str(path) + " --set seed=1 --set stages.solo.iterations=1"
+    runner.run(jobs=2)
+    manifest = read_manifest(runner.plan.run_root / "train-solo")
+    assert manifest["info"]["iterations"] == 1
+    assert manifest["info"]["overrides"] == ["seed=1", "stages.solo.iterations=1"]
+    assert not plain.plan.run_root.exists()
