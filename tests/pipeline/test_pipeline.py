@@ -298,9 +298,9 @@ def test_the_planners_races_are_steps_that_wait_only_for_what_they_race_and_the_
 
 
 def test_overrides_run_in_folders_of_their_own_with_their_fingerprints_recorded_in_the_manifests(tmp_path):
-    """`--set seed=1` names the run `smoke-seed-1...` (runs and checkpoints), changes the training step's fingerprint, and
-    reaches the worker processes of a parallel run: its solo stage trains the iterations set, and each step's
-    manifest records the overrides; the plain file's run stays untouched."""
+    """`--set seed=1` names the run `smoke-seed-1...` (runs and checkpoints), changes the training step's
+    fingerprint, and reaches the worker processes of a parallel run: its solo stage trains the iterations set, and
+    each step's manifest records the overrides; the plain file's run stays untouched."""
     from spiral.pipeline.manifest import read_manifest
 
     path = write_pipeline(tmp_path, iterations=2)
