@@ -204,6 +204,10 @@ class PassageStartsCfg(StrictModel):
     share_start: float = Field(default=0.5, ge=0, le=1, description="Share of episodes started from passage states "
                                "at the stage's first iteration")
     share_end: float = Field(default=0.5, ge=0, le=1, description="The same share at its last iteration")
+    pack: float = Field(default=0.0, ge=0, le=1, description="Share of passage-start worlds whose drones all start "
+                        "from states of one gate, at least the track's start.min_separation apart: the field as a "
+                        "pack at racing speed, e.g. crossing into its next lap; the others start behind different "
+                        "gates")
     capacity: PosInt = Field(default=512, description="Passage states kept per gate (the newest)")
     pos_noise: NonNegFloat = Field(default=0.05, description="Standard deviation of a start's position noise per "
                                    "axis [m]")
