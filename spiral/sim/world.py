@@ -114,6 +114,12 @@ class World:
         self.track = make_track_arrays(track, self.device)
         self.state = QuadState(self.drone_count, self.device)
         self.race = RaceCounters(world_count, self.drone_count, self.device)
+        self._alloc_buffers()
+        self._graph = None
+        self.use_graph = wp.get_device(self.device).is_cuda
+        self._plan_threads(cpu_threads)
+
+    def _alloc_buffers(self) -> None:
         n = self.drone_count
         self.cmd = wp.zeros(n, dtype=wp.vec4, device=self.device)
         """Command of the next control step (pid: x, y, z [m], yaw [rad]; rpm: four motor speeds)."""
@@ -123,11 +129,12 @@ class World:
         """(cos, sin) of the commanded yaw of the current control step (pid mode)."""
         self.rpy = wp.zeros(n, dtype=wp.vec3, device=self.device)
         """Roll, pitch, yaw [rad] after the last step."""
-        self._reset_mask = wp.zeros(world_count, dtype=wp.int32, device=self.device)
-        self._graph = None
-        self.use_graph = wp.get_device(self.device).is_cuda
-        threads = 1 if self.use_graph else min(cpu_threads or World.cpu_threads, world_count)
-        self._shards = _world_ranges(world_count, threads)
+        self._reset_mask = wp.zeros(self.world_count, dtype=wp.int32, device=self.device)
+
+    def _plan_threads(self, cpu_threads: int | None) -> None:
+        """Split the worlds into one shard per CPU thread (one shard on a GPU, where a graph replays the step)."""
+        threads = 1 if self.use_graph else min(cpu_threads or World.cpu_threads, self.world_count)
+        self._shards = _world_ranges(self.world_count, threads)
         self._pool = ThreadPoolExecutor(threads - 1, thread_name_prefix="spiral-sim") if threads > 1 else None
         self._launches: list[list] | None = None
         """Per shard of worlds, the control step's kernel launches with their arguments packed once (CPU: replayed
