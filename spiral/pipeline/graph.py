@@ -86,15 +86,19 @@ class PipelinePlan:
             atomic_write_bytes(ctx.step_dir / "spec.json", json.dumps(resolved, indent=2).encode())
             init, frozen = (Path(ctx.inputs[s]["outputs"]["best"]["path"]) if s else None for s in (previous, opponent))
             pool_dir = ctx.step_dir / "pool"
-            if init is not None and not pool_dir.exists() and (init.parent / "pool").is_dir():
-                shutil.copytree(init.parent / "pool", pool_dir)  # the pool carries over from stage to stage
+            inherited = ctx.inputs[previous]["outputs"].get("pool") if previous else None
+            if inherited is not None and not pool_dir.exists():  # the pool carries over from stage to stage
+                shutil.copytree(Path(inherited["path"]).parent, pool_dir)
             result = run_stage(self.track, self.airframe, self.spec.sim, stage, ctx.step_dir,
                                pool_dir=pool_dir, init_checkpoint=init, opponent_checkpoint=frozen,
                                device=self.spec.device, seed=section["seed"], log=ctx.log, progress=ctx.progress)
             info = {"iterations": result.iterations, "wall_time_s": result.wall_time_s, "env_steps": result.env_steps,
                     "best": {"success": result.best.success, "lap_time": result.best.lap_time,
                              "iteration": result.best.iteration}}
-            return {"best": result.best_path, "last": result.last_path}, info
+            outputs = {"best": result.best_path, "last": result.last_path}
+            if (pool_dir / "pool.json").is_file():  # a self-play stage's pool, declared for the steps that read it
+                outputs["pool"] = pool_dir / "pool.json"
+            return outputs, info
         return run
 
     def _eval_fn(self, stage: StageSpec):
@@ -126,10 +130,10 @@ class PipelinePlan:
             for key, src, target in copies:
                 atomic_write_bytes(target, src.read_bytes())
                 outputs[key] = target
-            pool = best.parent / "pool"
-            if pool.is_dir() and stage.name == self._last_pool_stage():
+            pool = ctx.inputs[f"train:{stage.name}"]["outputs"].get("pool")
+            if pool is not None and stage.name == self._last_pool_stage():
                 shutil.rmtree(self.publish_root / "pool", ignore_errors=True)
-                shutil.copytree(pool, self.publish_root / "pool")
+                shutil.copytree(Path(pool["path"]).parent, self.publish_root / "pool")
                 outputs["pool"] = self.publish_root / "pool" / "pool.json"
             ctx.log(f"publish:{stage.name}: published {dest / 'best.pt'}")
             return outputs, {"dest": str(dest)}

@@ -50,6 +50,12 @@ def test_smoke_pipeline_twice_skips_every_step_the_second_time(tmp_path):
     for name in ("spiral.pt", "ppo-noselfplay.pt", "solo/best.pt", "solo/eval.json", "pool/pool.json"):
         assert (published / name).is_file(), name
     assert json.loads((published / "solo" / "eval.json").read_text())["runs"] == 2
+    outputs = {d.name: json.loads((d / "manifest.json").read_text())["outputs"]
+               for d in (tmp_path / "runs" / "smoke").glob("train-*")}
+    assert {name for name, out in outputs.items() if "pool" in out} == {"train-1v1", "train-2v2"}  # self-play only
+    members = {name: [m["id"] for m in json.loads(Path(outputs[name]["pool"]["path"]).read_text())["members"]]
+               for name in ("train-1v1", "train-2v2")}
+    assert members["train-2v2"][:len(members["train-1v1"])] == members["train-1v1"]  # read from the declared pool
 
 
 def test_no_self_play_2v2_stage_waits_for_the_stage_its_frozen_opponent_comes_from(tmp_path):
