@@ -99,56 +99,76 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
     if env.training:
         raise ValueError("run_races needs a RaceEnv built with training=False")
     obs = env.reset()
-    w, d = env.world_count, env.drones_per_world
-    distance = torch.zeros(env.drone_count, device=env.device)
-    partner = torch.full((env.drone_count,), -1, dtype=torch.long, device=env.device)
-    bearing = torch.full((env.drone_count,), -1, dtype=torch.long, device=env.device)
-    fault = torch.full((env.drone_count,), -1.0, device=env.device)
-    splits = torch.zeros(env.drone_count, env.passes_needed, device=env.device)
-    steps = torch.zeros(env.drone_count, dtype=torch.long, device=env.device)
-    beyond = torch.zeros_like(env.commanded, dtype=torch.long)
-    passed, place = env.gates_passed.clone(), env.track_place()
-    team = (env.slot_team.cpu() if teams is None else _team_of_slots(teams, d)).to(env.device)
-    passes = torch.zeros(env.drone_count, 2, dtype=torch.long, device=env.device)
-    frames = [env.pos.clone()] if record else []
+    team = (env.slot_team.cpu() if teams is None else _team_of_slots(teams, env.drones_per_world)).to(env.device)
+    tally = _RaceTally(env, team, record=record)
     for _ in range(env.max_episode_length):
         before, vel_before = env.pos.clone(), env.vel.clone()
         racing = ~(env.finished | env.crashed | env.absent)
         with torch.no_grad():
             obs, _, _, _ = env.step(policy(obs))
-        passes, place = _note_passes(env, place, racing, team, passes)
-        steps += racing
-        beyond += racing[:, None] & (env.commanded.abs() > 1.0)
-        distance += (env.pos - before).norm(dim=-1)
-        passed, splits = _note_splits(env, passed, splits)
-        partner, bearing, fault = _note_contacts(env, racing, before, vel_before, partner, bearing, fault)
-        if record:
-            frames.append(env.pos.clone())
+        tally.note_step(env, racing, before, vel_before)
         if bool((env.finished | env.crashed | env.absent).all()):
             break
+    return tally.results(env)
 
-    def grid(x: torch.Tensor) -> torch.Tensor:
-        return x.view(w, d).cpu()
 
-    return RaceResults(
-        finished=grid(env.finished),
-        crashed=grid(env.crashed),
-        crash_kind=grid(env.crash_kind),
-        lap_time=grid(env.lap_time),
-        gates_passed=grid(env.gates_passed),
-        distance=grid(distance),
-        present=grid(~env.absent),
-        trajectory=torch.stack(frames).view(-1, w, d, 3).cpu() if record else None,
-        crash_time=grid(torch.where(env.crashed, env.crash_time, 0.0)),
-        crash_partner=grid(partner),
-        contact_bearing=grid(bearing),
-        contact_fault=grid(fault),
-        team=team.cpu(),
-        split_time=splits.view(w, d, -1).cpu(),
-        racing_steps=grid(steps),
-        beyond_steps=beyond.view(w, d, -1).cpu(),
-        passes=passes.view(w, d, 2).cpu(), laps=env.track.laps,
-    )
+class _RaceTally:
+    """What :func:`run_races` counts for each drone (flat, on the env's device) while the races run."""
+
+    def __init__(self, env: RaceEnv, team: torch.Tensor, *, record: bool) -> None:
+        n, dev = env.drone_count, env.device
+        self.distance = torch.zeros(n, device=dev)
+        self.partner = torch.full((n,), -1, dtype=torch.long, device=dev)
+        self.bearing = torch.full((n,), -1, dtype=torch.long, device=dev)
+        self.fault = torch.full((n,), -1.0, device=dev)
+        self.splits = torch.zeros(n, env.passes_needed, device=dev)
+        self.steps = torch.zeros(n, dtype=torch.long, device=dev)
+        self.beyond = torch.zeros_like(env.commanded, dtype=torch.long)
+        self.passed, self.place = env.gates_passed.clone(), env.track_place()
+        self.team = team
+        """Team of each slot, (D,)."""
+        self.passes = torch.zeros(n, 2, dtype=torch.long, device=dev)
+        self.frames = [env.pos.clone()] if record else None
+        """Positions after the reset and after every step, when recorded."""
+
+    def note_step(self, env: RaceEnv, racing: torch.Tensor, before: torch.Tensor, vel_before: torch.Tensor) -> None:
+        """Count the step just taken by the ``racing`` drones, which were at ``before`` with ``vel_before``."""
+        self.passes, self.place = _note_passes(env, self.place, racing, self.team, self.passes)
+        self.steps += racing
+        self.beyond += racing[:, None] & (env.commanded.abs() > 1.0)
+        self.distance += (env.pos - before).norm(dim=-1)
+        self.passed, self.splits = _note_splits(env, self.passed, self.splits)
+        self.partner, self.bearing, self.fault = _note_contacts(env, racing, before, vel_before, self.partner,
+                                                                self.bearing, self.fault)
+        if self.frames is not None:
+            self.frames.append(env.pos.clone())
+
+    def results(self, env: RaceEnv) -> RaceResults:
+        """The races as they ended, shaped (W, D) on the CPU."""
+        w, d = env.world_count, env.drones_per_world
+
+        def grid(x: torch.Tensor) -> torch.Tensor:
+            return x.view(w, d).cpu()
+
+        return RaceResults(
+            finished=grid(env.finished),
+            crashed=grid(env.crashed),
+            crash_kind=grid(env.crash_kind),
+            lap_time=grid(env.lap_time),
+            gates_passed=grid(env.gates_passed),
+            distance=grid(self.distance),
+            present=grid(~env.absent),
+            trajectory=torch.stack(self.frames).view(-1, w, d, 3).cpu() if self.frames is not None else None,
+            crash_time=grid(torch.where(env.crashed, env.crash_time, 0.0)),
+            crash_partner=grid(self.partner),
+            contact_bearing=grid(self.bearing),
+            contact_fault=grid(self.fault),
+            team=self.team.cpu(),
+            split_time=self.splits.view(w, d, -1).cpu(),
+            racing_steps=grid(self.steps),
+            beyond_steps=self.beyond.view(w, d, -1).cpu(),
+            passes=self.passes.view(w, d, 2).cpu(), laps=env.track.laps,
+        )
 
 
 def _note_splits(env: RaceEnv, passed: torch.Tensor, splits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
