@@ -26,7 +26,7 @@ from tensordict import TensorDict
 
 from spiral.core.checkpoint import load_policy
 from spiral.selfplay.matchmaking import Matchmaker
-from spiral.selfplay.opponents import PoolOpponents
+from spiral.selfplay.opponents import OpponentDraws, PoolOpponents
 
 
 @torch.no_grad()
@@ -61,7 +61,7 @@ def run(pool: Path, *, worlds: int, per_world: int, repeats: int, calls: int, me
     opponents = PoolOpponents(policies, Matchmaker(len(policies), latest=len(policies) - 1, p_latest=0.0,
                                                    mode="uniform"),
                               world_count=worlds, per_world=per_world, generator=torch.Generator().manual_seed(seed),
-                              p_self=0.6)
+                              draws=OpponentDraws(p_self=0.6))
     opponents.live = policies[-1]
     rows = worlds * per_world
     gen = torch.Generator().manual_seed(seed + 1)

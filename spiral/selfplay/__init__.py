@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from spiral.selfplay.curriculum import run_stage
 from spiral.selfplay.matchmaking import Matchmaker
-from spiral.selfplay.opponents import PoolOpponents
+from spiral.selfplay.opponents import OpponentDraws, PoolOpponents
 from spiral.selfplay.pool import INITIAL_RATING, Pool, PoolMember
 from spiral.selfplay.promotion import HeadToHead, PromotionSelector, elo_update, head_to_head, should_promote
 
@@ -12,6 +12,7 @@ __all__ = [
     "INITIAL_RATING",
     "HeadToHead",
     "Matchmaker",
+    "OpponentDraws",
     "Pool",
     "PoolMember",
     "PoolOpponents",

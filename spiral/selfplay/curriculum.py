@@ -20,7 +20,7 @@ from spiral.core.scenario import SCENARIO_DRONES
 from spiral.core.seeds import stream_seed
 from spiral.env.observations import other_drone_columns
 from spiral.selfplay.matchmaking import Matchmaker
-from spiral.selfplay.opponents import PoolOpponents
+from spiral.selfplay.opponents import OpponentDraws, PoolOpponents
 from spiral.selfplay.pool import INITIAL_RATING, Pool
 from spiral.selfplay.promotion import PromotionSelector
 from spiral.train.runner import StageTrainer, TrainResult
@@ -128,14 +128,14 @@ def _world_opponents(stage: StageSpec, members: list[FrozenPolicy], matchmaker: 
                      generator: torch.Generator) -> dict[str, PoolOpponents]:
     """The opponents of each part of the stage's training worlds that has opponent slots, drawing from ``members``
     through one matchmaker and one generator."""
-    p_self = 0.0 if stage.selfplay.mirror_actions == "learner" else stage.selfplay.p_self  # else: own parts
-    unseen = other_drone_columns(stage.env.obs)
+    sp = stage.selfplay
+    p_self = 0.0 if sp.mirror_actions == "learner" else sp.p_self  # else: own parts
+    draws = OpponentDraws(p_self=p_self, offset=sp.opponent_offset, pace=sp.opponent_pace, blind=sp.opponent_blind,
+                          unseen=other_drone_columns(stage.env.obs))
     return {
         part.name: PoolOpponents(members, matchmaker, world_count=part.worlds,
                                  per_world=SCENARIO_DRONES[part.scenario] - len(part.learner_slots),
-                                 generator=generator, p_self=p_self, offset=stage.selfplay.opponent_offset,
-                                 pace=stage.selfplay.opponent_pace, blind=stage.selfplay.opponent_blind,
-                                 unseen=unseen)
+                                 generator=generator, draws=draws)
         for part in stage.world_parts() if part.opponents
     }
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDict
@@ -10,34 +11,49 @@ from tensordict import TensorDict
 from spiral.core.checkpoint import FrozenPolicy
 from spiral.selfplay.matchmaking import Matchmaker
 
-__all__ = ["PoolOpponents"]
+__all__ = ["OpponentDraws", "PoolOpponents"]
+
+
+@dataclass(frozen=True)
+class OpponentDraws:
+    """What a world's opponents draw at its reset besides their pool member, each for the episode.
+
+    With ``p_self > 0`` the world races copies of the learner's current policy instead (mirror self-play) with that
+    probability. With ``offset > 0`` every opponent adds a constant offset, drawn uniformly in [-offset, offset] per
+    axis, to its position-target actions: it flies another line. With ``pace > 0`` every opponent first clips its
+    position-target actions to [-1, 1] and scales them by a factor drawn uniformly in [1 - pace, 1]: in the relative
+    action mode it aims nearer and flies slower. With ``blind > 0`` the world's opponents fly blind with that
+    probability: the observation entries in the bool mask ``unseen`` (obs_dim,), those about other drones, are
+    zeroed before their policy reads them, so they race as if alone and never make room.
+    """
+
+    p_self: float = 0.0
+    offset: float = 0.0
+    pace: float = 0.0
+    blind: float = 0.0
+    unseen: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if self.blind > 0 and self.unseen is None:
+            raise ValueError("blind opponents need the mask of the observation entries they do not see (unseen)")
 
 
 class PoolOpponents:
     """An ``OpponentPolicy`` over several frozen policies; each world keeps its drawn member for the episode.
 
     Opponent rows arrive world-major (``per_world`` rows per world). All worlds that share a member go through
-    that member's network in one forward pass, without gradients. With ``p_self > 0`` a world races copies of the
-    learner's current policy instead (mirror self-play) with that probability; ``live`` must then be set to the
-    learner's deterministic policy before the first step (:class:`~spiral.train.StageTrainer` does). Mirror races
-    are not counted by the matchmaker. With ``offset > 0`` every opponent adds a constant offset, drawn per world
-    at its reset uniformly in [-offset, offset] per axis, to its position-target actions: it flies another line.
-    With ``pace > 0`` every opponent first clips its position-target actions to [-1, 1] and scales them by a factor
-    drawn at its world's reset uniformly in [1 - pace, 1]: in the relative action mode it aims nearer and flies slower.
-    With ``blind > 0`` a world's opponents fly blind with that probability, drawn at its reset: the observation
-    entries in the bool mask ``unseen`` (obs_dim,), those about other drones, are zeroed before their policy reads
-    them, so they race as if alone and never make room.
+    that member's network in one forward pass, without gradients. ``draws`` (:class:`OpponentDraws`) says what else a
+    world's opponents draw at its reset. In mirror worlds ``live`` must be set to the learner's deterministic policy
+    before the first step (:class:`~spiral.train.StageTrainer` does); mirror races are not counted by the matchmaker.
     """
 
     def __init__(self, policies: list[FrozenPolicy], matchmaker: Matchmaker, *, world_count: int, per_world: int,
-                 generator: torch.Generator, p_self: float = 0.0, offset: float = 0.0, pace: float = 0.0,
-                 blind: float = 0.0, unseen: torch.Tensor | None = None) -> None:
-        if blind > 0 and unseen is None:
-            raise ValueError("blind opponents need the mask of the observation entries they do not see (unseen)")
+                 generator: torch.Generator, draws: OpponentDraws | None = None) -> None:
         self.policies, self.matchmaker = policies, matchmaker
-        self.per_world, self.generator, self.p_self, self.offset = per_world, generator, p_self, offset
-        self.pace, self.blind = pace, blind
-        self.unseen = None if unseen is None else unseen.to(matchmaker.races.device)
+        self.per_world, self.generator = per_world, generator
+        self.draws = draws or OpponentDraws()
+        self.unseen = None if self.draws.unseen is None else self.draws.unseen.to(matchmaker.races.device)
+        """``draws.unseen`` on the matchmaker's device."""
         self.live: Callable[[TensorDict], torch.Tensor] | None = None
         """The learner's current policy, for mirror worlds."""
         self.assignment = torch.zeros(world_count, dtype=torch.long, device=matchmaker.races.device)
@@ -58,7 +74,7 @@ class PoolOpponents:
         member_of_row = self.assignment.repeat_interleave(self.per_world)
         mirror_row = self.mirror.repeat_interleave(self.per_world)
         actions = torch.zeros(obs.batch_size[0], 4, device=member_of_row.device)
-        if self.blind > 0:
+        if self.draws.blind > 0:
             obs = self._blinded(obs)
         if mirror_row.any():
             if self.live is None:
@@ -74,9 +90,9 @@ class PoolOpponents:
         acted = [self.policies[m].actions(policy_obs[rows]) for m, rows in enumerate(order.split(counts)) if len(rows)]
         if acted:
             actions[order] = torch.cat(acted)
-        if self.pace > 0:  # on the action range the env keeps: a policy's mean may lie beyond it
+        if self.draws.pace > 0:  # on the action range the env keeps: a policy's mean may lie beyond it
             actions[:, :3] = actions[:, :3].clamp(-1.0, 1.0) * self.action_scale.view(-1, 1)
-        if self.offset > 0:
+        if self.draws.offset > 0:
             actions[:, :3] += self.action_offset.view(-1, 3)
         return actions
 
@@ -86,16 +102,16 @@ class PoolOpponents:
         if count:
             self.assignment[worlds] = self.matchmaker.draw(count, self.generator)
             u = torch.rand(count, generator=self.generator, device=self.mirror.device)
-            self.mirror[worlds] = u < self.p_self
-            if self.offset > 0:
+            self.mirror[worlds] = u < self.draws.p_self
+            if self.draws.offset > 0:
                 shift = torch.rand(count, self.per_world, 3, generator=self.generator, device=self.mirror.device)
-                self.action_offset[worlds] = (2.0 * shift - 1.0) * self.offset
-            if self.pace > 0:
+                self.action_offset[worlds] = (2.0 * shift - 1.0) * self.draws.offset
+            if self.draws.pace > 0:
                 slow = torch.rand(count, self.per_world, 1, generator=self.generator, device=self.mirror.device)
-                self.action_scale[worlds] = 1.0 - slow * self.pace
-            if self.blind > 0:
+                self.action_scale[worlds] = 1.0 - slow * self.draws.pace
+            if self.draws.blind > 0:
                 u = torch.rand(count, generator=self.generator, device=self.mirror.device)
-                self.blind_world[worlds] = u < self.blind
+                self.blind_world[worlds] = u < self.draws.blind
 
     def _blinded(self, obs: TensorDict) -> TensorDict:
         """``obs`` with the unseen entries of the blind worlds' rows zeroed."""

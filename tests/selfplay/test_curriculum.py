@@ -157,5 +157,5 @@ def test_a_stage_with_blind_opponents_hides_what_its_layout_shows_of_other_drone
               init_checkpoint=tmp_path / "solo" / "best.pt", progress=False)
     hidden = other_drone_columns(duel.env.obs)
     assert len(built) == 2 and {o.per_world for o in built} == {1, 2}
-    assert all(o.blind == pytest.approx(0.4) for o in built)
+    assert all(o.draws.blind == pytest.approx(0.4) for o in built)
     assert all(torch.equal(o.unseen, hidden) for o in built)  # exact: boolean masks

@@ -11,7 +11,7 @@ from tensordict import TensorDict
 
 from spiral.config import SelfPlayCfg, SimCfg, StageSpec
 from spiral.core.checkpoint import FrozenPolicy
-from spiral.selfplay import Matchmaker, PoolOpponents, run_stage
+from spiral.selfplay import Matchmaker, OpponentDraws, PoolOpponents, run_stage
 from spiral.train import StageTrainer, load_policy
 from tests.selfplay.helpers import CF2X, COMMON
 
@@ -79,7 +79,8 @@ def test_mirror_worlds_race_the_live_policy_and_stay_out_of_matchmaking(solo_pol
     """Drive about p_self of the worlds with the learner's policy; only pool worlds feed the loss statistics."""
     gen = torch.Generator().manual_seed(0)
     mm = Matchmaker(1, latest=0, p_latest=0.5)
-    opponents = PoolOpponents([solo_policy], mm, world_count=4000, per_world=1, generator=gen, p_self=0.3)
+    opponents = PoolOpponents([solo_policy], mm, world_count=4000, per_world=1, generator=gen,
+                              draws=OpponentDraws(p_self=0.3))
     assert opponents.mirror.float().mean().item() == pytest.approx(0.3, abs=0.03)
     opponents.live = lambda obs: torch.full((obs.batch_size[0], 4), 0.5)
     dim = solo_policy.obs_layout["obs_dim"]
@@ -101,7 +102,7 @@ def test_each_pool_member_acts_on_the_batch_of_its_rows_exactly_as_rsl_rls_actor
     members = [solo_policy, load_policy_copy(solo_policy, scale=0.5), load_policy_copy(solo_policy, scale=2.0)]
     gen = torch.Generator().manual_seed(3)
     opponents = PoolOpponents(members, Matchmaker(3, latest=2, p_latest=0.2), world_count=300, per_world=3,
-                              generator=gen, p_self=0.3)
+                              generator=gen, draws=OpponentDraws(p_self=0.3))
     opponents.live = lambda obs: torch.full((obs.batch_size[0], 4), 0.25)
     dim = solo_policy.obs_layout["obs_dim"]
     obs = TensorDict({"policy": torch.randn(900, dim), "critic": torch.randn(900, dim + 3)}, batch_size=[900])
@@ -132,7 +133,7 @@ def test_mirror_copies_fly_the_learners_mean_or_sampled_action(line2, tmp_path, 
                                      "selfplay": {"p_self": 1.0, "mirror_actions": mirror_actions}})
     opponents = PoolOpponents([load_policy(tmp_path / "a" / "best.pt")], Matchmaker(1, latest=0, p_latest=0.5),
                               world_count=duel.worlds, per_world=1, generator=torch.Generator().manual_seed(0),
-                              p_self=1.0)
+                              draws=OpponentDraws(p_self=1.0))
     trainer = StageTrainer(line2, CF2X, SimCfg(), duel, tmp_path / "duel", opponent=opponents,
                            init_checkpoint=tmp_path / "a" / "best.pt", progress=False, log=lambda _: None)
     actor = trainer.runner.alg.get_policy()
@@ -159,7 +160,7 @@ def test_opponent_offsets_hold_for_an_episode_and_are_redrawn_at_reset(solo_poli
     plain = PoolOpponents([solo_policy], Matchmaker(1, latest=0, p_latest=0.5), world_count=20, per_world=2,
                           generator=torch.Generator().manual_seed(0))
     shifted = PoolOpponents([solo_policy], Matchmaker(1, latest=0, p_latest=0.5), world_count=20, per_world=2,
-                            generator=torch.Generator().manual_seed(0), offset=0.2)
+                            generator=torch.Generator().manual_seed(0), draws=OpponentDraws(offset=0.2))
     delta = shifted(obs) - plain(obs)
     assert torch.allclose(shifted(obs) - plain(obs), delta)  # the same offset at every step
     assert delta[:, :3].abs().max() <= 0.2 + 1e-6 and delta[:, :3].abs().max() > 0.1 and (delta[:, 3] == 0).all()
@@ -177,7 +178,7 @@ def test_opponent_pace_scales_each_opponents_clipped_targets_for_an_episode(solo
     plain = PoolOpponents([solo_policy], Matchmaker(1, latest=0, p_latest=0.5), world_count=20, per_world=2,
                           generator=torch.Generator().manual_seed(0))
     slow = PoolOpponents([solo_policy], Matchmaker(1, latest=0, p_latest=0.5), world_count=20, per_world=2,
-                         generator=torch.Generator().manual_seed(0), pace=0.4)
+                         generator=torch.Generator().manual_seed(0), draws=OpponentDraws(pace=0.4))
     base = plain(obs)
     clipped = base[:, :3].clamp(-1.0, 1.0)
     factor = slow(obs)[:, :3] / clipped
@@ -215,9 +216,10 @@ def test_blind_opponents_read_rows_without_the_unseen_entries_for_their_episode(
     obs = TensorDict({"policy": x.clone(), "critic": x.clone()}, batch_size=[2 * worlds])
     with pytest.raises(ValueError, match="unseen"):
         PoolOpponents([member], Matchmaker(1, latest=0, p_latest=0.5), world_count=worlds, per_world=2,
-                      generator=torch.Generator().manual_seed(0), blind=0.5)
+                      generator=torch.Generator().manual_seed(0), draws=OpponentDraws(blind=0.5))
     opponents = PoolOpponents([member], Matchmaker(1, latest=0, p_latest=0.5), world_count=worlds, per_world=2,
-                              generator=torch.Generator().manual_seed(0), p_self=0.5, blind=0.5, unseen=unseen)
+                              generator=torch.Generator().manual_seed(0),
+                              draws=OpponentDraws(p_self=0.5, blind=0.5, unseen=unseen))
     opponents.live = member
     opponents(obs)
     torch.testing.assert_close(obs["policy"], x)  # left untouched
