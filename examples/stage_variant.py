@@ -26,7 +26,7 @@ from pathlib import Path
 import yaml
 
 from spiral.config import StageSpec, load_pipeline, resolve_airframe
-from spiral.eval import evaluate_methods
+from spiral.eval import RaceSet, evaluate_methods
 from spiral.selfplay import run_stage
 from spiral.selfplay.pool import Pool
 
@@ -121,7 +121,7 @@ def main() -> None:
                        init_checkpoint=init, opponent_checkpoint=args.opponent, device=args.device,
                        seed=stage.seed if stage.seed is not None else spec.seed, progress=False)
     wall = time.perf_counter() - start
-    evaluation = evaluate_methods(track, {"variant": result.best_path}, scenario=stage.scenario, runs=50, seed=0,
+    evaluation = evaluate_methods(RaceSet(track, stage.scenario, 50, 0), {"variant": result.best_path},
                                   device=args.device)
     m = evaluation["methods"]["variant"]
     summary = {"stage": stage.name, "overrides": args.sets, "train_wall_s": round(wall, 1),

@@ -286,13 +286,13 @@ def evaluate(
     """Race methods from seeded start placements (identical for every method) and report their metrics."""
     device = check_device(device)
     from spiral.core.scenario import SCENARIO_DRONES
-    from spiral.eval.evaluate import evaluate_methods, format_eval
+    from spiral.eval.evaluate import RaceSet, evaluate_methods, format_eval
 
     _check_choice("--scenario", scenario, tuple(SCENARIO_DRONES))
     flight = _flight_override(separation, separation_team, downwash, starts)
     spec = load_track(track)
-    result = evaluate_methods(spec.with_laps(laps or spec.laps), dict(_parse_method(m) for m in method),
-                              scenario=scenario, runs=runs, seed=seed, device=device,
+    result = evaluate_methods(RaceSet(spec.with_laps(laps or spec.laps), scenario, runs, seed),
+                              dict(_parse_method(m) for m in method), device=device,
                               against=_parse_method(against) if against else None, sides=sides, flight=flight)
     typer.echo(format_eval(result))
     _write_json(json_out, result)

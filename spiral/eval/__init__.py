@@ -13,6 +13,7 @@ from spiral.eval.bound import AccelLimits, LapBound, lap_time_bound
 from spiral.eval.plots import plot_learning_curves, plot_speed_vs_reliability, plot_track
 
 _LAZY = {
+    "RaceSet": "spiral.eval.evaluate",
     "evaluate_methods": "spiral.eval.evaluate",
     "build_report": "spiral.eval.report",
     "record_race": "spiral.eval.replay",
@@ -23,6 +24,7 @@ _LAZY = {
 __all__ = [
     "AccelLimits",
     "LapBound",
+    "RaceSet",
     "build_report",
     "evaluate_methods",
     "lap_time_bound",

@@ -181,35 +181,31 @@ def load_agent(spec: str | Path, *, device: str = "cpu") -> Agent:
     return SE_IBR if str(spec).lower() == SE_IBR else load_policy(Path(spec), device=device)
 
 
-def eval_env_for(policy: FrozenPolicy, track: TrackSpec, scenario: str, runs: int, seed: int, *,
-                 device: str = "cpu", team_a_only: bool = False) -> RaceEnv:
-    """A non-resetting env with the policy's observation/action layout, airframe and simulator settings.
+def eval_env_for(policy: FrozenPolicy, races: RaceSet, *, device: str = "cpu", team_a_only: bool = False) -> RaceEnv:
+    """A non-resetting env of ``races`` with the policy's observation/action layout, airframe and simulator settings.
 
-    Start placements depend on ``seed`` and ``scenario`` only, so every method races from the same ones.
+    Start placements depend on the seed and the scenario only, so every method races from the same ones.
     """
-    return _race_env(EvalLayout.of_policy(policy), track, scenario, runs, seed, device=device,
-                     team_a_only=team_a_only)
+    return _race_env(EvalLayout.of_policy(policy), races, device=device, team_a_only=team_a_only)
 
 
-def _race_env(layout: EvalLayout, track: TrackSpec, scenario: str, runs: int, seed: int, *, device: str,
-              team_a_only: bool) -> RaceEnv:
-    if scenario not in TEAMS:
-        raise UsageError(f"scenario: expected solo, 1v1 or 2v2, got {scenario!r}")
-    drones = SCENARIO_DRONES[scenario]
-    slots = TEAMS[scenario][0] if team_a_only else list(range(drones))
-    return RaceEnv(track, layout.airframe, layout.sim, layout.env, world_count=runs, drones_per_world=drones,
-                   learner_slots=slots, device=device, seed=seed, training=False)
+def _race_env(layout: EvalLayout, races: RaceSet, *, device: str, team_a_only: bool) -> RaceEnv:
+    if races.scenario not in TEAMS:
+        raise UsageError(f"scenario: expected solo, 1v1 or 2v2, got {races.scenario!r}")
+    drones = SCENARIO_DRONES[races.scenario]
+    slots = TEAMS[races.scenario][0] if team_a_only else list(range(drones))
+    return RaceEnv(races.track, layout.airframe, layout.sim, layout.env, world_count=races.runs,
+                   drones_per_world=drones, learner_slots=slots, device=device, seed=races.seed, training=False)
 
 
-def setup_race(track: TrackSpec, scenario: str, runs: int, seed: int, agent: Agent, opponent: Agent | None = None,
-               *, device: str = "cpu", layout: EvalLayout | None = None,
-               flight: FlightOverride | None = None) -> tuple[RaceEnv, Policy]:
+def setup_race(races: RaceSet, agent: Agent, opponent: Agent | None = None, *, device: str = "cpu",
+               layout: EvalLayout | None = None, flight: FlightOverride | None = None) -> tuple[RaceEnv, Policy]:
     """A fresh race env and the policy of its learner slots: ``agent`` everywhere, or team A vs ``opponent``.
 
     The env takes ``agent``'s layout if it is learned, else ``opponent``'s, else ``layout`` (defaults when None),
     changed by ``flight``.
     """
-    if opponent is not None and scenario == "solo":
+    if opponent is not None and races.scenario == "solo":
         raise UsageError("cross-play needs a 1v1 or 2v2 scenario")
     if isinstance(agent, FrozenPolicy) and isinstance(opponent, FrozenPolicy):
         _check_compatible(agent, opponent, same_inputs=False)
@@ -217,7 +213,7 @@ def setup_race(track: TrackSpec, scenario: str, runs: int, seed: int, agent: Age
     chosen = EvalLayout.of_policy(learned[0]) if learned else (layout or EvalLayout.default())
     if flight is not None:
         chosen = flight.apply(chosen)
-    env = _race_env(chosen, track, scenario, runs, seed, device=device, team_a_only=opponent is not None)
+    env = _race_env(chosen, races, device=device, team_a_only=opponent is not None)
     if opponent is not None:
         opp: OpponentPolicy = opponent_policy(env) if isinstance(opponent, str) else opponent
         own = policy_obs(opponent) if isinstance(opponent, FrozenPolicy) else None
@@ -242,8 +238,7 @@ def race_agents(races: RaceSet, agent: Agent, opponent: Agent | None = None, *, 
 
     ``planners``, when given, collects the planner policies that flew (for :func:`~spiral.baselines.planning_cost`).
     """
-    env, policy = setup_race(races.track, races.scenario, races.runs, races.seed, agent, opponent, device=device,
-                             layout=layout, flight=flight)
+    env, policy = setup_race(races, agent, opponent, device=device, layout=layout, flight=flight)
     teams = TEAMS[races.scenario]
     res = run_races(env, policy, record=record, teams=teams)
     if planners is not None:
@@ -251,10 +246,9 @@ def race_agents(races: RaceSet, agent: Agent, opponent: Agent | None = None, *, 
     return res, race_winner(res.finished, res.lap_time, teams) if opponent is not None else None
 
 
-def evaluate_policy(policy: FrozenPolicy, track: TrackSpec, scenario: str, runs: int, seed: int, *,
-                    device: str = "cpu", record: bool = False) -> RaceResults:
+def evaluate_policy(policy: FrozenPolicy, races: RaceSet, *, device: str = "cpu", record: bool = False) -> RaceResults:
     """Self-match races: every drone of every race runs ``policy``."""
-    return race_agents(RaceSet(track, scenario, runs, seed), policy, device=device, record=record)[0]
+    return race_agents(races, policy, device=device, record=record)[0]
 
 
 def cross_play(a: Agent, b: Agent, races: RaceSet, *, device: str = "cpu", layout: EvalLayout | None = None,
@@ -280,30 +274,28 @@ def cross_play(a: Agent, b: Agent, races: RaceSet, *, device: str = "cpu", layou
     return concat_results([res, back]), torch.cat([winners, torch.where(won >= 0, 1 - won, won)])
 
 
-def evaluate_methods(track: TrackSpec, methods: dict[str, str | Path], *, scenario: str, runs: int, seed: int,
-                     device: str = "cpu", against: tuple[str, str | Path] | None = None,
-                     airframe: AirframeCfg | None = None, sim: SimCfg | None = None,
+def evaluate_methods(races: RaceSet, methods: dict[str, str | Path], *, device: str = "cpu",
+                     against: tuple[str, str | Path] | None = None, layout: EvalLayout | None = None,
                      sides: str = "both", flight: FlightOverride | None = None) -> dict[str, Any]:
-    """The evaluation JSON of ``spiral eval``: metrics of each named method in ``scenario``.
+    """The evaluation JSON of ``spiral eval``: metrics of each named method in ``races``.
 
     A method is a checkpoint path or ``se-ibr``. Without ``against`` every drone of a race runs the method
     (self-match, as in the paper's tables). With ``against = (name, checkpoint or se-ibr)`` the method is team A
-    and ``name`` team B; ``win_rate``, ``loss_rate`` and ``draws`` are added, over ``runs`` races per side (``sides``,
-    see :func:`cross_play`; ``win_rate_by_side`` splits the win rate by where the method started). Planner-only
-    races use the layout of the first learned method (or ``airframe``/``sim`` and default env settings when there is
-    none); the entry's ``layout`` says which. ``flight`` changes the flight stack of every drone (JSON ``flight``).
-    Where the planner flew, ``planning`` is its cost (:func:`~spiral.baselines.planning_cost`: ms per plan per drone).
+    and ``name`` team B; ``win_rate``, ``loss_rate`` and ``draws`` are added, over ``races.runs`` races per side
+    (``sides``, see :func:`cross_play`; ``win_rate_by_side`` splits the win rate by where the method started).
+    Planner-only races use the layout of the first learned method (else ``layout``, the defaults when None); the
+    entry's ``layout`` says which. ``flight`` changes the flight stack of every drone (JSON ``flight``). Where the
+    planner flew, ``planning`` is its cost (:func:`~spiral.baselines.planning_cost`: ms per plan per drone).
     """
-    races = RaceSet(track, scenario, runs, seed)
     out = _eval_json(races, flight)
     check_sides(sides)
     if against is not None:
         out["against"] = {"name": against[0], "checkpoint": str(against[1])}
-        out["sides"], out["races"] = sides, runs * (2 if sides == "both" else 1)
+        out["sides"], out["races"] = sides, races.runs * (2 if sides == "both" else 1)
     agents = {name: load_agent(path, device=device) for name, path in methods.items()}
     opponent = load_agent(against[1], device=device) if against is not None else None
     fallback = _fallback_layout([*agents.items(), *([(against[0], opponent)] if against is not None else [])],
-                                airframe=airframe, sim=sim)
+                                layout)
     for name, agent in agents.items():
         entry: dict[str, Any] = {"checkpoint": str(methods[name])}
         planners: list[PlannerPolicy] = []
@@ -331,14 +323,13 @@ def _eval_json(races: RaceSet, flight: FlightOverride | None) -> dict[str, Any]:
     return out
 
 
-def _fallback_layout(agents: list[tuple[str, Agent | None]], *, airframe: AirframeCfg | None,
-                     sim: SimCfg | None) -> EvalLayout:
+def _fallback_layout(agents: list[tuple[str, Agent | None]], layout: EvalLayout | None) -> EvalLayout:
     """The layout of planner-only races: the first learned method's among ``agents`` (name, method), else
-    ``airframe``/``sim`` with default env settings."""
+    ``layout`` (the defaults when None)."""
     learned = [(n, a) for n, a in agents if isinstance(a, FrozenPolicy)]
     if learned:
         return EvalLayout.of_policy(learned[0][1], source=learned[0][0])
-    return EvalLayout.default(airframe=airframe, sim=sim)
+    return layout or EvalLayout.default()
 
 
 def _cross_play_metrics(res: RaceResults, winners: torch.Tensor, races: RaceSet) -> dict[str, Any]:
@@ -389,7 +380,7 @@ def evaluate_mixed_teams(track: TrackSpec, methods: dict[str, str | Path], *, ru
     layout = EvalLayout.of_policy(a)  # type: ignore[arg-type]
     if flight is not None:
         layout = flight.apply(layout)
-    env = _race_env(layout, track, "2v2", runs, seed, device=device, team_a_only=False)
+    env = _race_env(layout, RaceSet(track, "2v2", runs, seed), device=device, team_a_only=False)
     res = run_races(env, SlotPolicy([a, b, a, b]), teams=TEAMS["2v2"])  # type: ignore[list-item]
     out: dict[str, Any] = {"track": track.name, "scenario": "2v2", "runs": runs, "seed": seed, "mixed": True,
                            "methods": {}}

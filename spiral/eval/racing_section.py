@@ -45,13 +45,14 @@ class Racing:
 
 
 def _variants(held: Evaluations, cfg: RacingCfg, runs: int | None = None) -> dict[str, Evaluations]:
-    return {starts: held.racing(runs or held.runs, held.seed, cfg.laps, starts) for starts in cfg.starts}
+    p = held.protocol
+    return {starts: held.racing(runs or p.runs, p.seed, cfg.laps, starts) for starts in cfg.starts}
 
 
 def race_racing(held: Evaluations, stages: list[StageRun], cfg: RacingCfg) -> Racing:
     """The section's races among learned policies, from ``held``'s placements: each final policy's self-matches in
     every format and SPIRAL's duel with PPO without self-play, from every start of ``cfg``."""
-    out = Racing(cfg.laps, held.runs, held.seed)
+    out = Racing(cfg.laps, held.protocol.runs, held.protocol.seed)
     finals = {key: str(stage.best) for key, stage in final_stages(stages).items()}
     out.final_names = {key: stage.name for key, stage in final_stages(stages).items()}
     for starts, ev in _variants(held, cfg).items():

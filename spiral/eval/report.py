@@ -24,12 +24,13 @@ from spiral.config.pipeline import RacingCfg
 from spiral.config.track import TrackSpec
 from spiral.core.errors import UsageError
 from spiral.eval.bound import LapBound, lap_time_bound
-from spiral.eval.evaluate import SE_IBR, check_sides
+from spiral.eval.evaluate import SE_IBR, EvalLayout, check_sides
 from spiral.eval.plots import TradeoffPoint, plot_learning_curves, plot_speed_vs_reliability, plot_track
 from spiral.eval.racing_section import Racing, race_planner_duels, race_racing, racing_markdown
 from spiral.eval.robustness import Robustness, filter_rows, race_learned, race_se_ibr, robustness_markdown
 from spiral.eval.runs import (
     MODE_OF,
+    EvalProtocol,
     Evaluations,
     RowResult,
     StageRun,
@@ -116,7 +117,7 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, options: Repor
     in ``out_dir/evals``), as ``options`` say; ``log`` takes progress messages. Returns the path of ``results.md``."""
     run_root, out_dir, o = Path(run_root), Path(out_dir), options
     ev = _protocol(run_root, track, out_dir, o, se_ibr=o.se_ibr, log=log)
-    stages, runs, seed, airframe = ev.stages, ev.runs, ev.seed, ev.airframe
+    stages, runs, seed, airframe = ev.stages, ev.protocol.runs, ev.protocol.seed, ev.protocol.layout.airframe
     table = {s: [ev.self_match(s, key) for key in APPROACHES] for s in SCENARIOS}
     held_ev = None if o.holdout is None else ev.held_out(*o.holdout)
     planner_pairings = _se_ibr_pairings(table) if o.se_ibr and (o.cross_play or o.robustness) else []
@@ -184,8 +185,9 @@ def _protocol(run_root: Path, track: TrackSpec, out_dir: Path, options: ReportOp
     if options.holdout is not None and options.holdout[1] == seed:
         raise UsageError(f"holdout seed {seed} is the evaluation's own seed: held-out placements need another")
     stage_airframe, sim = run_setup(stages)
-    return Evaluations(run_root, track, out_dir, stages, runs=runs, seed=seed, device=options.device, se_ibr=se_ibr,
-                       airframe=options.airframe or stage_airframe, sim=sim, log=log, sides=options.sides)
+    layout = EvalLayout.default(airframe=options.airframe or stage_airframe, sim=sim)
+    protocol = EvalProtocol(track, runs, seed, layout, sides=options.sides)
+    return Evaluations(run_root, out_dir, stages, protocol, device=options.device, se_ibr=se_ibr, log=log)
 
 
 def _race_learned(ev: Evaluations, held_ev: Evaluations | None, table: dict, o: ReportOptions
@@ -243,7 +245,7 @@ def _with_racing(text: str, racing: Racing | None, sides: str) -> str:
 def _held_out(ev: Evaluations) -> dict[str, Any]:
     """The learned approaches' self-matches in each scenario and SPIRAL's head-to-head against PPO without
     self-play, raced with ``ev``'s races, seed and sides."""
-    out: dict[str, Any] = {"runs": ev.runs, "seed": ev.seed}
+    out: dict[str, Any] = {"runs": ev.protocol.runs, "seed": ev.protocol.seed}
     for scenario in SCENARIOS:
         rows = {key: ev.self_match(scenario, key) for key in MODE_OF}
         a, b = rows["spiral"].agent, rows["noselfplay"].agent
@@ -268,7 +270,7 @@ def _cross_matrix(ev: Evaluations, scenario: str, rows: list[RowResult], *, plan
                 cells[ka][kb] = None  # two planners: minutes of solving for a number nobody asked for
                 continue
             mirror = cells.get(kb, {}).get(ka)
-            if ev.sides == "both" and mirror is not None:  # the same races, seen from the other team
+            if ev.protocol.sides == "both" and mirror is not None:  # the same races, seen from the other team
                 cells[ka][kb] = mirror if "error" in mirror else {
                     "win_rate": mirror["loss_rate"], "draws": mirror["draws"], "loss_rate": mirror["win_rate"]}
                 continue

@@ -62,7 +62,7 @@ def race_learned(ev: Evaluations, stages: list[StageRun], separation: Separation
     """The extra sections' races among learned policies, with ``ev``'s races and seed: each final policy in every
     format, downwash, and the learned methods against each other (pairings, mixed teams and, with ``separation``,
     each method with the filter on its own drones only)."""
-    out = Robustness(runs=ev.runs, seed=ev.seed)
+    out = Robustness(runs=ev.protocol.runs, seed=ev.protocol.seed)
     finals = final_stages(stages)
     out.final_names = {key: stage.name for key, stage in finals.items()}
     for key, stage in finals.items():
@@ -75,13 +75,13 @@ def race_learned(ev: Evaluations, stages: list[StageRun], separation: Separation
     return out
 
 
-def race_se_ibr(rb: Robustness, protocol: Evaluations) -> None:
-    """Add each learned method's pairing with SE-IBR to ``rb``'s strangers, raced with ``protocol``'s races and
-    seed (the races of the cross-play tables)."""
+def race_se_ibr(rb: Robustness, ev: Evaluations) -> None:
+    """Add each learned method's pairing with SE-IBR to ``rb``'s strangers, raced with ``ev``'s races and seed (the
+    races of the cross-play tables)."""
     for scenario, rows in rb.strangers.items():
         for key, row in rows.items():
-            row[f"{NAMES['se-ibr']} ({protocol.runs} races)"] = protocol.cross(
-                scenario, (key, protocol.agent(scenario, key)), ("se-ibr", SE_IBR))
+            row[f"{NAMES['se-ibr']} ({ev.protocol.runs} races)"] = ev.cross(
+                scenario, (key, ev.agent(scenario, key)), ("se-ibr", SE_IBR))
 
 
 def _strangers(ev: Evaluations, scenario: str, agents: dict[str, str],

@@ -23,10 +23,11 @@ from spiral.config.airframe import AIRFRAMES, AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
 from spiral.core.files import atomic_write_bytes, file_sha256
-from spiral.eval.evaluate import SE_IBR, FlightOverride, evaluate_methods, evaluate_mixed_teams
+from spiral.eval.evaluate import SE_IBR, EvalLayout, FlightOverride, RaceSet, evaluate_methods, evaluate_mixed_teams
 
 __all__ = [
     "MODE_OF",
+    "EvalProtocol",
     "Evaluations",
     "RowResult",
     "StageRun",
@@ -140,31 +141,50 @@ def read_train_log(path: Path) -> list[dict[str, Any]]:
     return rows
 
 
-class Evaluations:
-    """Finds evaluation results in the run folder, or runs and caches them under ``<out>/evals``."""
+@dataclass(frozen=True)
+class EvalProtocol:
+    """How a report's evaluations race: ``runs`` races of each scenario on ``track`` from the start placements of
+    ``seed``, head to head from ``sides`` (see :func:`spiral.eval.evaluate.cross_play`)."""
 
-    def __init__(self, run_root: Path, track: TrackSpec, out_dir: Path, stages: list[StageRun], *, runs: int,
-                 seed: int, device: str, se_ibr: bool, airframe: AirframeCfg, sim: SimCfg,
-                 log: Callable[[str], None], prefix: str = "", sides: str = "both") -> None:
-        self.run_root, self.track, self.cache, self.prefix = run_root, track, out_dir / "evals", prefix
-        self.sides = sides
-        self.stages, self.runs, self.seed, self.device = stages, runs, seed, device
-        self.se_ibr, self.airframe, self.sim, self.log = se_ibr, airframe, sim, log
-        self.starts: Literal["box", "track"] = "box"
-        """Where every race of these evaluations starts (as :class:`FlightOverride`'s ``starts``)."""
+    track: TrackSpec
+    runs: int
+    seed: int
+    layout: EvalLayout
+    """The layout of planner-only races (:func:`spiral.eval.evaluate.evaluate_methods`)."""
+    sides: str = "both"
+    starts: Literal["box", "track"] = "box"
+    """Where every race starts (as :class:`FlightOverride`'s ``starts``)."""
+
+    def races(self, scenario: str) -> RaceSet:
+        """The seeded races of ``scenario``."""
+        return RaceSet(self.track, scenario, self.runs, self.seed)
+
+
+class Evaluations:
+    """Finds evaluation results in the run folder, or runs them as ``protocol`` says and caches them under
+    ``<out>/evals``."""
+
+    def __init__(self, run_root: Path, out_dir: Path, stages: list[StageRun], protocol: EvalProtocol, *, device: str,
+                 se_ibr: bool, log: Callable[[str], None]) -> None:
+        self.run_root, self.cache, self.stages, self.protocol = run_root, out_dir / "evals", stages, protocol
+        self.device, self.se_ibr, self.log = device, se_ibr, log
+        self.prefix = ""
+        """Start of the cached files' names (the held-out and racing variants have their own)."""
 
     def held_out(self, runs: int, seed: int) -> Evaluations:
         """The same evaluations from other placements (``runs`` races of ``seed``), cached under ``holdout-`` names;
         learned policies only."""
         other = copy.copy(self)
-        other.runs, other.seed, other.prefix, other.se_ibr = runs, seed, "holdout-", False
+        other.protocol = dataclasses.replace(self.protocol, runs=runs, seed=seed)
+        other.prefix, other.se_ibr = "holdout-", False
         return other
 
     def racing(self, runs: int, seed: int, laps: int, starts: Literal["box", "track"]) -> Evaluations:
         """Races of ``laps`` laps from ``runs`` placements of ``seed``, every one starting where ``starts`` says,
         cached under ``racing-<laps>laps-<starts>-`` names."""
         other = copy.copy(self)
-        other.runs, other.seed, other.track, other.starts = runs, seed, self.track.with_laps(laps), starts
+        other.protocol = dataclasses.replace(self.protocol, runs=runs, seed=seed,
+                                             track=self.protocol.track.with_laps(laps), starts=starts)
         other.prefix = f"racing-{laps}laps-{starts}-"
         return other
 
@@ -197,7 +217,7 @@ class Evaluations:
                 res.note = f"no {MODE_OF[key]}-mode {scenario} stage in {self.run_root}"
                 return res
             data = load_json(stage.eval_path)
-            if data is not None and (data["runs"], data["seed"]) == (self.runs, self.seed) and data["methods"]:
+            if data is not None and (data["runs"], data["seed"]) == self._placements() and data["methods"]:
                 res.metrics, res.source = next(iter(data["methods"].values())), str(stage.eval_path)
                 return res
             if res.agent is None:
@@ -235,7 +255,7 @@ class Evaluations:
             data = load_json(path)
             if data is None or data.get("scenario") != scenario or "against" in data:
                 continue
-            if (data.get("runs"), data.get("seed")) != (self.runs, self.seed):
+            if (data.get("runs"), data.get("seed")) != self._placements():
                 continue
             for entry in data.get("methods", {}).values():
                 if str(entry.get("checkpoint", "")).lower() == SE_IBR:
@@ -247,9 +267,10 @@ class Evaluations:
         """What an evaluation's numbers depend on, as its JSON records them under ``inputs``."""
         flight = self._flight(flight)
         agents = [*methods.values(), *([against[1]] if against else [])]
-        inputs = {"track": self.track.model_dump(mode="json"), "scenario": scenario, "runs": self.runs,
-                  "seed": self.seed, "agents": [a if a == SE_IBR else _checksum(Path(a)) for a in agents],
-                  **({"sides": self.sides} if against else {}), **({"mixed": True} if mixed else {}),
+        p = self.protocol
+        inputs = {"track": p.track.model_dump(mode="json"), "scenario": scenario, "runs": p.runs,
+                  "seed": p.seed, "agents": [a if a == SE_IBR else _checksum(Path(a)) for a in agents],
+                  **({"sides": p.sides} if against else {}), **({"mixed": True} if mixed else {}),
                   **({"flight": flight.to_json()} if flight is not None and flight.to_json() else {})}
         return json.loads(json.dumps(inputs))  # compare as read back: tuples become lists
 
@@ -271,15 +292,13 @@ class Evaluations:
         found = self._cached(tag, inputs)
         if found is not None:
             return found
-        flight = self._flight(flight)
-        self.log(f"report: running {self.prefix}{tag} ({self.runs} races, seed {self.seed})")
+        flight, p = self._flight(flight), self.protocol
+        self.log(f"report: running {self.prefix}{tag} ({p.runs} races, seed {p.seed})")
         if mixed:
-            data = evaluate_mixed_teams(self.track, methods, runs=self.runs, seed=self.seed, device=self.device,
-                                        flight=flight)
+            data = evaluate_mixed_teams(p.track, methods, runs=p.runs, seed=p.seed, device=self.device, flight=flight)
         else:
-            data = evaluate_methods(self.track, methods, scenario=scenario, runs=self.runs, seed=self.seed,
-                                    device=self.device, against=against, airframe=self.airframe, sim=self.sim,
-                                    sides=self.sides, flight=flight)
+            data = evaluate_methods(p.races(scenario), methods, device=self.device, against=against,
+                                    layout=p.layout, sides=p.sides, flight=flight)
         data["inputs"] = inputs
         path = self.cache / f"{self.prefix}{tag}.json"
         atomic_write_bytes(path, (json.dumps(data, indent=2) + "\n").encode())  # other steps may be reading the run
@@ -287,9 +306,13 @@ class Evaluations:
 
     def _flight(self, flight: FlightOverride | None) -> FlightOverride | None:
         """``flight`` with these evaluations' starts."""
-        if self.starts == "box":
+        if self.protocol.starts == "box":
             return flight
-        return dataclasses.replace(flight or FlightOverride(), starts=self.starts)
+        return dataclasses.replace(flight or FlightOverride(), starts=self.protocol.starts)
+
+    def _placements(self) -> tuple[int, int]:
+        """Races and seed of these evaluations, as an evaluation JSON records them."""
+        return self.protocol.runs, self.protocol.seed
 
 
 def _cross_tag(scenario: str, a: tuple[str, str], b: tuple[str, str], variant: str) -> str:

@@ -16,7 +16,7 @@ from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
 from spiral.core.errors import UsageError
 from spiral.core.files import atomic_write_bytes
-from spiral.eval.evaluate import evaluate_methods
+from spiral.eval.evaluate import RaceSet, evaluate_methods
 from spiral.pipeline.report_steps import PLANNER_STEP, report_steps
 from spiral.pipeline.step import Step, StepContext
 from spiral.selfplay.curriculum import run_stage
@@ -105,8 +105,8 @@ class PipelinePlan:
         def run(ctx: StepContext) -> tuple[dict[str, Path], dict[str, Any]]:
             best = Path(ctx.inputs[f"train:{stage.name}"]["outputs"]["best"]["path"])
             ev = self.spec.evaluation
-            result = evaluate_methods(self.track, {"spiral": best}, scenario=stage.scenario, runs=ev.runs,
-                                      seed=ev.seed, device=self.spec.device)
+            result = evaluate_methods(RaceSet(self.track, stage.scenario, ev.runs, ev.seed), {"spiral": best},
+                                      device=self.spec.device)
             out = ctx.step_dir / "eval.json"
             atomic_write_bytes(out, json.dumps(result, indent=2).encode())
             m = result["methods"]["spiral"]

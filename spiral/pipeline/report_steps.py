@@ -19,7 +19,7 @@ from spiral.config.airframe import AirframeCfg
 from spiral.config.pipeline import PipelineSpec
 from spiral.config.track import TrackSpec
 from spiral.core.files import atomic_write_bytes
-from spiral.eval.evaluate import evaluate_methods
+from spiral.eval.evaluate import EvalLayout, RaceSet, evaluate_methods
 from spiral.eval.report import (
     SCENARIOS,
     ReportOptions,
@@ -90,9 +90,9 @@ def _planner_fn(plan: PlanView):
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
         ev, outputs, info = plan.spec.evaluation, {}, {}
         for scenario in SCENARIOS:
-            result = evaluate_methods(plan.track, {"se-ibr": "se-ibr"}, scenario=scenario, runs=ev.runs,
-                                      seed=ev.seed, device=plan.spec.device, airframe=plan.airframe,
-                                      sim=plan.spec.sim)
+            result = evaluate_methods(RaceSet(plan.track, scenario, ev.runs, ev.seed), {"se-ibr": "se-ibr"},
+                                      device=plan.spec.device,
+                                      layout=EvalLayout.default(airframe=plan.airframe, sim=plan.spec.sim))
             out = ctx.step_dir / f"eval-{scenario}.json"
             atomic_write_bytes(out, json.dumps(result, indent=2).encode())
             m = result["methods"]["se-ibr"]

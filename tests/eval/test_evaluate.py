@@ -10,7 +10,15 @@ from typer.testing import CliRunner
 
 from spiral.cli import app
 from spiral.env import run_races
-from spiral.eval.evaluate import SE_IBR, EvalLayout, evaluate_methods, evaluate_policy, load_agent, setup_race
+from spiral.eval.evaluate import (
+    SE_IBR,
+    EvalLayout,
+    RaceSet,
+    evaluate_methods,
+    evaluate_policy,
+    load_agent,
+    setup_race,
+)
 from spiral.eval.metrics import summarize_races
 
 runner = CliRunner()
@@ -22,12 +30,12 @@ def test_every_method_races_from_the_same_start_placements(sprint, tiny_checkpoi
     policy = load_agent(tiny_checkpoint)
     starts = []
     for agent, opponent in ((policy, None), (SE_IBR, None), (policy, SE_IBR), (SE_IBR, policy)):
-        env, _ = setup_race(sprint, "2v2", 3, 7, agent, opponent)
+        env, _ = setup_race(RaceSet(sprint, "2v2", 3, 7), agent, opponent)
         env.reset()  # what run_races does first
         starts.append(env.pos.clone())
     for other in starts[1:]:
         assert torch.equal(starts[0], other)
-    env, _ = setup_race(sprint, "2v2", 3, 8, policy)
+    env, _ = setup_race(RaceSet(sprint, "2v2", 3, 8), policy)
     env.reset()
     assert not torch.equal(env.pos, starts[0])
     separation = torch.cdist(starts[0].view(3, 4, 3), starts[0].view(3, 4, 3))
@@ -37,7 +45,7 @@ def test_every_method_races_from_the_same_start_placements(sprint, tiny_checkpoi
 def test_planner_racing_a_policy_uses_the_policy_layout(sprint, tiny_checkpoint):
     """Build the planner-vs-policy env with the policy's observation layout, not the default one."""
     policy = load_agent(tiny_checkpoint)
-    env, _ = setup_race(sprint, "1v1", 1, 0, SE_IBR, policy)
+    env, _ = setup_race(RaceSet(sprint, "1v1", 1, 0), SE_IBR, policy)
     assert env.cfg.obs == EvalLayout.of_policy(policy).env.obs
     assert env.obs_dim == policy.meta["obs_layout"]["obs_dim"]
     assert env.cfg.obs != EvalLayout.default().env.obs
@@ -67,7 +75,7 @@ def test_same_eval_command_twice_writes_identical_json(sprint_yaml, tiny_checkpo
 
 def test_planner_self_match_reports_its_layout(sprint):
     """Evaluate `se-ibr` alone with default settings and say so in the entry."""
-    data = evaluate_methods(sprint, {"planner": "se-ibr"}, scenario="solo", runs=1, seed=0)
+    data = evaluate_methods(RaceSet(sprint, "solo", 1, 0), {"planner": "se-ibr"})
     entry = data["methods"]["planner"]
     assert entry["checkpoint"] == "se-ibr" and entry["layout"] == "defaults"
     assert entry["drones"] == 1
@@ -76,7 +84,7 @@ def test_planner_self_match_reports_its_layout(sprint):
 
 def test_self_match_results_keep_the_scenarios_two_teams(sprint, tiny_checkpoint):
     """Every drone of a 2v2 self-match runs the learner, yet its results split slots 0-1 from 2-3 (for contacts)."""
-    res = evaluate_policy(load_agent(tiny_checkpoint), sprint, "2v2", 2, 0)
+    res = evaluate_policy(load_agent(tiny_checkpoint), RaceSet(sprint, "2v2", 2, 0))
     assert res.team.tolist() == [0, 0, 1, 1]
 
 
@@ -115,7 +123,7 @@ def test_cross_play_lets_each_team_read_its_own_observation_layout(sprint, tiny_
     res, winners = cross_play(a, b, RaceSet(sprint, "1v1", 2, 0), sides="both")
     assert res.finished.shape == (4, 2) and winners.shape == (4,)
     for agent, opponent in ((a, b), (b, a)):
-        env, _ = setup_race(sprint, "1v1", 2, 0, agent, opponent)
+        env, _ = setup_race(RaceSet(sprint, "1v1", 2, 0), agent, opponent)
         assert env.obs_dim == agent.obs_layout["obs_dim"] and env.opponent_observer is not None
         assert env.opponent_observer.rows(env.opponent_idx)["policy"].shape[1] == opponent.obs_layout["obs_dim"]
     with pytest.raises(ValueError, match="same obs_layout"):
@@ -125,7 +133,7 @@ def test_cross_play_lets_each_team_read_its_own_observation_layout(sprint, tiny_
 def test_actions_beyond_the_clamped_range_are_counted_per_axis_over_racing_steps(sprint, tiny_checkpoint):
     """A policy commanding (2, 0.5, −0.2, −1.5) on every step is beyond ±1 on x and yaw in each step it races and on
     y and z in none; the steps stop counting when a drone's race ends, and the summary gives the shares 1, 0, 0, 1."""
-    env, _ = setup_race(sprint, "1v1", 3, 0, load_agent(tiny_checkpoint))
+    env, _ = setup_race(RaceSet(sprint, "1v1", 3, 0), load_agent(tiny_checkpoint))
     command = torch.tensor([2.0, 0.5, -0.2, -1.5])
     res = run_races(env, lambda obs: command.expand(obs.shape[0], 4))
     assert res.racing_steps is not None and res.beyond_steps is not None

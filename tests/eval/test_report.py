@@ -14,6 +14,7 @@ import torch
 
 from spiral.config import AIRFRAMES, SeparationCfg, SimCfg, TrackSpec
 from spiral.config.pipeline import RacingCfg
+from spiral.eval.evaluate import EvalLayout
 from spiral.eval.report import (
     ReportOptions,
     _flight_stack,
@@ -22,7 +23,7 @@ from spiral.eval.report import (
     race_learned_policies,
     race_planner_pairing,
 )
-from spiral.eval.runs import Evaluations, crosses_in_workers, run_setup
+from spiral.eval.runs import EvalProtocol, Evaluations, crosses_in_workers, run_setup
 from tests.eval.conftest import tiny_stage
 
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -341,8 +342,8 @@ def test_a_report_finds_what_steps_raced_ahead_in_the_run_folder_and_writes_the_
 def _evaluations(root: Path, track: TrackSpec, out: Path, logs: list[str]) -> Evaluations:
     stages = find_stages(root)
     airframe, sim = run_setup(stages)
-    return Evaluations(root, track, out, stages, runs=2, seed=0, device="cpu", se_ibr=False, airframe=airframe,
-                       sim=sim, log=logs.append)
+    protocol = EvalProtocol(track, 2, 0, EvalLayout.default(airframe=airframe, sim=sim))
+    return Evaluations(root, out, stages, protocol, device="cpu", se_ibr=False, log=logs.append)
 
 
 def test_pairings_race_in_workers_while_the_body_of_the_with_runs(sprint, tiny_checkpoint, tmp_path):

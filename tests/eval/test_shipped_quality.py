@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from spiral.config import load_track
-from spiral.eval.evaluate import evaluate_methods
+from spiral.eval.evaluate import RaceSet, evaluate_methods
 
 ROOT = Path(__file__).resolve().parents[2]
 SPIRAL = ROOT / "checkpoints" / "full" / "spiral.pt"
@@ -28,7 +28,7 @@ CIRCUIT6 = ROOT / "tracks" / "circuit6.yaml"
 def test_the_shipped_final_policy_flies_its_documented_success_and_lap_time(scenario, races, min_success, lap_range):
     """Race ``spiral.pt`` from held-out placements and find its success and mean lap time within the documented
     figures' bounds."""
-    result = evaluate_methods(load_track(CIRCUIT6), {"spiral": SPIRAL}, scenario=scenario, runs=races, seed=1)
+    result = evaluate_methods(RaceSet(load_track(CIRCUIT6), scenario, races, 1), {"spiral": SPIRAL})
     entry = result["methods"]["spiral"]
     assert entry["success_ratio"] >= min_success
     assert lap_range[0] <= entry["lap_time_mean"] <= lap_range[1]

@@ -84,8 +84,7 @@ def test_both_sides_race_each_placement_again_with_the_methods_swapped(circuit6)
 def test_a_policy_against_itself_from_both_sides_wins_exactly_as_often_as_it_loses(circuit6):
     """Each placement raced twice by the same two drones, swapped: every win of one side is a loss of the other, and
     the lead at the first gate is one side's in one race of each pair."""
-    data = evaluate_methods(circuit6, {"me": SPIRAL_1V1}, scenario="1v1", runs=4, seed=2,
-                            against=("me", SPIRAL_1V1))
+    data = evaluate_methods(RaceSet(circuit6, "1v1", 4, 2), {"me": SPIRAL_1V1}, against=("me", SPIRAL_1V1))
     entry = data["methods"]["me"]
     assert (data["sides"], data["races"], entry["drones"]) == ("both", 8, 8)
     assert entry["win_rate"] > 0 and entry["win_rate"] == pytest.approx(entry["loss_rate"])  # equal counts

@@ -9,7 +9,7 @@ import torch
 
 from spiral.config import AIRFRAMES, PPOCfg, SimCfg, StageSpec
 from spiral.core.checkpoint import CheckpointError, list_checkpoints, load_checkpoint, newest_valid_checkpoint
-from spiral.eval.evaluate import evaluate_policy
+from spiral.eval.evaluate import RaceSet, evaluate_policy
 from spiral.train import StageTrainer, load_policy
 
 CF2X = AIRFRAMES["cf2x"]
@@ -78,7 +78,7 @@ def test_loaded_policy_reproduces_the_trained_actor(oval2, tmp_path):
     obs = trainer.env.get_observations()
     expected = trainer.runner.get_inference_policy()(obs)
     assert torch.allclose(policy(obs), expected, atol=1e-6)
-    res = evaluate_policy(policy, oval2, "solo", 3, seed=0)
+    res = evaluate_policy(policy, RaceSet(oval2, "solo", 3, 0))
     assert res.finished.shape == (3, 1)
 
 
