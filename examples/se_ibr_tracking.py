@@ -15,7 +15,7 @@ import torch
 from spiral.baselines import SEIBRPlanner
 from spiral.baselines.tracking import integrate_plan
 from spiral.config import AIRFRAMES, EnvCfg, SimCfg, TrackSpec
-from spiral.env import RaceEnv
+from spiral.env import RaceEnv, RaceSetting
 
 LINE2 = TrackSpec.model_validate({
     "kind": "track", "name": "line2",
@@ -27,7 +27,7 @@ LINE2 = TrackSpec.model_validate({
 
 def max_tracking_error(**cfg: float) -> float:
     """Largest distance [m] between the drone and the reference while flying the straight plan."""
-    env = RaceEnv(LINE2, AIRFRAMES["cf2x"], SimCfg(), EnvCfg(), world_count=1, drones_per_world=1, seed=0,
+    env = RaceEnv(RaceSetting(LINE2, AIRFRAMES["cf2x"], SimCfg()), EnvCfg(), world_count=1, drones_per_world=1, seed=0,
                   training=False)
     env.reset()
     planner = SEIBRPlanner(env, **cfg)

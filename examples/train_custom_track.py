@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 
 from spiral.config import AIRFRAMES, SimCfg, StageSpec, TrackSpec
-from spiral.env import RaceEnv, run_races
+from spiral.env import RaceEnv, RaceSetting, run_races
 from spiral.train import StageTrainer, load_policy
 
 # A 3-gate slalom: every field is documented in `spiral schema` / spiral/config/track.py.
@@ -56,8 +56,8 @@ def main() -> None:
 
     # Race the best policy: 16 seeded races from the start box, no resets.
     policy = load_policy(result.best_path, device=args.device)
-    env = RaceEnv(TRACK, airframe, sim, stage.env, world_count=16, drones_per_world=1, device=args.device, seed=1,
-                  training=False)
+    env = RaceEnv(RaceSetting(TRACK, airframe, sim), stage.env, world_count=16, drones_per_world=1, device=args.device,
+                  seed=1, training=False)
     races = run_races(env, policy)
     print(f"success {races.finished.float().mean():.2f}, gates passed per race "
           f"{races.gates_passed.float().mean():.2f}, crashes {races.crashed.float().mean():.2f}")

@@ -4,7 +4,7 @@
 stepped together by one :class:`RaceEnv` (no Python loop, no subprocesses). ``gymnasium.make("spiral/Race-v0")``
 returns :class:`RaceSingleEnv`, one learner drone, for tools that expect a plain ``gymnasium.Env``.
 
-Both take the keyword arguments of :func:`spiral.env.factory.make_race_env`: the track (a YAML path, a shipped
+Both take the fields of :class:`spiral.env.factory.RaceOptions` as keyword arguments: the track (a YAML path, a shipped
 track's name or a ``TrackSpec``), the race format, the opponents (none, a checkpoint path, ``"se-ibr"`` or any
 ``OpponentPolicy``), the environment, simulator and airframe settings, the device and the seed. ``import spiral.env``
 registers the id; this module sits above ``spiral.baselines`` because it offers the SE-IBR planner as an opponent.
@@ -23,7 +23,7 @@ from gymnasium.vector.utils import batch_space
 
 from spiral.baselines import opponent_policy
 from spiral.core.errors import UsageError
-from spiral.env.factory import OpponentFactory, make_race_env
+from spiral.env.factory import OpponentFactory, RaceOptions, make_race_env
 from spiral.env.race_env import RaceEnv
 
 __all__ = ["NAMED_OPPONENTS", "RaceSingleEnv", "RaceVectorEnv"]
@@ -76,7 +76,7 @@ class RaceVectorEnv(VectorEnv):
     Args:
         num_envs: Learner drones.
         array_type: ``"numpy"`` (float32 arrays on the CPU) or ``"torch"`` (tensors on ``device``).
-        **kwargs: :func:`~spiral.env.factory.make_race_env` arguments (``track``, ``scenario``, ``opponent``,
+        **kwargs: :class:`~spiral.env.factory.RaceOptions` fields (``track``, ``scenario``, ``opponent``,
             ``env_cfg``, ``sim``, ``airframe``, ``device``, ``seed``).
     """
 
@@ -88,8 +88,8 @@ class RaceVectorEnv(VectorEnv):
         per_world = 2 if kwargs.get("scenario") == "2v2" and kwargs.get("learner_slots") is None else 1
         if num_envs < 1 or num_envs % per_world:
             raise UsageError(f"num_envs: expected a positive multiple of {per_world}, got {num_envs}")
-        self.race = make_race_env(world_count=num_envs // per_world, env_class=_RaceEnvWithFinalObs,
-                                  named_opponents=NAMED_OPPONENTS, **kwargs)
+        self.race = make_race_env(RaceOptions(**kwargs), world_count=num_envs // per_world,
+                                  env_class=_RaceEnvWithFinalObs, named_opponents=NAMED_OPPONENTS)
         if self.race.num_envs != num_envs:
             raise UsageError(f"num_envs: {num_envs} is not a multiple of the learner slots {self.race.learner_slots}")
         self.num_envs, self.array_type = num_envs, array_type
@@ -137,7 +137,7 @@ class RaceSingleEnv(gymnasium.Env):
 
     ``step`` returns the last observation of a race when it ends (``terminated``: crash or finish; ``truncated``:
     time limit); call ``reset`` to race again. ``info`` holds ``success``, ``crashed`` and ``lap_time`` at the end.
-    The arguments are those of :func:`~spiral.env.factory.make_race_env`; ``scenario`` is ``solo`` or ``1v1`` (use
+    The arguments are the fields of :class:`~spiral.env.factory.RaceOptions`; ``scenario`` is ``solo`` or ``1v1`` (use
     the vector or PettingZoo env for ``2v2``, where the caller drives two drones).
     """
 
@@ -147,8 +147,8 @@ class RaceSingleEnv(gymnasium.Env):
         if kwargs.get("scenario") == "2v2":
             raise UsageError("scenario: the single env drives one drone; use gymnasium.make_vec or PettingZoo for 2v2")
         kwargs.pop("render_mode", None)
-        self.race = make_race_env(world_count=1, env_class=_RaceEnvWithFinalObs, named_opponents=NAMED_OPPONENTS,
-                                  **kwargs)
+        self.race = make_race_env(RaceOptions(**kwargs), world_count=1, env_class=_RaceEnvWithFinalObs,
+                                  named_opponents=NAMED_OPPONENTS)
         self.observation_space, self.action_space = _spaces(self.race.obs_dim)
 
     @staticmethod

@@ -15,13 +15,13 @@ from spiral.baselines.centreline import Centreline
 from spiral.baselines.se_ibr import PlannerPolicy, opponent_policy, se_ibr_policy
 from spiral.config import AIRFRAMES, EnvCfg, SimCfg, TrackSpec
 from spiral.core.outcome import race_winner
-from spiral.env import RaceEnv, RaceResults, run_races
+from spiral.env import RaceEnv, RaceResults, RaceSetting, run_races
 
 __all__ = ["duel_statistics", "head_to_head", "paired_duel", "race_progress", "self_match", "winners"]
 
 
 def _env(track: TrackSpec, drones: int, runs: int, seed: int, learners: list[int]) -> RaceEnv:
-    return RaceEnv(track, AIRFRAMES["cf2x"], SimCfg(), EnvCfg(), world_count=runs, drones_per_world=drones,
+    return RaceEnv(RaceSetting(track, AIRFRAMES["cf2x"], SimCfg()), EnvCfg(), world_count=runs, drones_per_world=drones,
                    learner_slots=learners, seed=seed, training=False)
 
 

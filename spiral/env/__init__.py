@@ -6,12 +6,13 @@ Importing this package registers the gymnasium id ``spiral/Race-v0``; the gymnas
 
 from __future__ import annotations
 
-from spiral.env.factory import make_race_env
+from spiral.env.factory import RaceOptions, make_race_env
 from spiral.env.observations import HISTORY_FEATURES, ObservationBuilder
 from spiral.env.race_env import RaceEnv
 from spiral.env.racing import RaceResults, concat_results, run_races
 from spiral.env.registration import ENV_ID, register_envs
 from spiral.env.rewards import REWARD_TERMS, StepOutcome, compute_rewards
+from spiral.env.setting import RaceSetting
 
 __all__ = [
     "ENV_ID",
@@ -19,7 +20,9 @@ __all__ = [
     "REWARD_TERMS",
     "ObservationBuilder",
     "RaceEnv",
+    "RaceOptions",
     "RaceResults",
+    "RaceSetting",
     "StepOutcome",
     "compute_rewards",
     "concat_results",

@@ -6,14 +6,12 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict
 
-from spiral.config.airframe import AirframeCfg
-from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
-from spiral.config.track import TrackSpec
 from spiral.core.policy import OpponentPolicy
 from spiral.core.scenario import SCENARIO_DRONES
 from spiral.core.seeds import MIX_PART_STRIDE
 from spiral.env.race_env import RaceEnv
+from spiral.env.setting import RaceSetting
 from spiral.env.stats import summarize_stats
 
 __all__ = ["MixedRaceEnv", "training_env"]
@@ -110,13 +108,12 @@ def _merge_logs(logs: list[tuple[dict, torch.Tensor]]) -> dict:
     return {k: sum(w * log[k] for (log, _), w in zip(logs, weights, strict=True) if k in log) / total for k in keys}
 
 
-def training_env(track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, stage: StageSpec, *, device: str,
-                 seed: int) -> RaceEnv | MixedRaceEnv:
+def training_env(setting: RaceSetting, stage: StageSpec, *, device: str, seed: int) -> RaceEnv | MixedRaceEnv:
     """The training env of ``stage``: one :class:`RaceEnv` when all its worlds race alike, else a
     :class:`MixedRaceEnv` over :meth:`StageSpec.world_parts` (other formats of ``stage.mix``, all-learner mirror
     worlds), the first part with the stage's seed."""
     parts = {
-        part.name: RaceEnv(track, airframe, sim, stage.env, world_count=part.worlds,
+        part.name: RaceEnv(setting, stage.env, world_count=part.worlds,
                            drones_per_world=SCENARIO_DRONES[part.scenario], learner_slots=part.learner_slots,
                            device=device, seed=seed + k * MIX_PART_STRIDE)
         for k, part in enumerate(stage.world_parts())

@@ -20,7 +20,7 @@ from spiral.config.env import EnvCfg
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
 from spiral.core.scenario import SCENARIO_DRONES
-from spiral.env.factory import make_race_env
+from spiral.env.factory import RaceOptions, make_race_env
 
 __all__ = ["RaceParallelEnv"]
 
@@ -33,7 +33,7 @@ class RaceParallelEnv(ParallelEnv):
     Args:
         track: A ``TrackSpec``, a track YAML file, or the name of a shipped track.
         scenario: Race format.
-        env_cfg, sim, airframe, device, seed: as in :func:`spiral.env.factory.make_race_env`.
+        env_cfg, sim, airframe, device, seed: as in :class:`spiral.env.factory.RaceOptions`.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"name": "spiral_race_v0", "render_modes": [], "is_parallelizable": True}
@@ -50,8 +50,8 @@ class RaceParallelEnv(ParallelEnv):
         seed: int = 0,
     ) -> None:
         drones = SCENARIO_DRONES.get(scenario, 0)
-        self.race = make_race_env(track, scenario=scenario, env_cfg=env_cfg, sim=sim, airframe=airframe,
-                                  learner_slots=range(drones), device=device, seed=seed, training=False)
+        self.race = make_race_env(RaceOptions(track, scenario=scenario, env_cfg=env_cfg, sim=sim, airframe=airframe,
+                                              learner_slots=range(drones), device=device, seed=seed, training=False))
         self.possible_agents = [f"drone_{i}" for i in range(drones)]
         self.agents: list[str] = []
         self._index = {agent: i for i, agent in enumerate(self.possible_agents)}

@@ -10,10 +10,7 @@ import torch
 import warp as wp
 from tensordict import TensorDict
 
-from spiral.config.airframe import AirframeCfg
 from spiral.config.env import EnvCfg, ObsCfg
-from spiral.config.sim import SimCfg
-from spiral.config.track import TrackSpec
 from spiral.core.policy import OpponentPolicy, RecordingOpponent, ResettingOpponent
 from spiral.core.scenario import team_slots
 from spiral.env.actions import ActionMap
@@ -21,6 +18,7 @@ from spiral.env.events import RaceEvents, lap_splits, race_result
 from spiral.env.observations import Observer, ObsSource
 from spiral.env.passages import PassageStarts
 from spiral.env.rewards import compute_rewards
+from spiral.env.setting import RaceSetting
 from spiral.env.starts import draw_starts
 from spiral.env.state import RaceState
 
@@ -49,12 +47,12 @@ class RaceEnv(RaceState):
     ``episode.eval_starts``, no shield, start cuts or contact margin): every world races once, done drones stay
     frozen. :meth:`step` runs apply action → simulate → race events → rewards → dones → reset → observe."""
 
-    def __init__(self, track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, cfg: EnvCfg, *, world_count: int,
-                 drones_per_world: int, learner_slots: Sequence[int] = (0,), device: str = "cpu", seed: int = 0,
+    def __init__(self, setting: RaceSetting, cfg: EnvCfg, *, world_count: int, drones_per_world: int,
+                 learner_slots: Sequence[int] = (0,), device: str = "cpu", seed: int = 0,
                  training: bool = True) -> None:
-        super().__init__(track, airframe, sim, cfg, world_count=world_count, drones_per_world=drones_per_world,
+        super().__init__(setting, cfg, world_count=world_count, drones_per_world=drones_per_world,
                          learner_slots=learner_slots, device=device, seed=seed, training=training)
-        self.action_map = ActionMap(cfg, track, world_count=world_count, drones_per_world=drones_per_world,
+        self.action_map = ActionMap(cfg, setting.track, world_count=world_count, drones_per_world=drones_per_world,
                                     training=training, device=self.device)
         self._obs_source = ObsSource(**{f.name: getattr(self, f.name) for f in fields(ObsSource)})
         self.observer = Observer(cfg, self._obs_source, device=self.device)
@@ -62,7 +60,7 @@ class RaceEnv(RaceState):
         """The observation layout and history buffer."""
         self.opponent_observer: Observer | None = None
         """The opponent slots' own observer when their policy reads another observation layout (cross-play)."""
-        self.passages = PassageStarts.of(self, airframe.radius)
+        self.passages = PassageStarts.of(self, setting.airframe.radius)
         self.reset()
 
     def set_opponent_policy(self, policy: OpponentPolicy | None, *, obs: ObsCfg | None = None) -> None:

@@ -9,10 +9,7 @@ from collections.abc import Sequence
 import torch
 import warp as wp
 
-from spiral.config.airframe import AirframeCfg
 from spiral.config.env import EnvCfg
-from spiral.config.sim import SimCfg
-from spiral.config.track import TrackSpec
 from spiral.core.errors import UsageError
 from spiral.core.outcome import race_winner
 from spiral.core.policy import OpponentPolicy
@@ -27,6 +24,7 @@ from spiral.env.events import (
     overtakes,
 )
 from spiral.env.rewards import REWARD_TERMS, StepOutcome
+from spiral.env.setting import RaceSetting
 from spiral.env.slots import slot_map
 from spiral.env.stats import empty_stats, log_episodes, summarize_stats
 from spiral.sim import World
@@ -39,16 +37,16 @@ class RaceState:
     """``world_count`` worlds of ``drones_per_world`` drones, flat and world-major: drone ``i`` is slot ``i % D`` of
     world ``i // D``. The learner drives ``learner_slots``; the other slots are opponents (see :attr:`slots`)."""
 
-    def __init__(self, track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, cfg: EnvCfg, *, world_count: int,
-                 drones_per_world: int, learner_slots: Sequence[int] = (0,), device: str = "cpu", seed: int = 0,
+    def __init__(self, setting: RaceSetting, cfg: EnvCfg, *, world_count: int, drones_per_world: int,
+                 learner_slots: Sequence[int] = (0,), device: str = "cpu", seed: int = 0,
                  training: bool = True) -> None:
-        if sim.control_mode != "pid":
+        if setting.sim.control_mode != "pid":
             raise UsageError("RaceEnv drives the PID: sim.control_mode must be 'pid'")
-        self.track, self.cfg, self.training = track.with_laps(cfg.episode.laps or track.laps), cfg, training
-        self.world = World(track, airframe, sim, world_count=world_count, drones_per_world=drones_per_world,
-                           device=device)
+        self.track = setting.track.with_laps(cfg.episode.laps or setting.track.laps)
+        self.world = World(setting.track, setting.airframe, setting.sim, world_count=world_count,
+                           drones_per_world=drones_per_world, device=device)
         self.device = torch.device(device)
-        self.world_count, self.drones_per_world = world_count, drones_per_world
+        self.cfg, self.training, self.world_count, self.drones_per_world = cfg, training, world_count, drones_per_world
         self.drone_count = world_count * drones_per_world
         self.slots = slot_map(world_count, drones_per_world, learner_slots, device=self.device)
         """Who drives which slot; its fields are attributes of the env too (``learner_idx``, ``race_team``, ...)."""
@@ -60,8 +58,8 @@ class RaceState:
         self.dt = self.world.time_step
         self.time_limit = cfg.episode.time_limit_s or self.track.time_limit_s
         self.max_episode_length = math.ceil(self.time_limit / self.dt)
-        self.passes_needed = len(track.gates) * self.track.laps + 1
-        self.margin_distance = 2.0 * airframe.radius + cfg.episode.contact_margin
+        self.passes_needed = len(setting.track.gates) * self.track.laps + 1
+        self.margin_distance = 2.0 * setting.airframe.radius + cfg.episode.contact_margin
         """Training with ``episode.contact_margin``: drones closer than this collide [m]."""
         self.generator = torch.Generator(device=self.device).manual_seed(seed)
         self.opponent_policy: OpponentPolicy | None = None

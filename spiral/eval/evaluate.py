@@ -28,6 +28,7 @@ from spiral.core.policy import OpponentPolicy, Policy
 from spiral.core.scenario import SCENARIO_DRONES, TEAMS
 from spiral.env.race_env import RaceEnv
 from spiral.env.racing import RaceResults, concat_results, run_races
+from spiral.env.setting import RaceSetting
 from spiral.eval.metrics import first_gate_order, summarize_races
 
 SIDES = ("a", "both")
@@ -194,7 +195,7 @@ def _race_env(layout: EvalLayout, races: RaceSet, *, device: str, team_a_only: b
         raise UsageError(f"scenario: expected solo, 1v1 or 2v2, got {races.scenario!r}")
     drones = SCENARIO_DRONES[races.scenario]
     slots = TEAMS[races.scenario][0] if team_a_only else list(range(drones))
-    return RaceEnv(races.track, layout.airframe, layout.sim, layout.env, world_count=races.runs,
+    return RaceEnv(RaceSetting(races.track, layout.airframe, layout.sim), layout.env, world_count=races.runs,
                    drones_per_world=drones, learner_slots=slots, device=device, seed=races.seed, training=False)
 
 

@@ -17,6 +17,7 @@ from spiral.core.scenario import SCENARIO_DRONES
 from spiral.core.seeds import stream_seed
 from spiral.env.race_env import RaceEnv
 from spiral.env.racing import run_races
+from spiral.env.setting import RaceSetting
 from spiral.selfplay.pool import Pool
 from spiral.train.runner import StageTrainer
 from spiral.train.selection import paired_scores
@@ -101,7 +102,7 @@ def self_match_envs(stage: StageSpec, track: TrackSpec, airframe: AirframeCfg, s
             env_cfg = env_cfg.model_copy(update={"episode": episode})
         drones = SCENARIO_DRONES[fmt]
         envs[fmt if starts == "box" else f"track-{fmt}"] = RaceEnv(
-            track, airframe, sim, env_cfg, world_count=cfg.races, drones_per_world=drones,
+            RaceSetting(track, airframe, sim), env_cfg, world_count=cfg.races, drones_per_world=drones,
             learner_slots=list(range(drones)), device=device, seed=stream_seed(seed, "formats", i), training=False)
     return envs
 
@@ -127,7 +128,7 @@ class PromotionSelector:
         self.best_path, self.best_rating, self.on_promote, self.log = best_path, best_rating, on_promote, log
         self.best: FrozenPolicy = load_policy(best_path, device=device)
         d = stage.drones_per_world
-        self.env = RaceEnv(track, airframe, sim, stage.env, world_count=self.cfg.races, drones_per_world=d,
+        self.env = RaceEnv(RaceSetting(track, airframe, sim), stage.env, world_count=self.cfg.races, drones_per_world=d,
                            learner_slots=stage.learner_slots(), device=device, seed=stream_seed(seed, "promotion"),
                            training=False)
         self.interval = self.cfg.interval

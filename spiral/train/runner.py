@@ -33,6 +33,7 @@ from spiral.core.policy import MirrorOpponent, OpponentPolicy
 from spiral.core.seeds import stream_seed
 from spiral.env.mixed import MixedRaceEnv, training_env
 from spiral.env.race_env import RaceEnv
+from spiral.env.setting import RaceSetting
 from spiral.env.vec_env import RaceVecEnv
 from spiral.train import distributed
 from spiral.train.batches import use_gather_once
@@ -94,11 +95,11 @@ class StageTrainer:
         self.dist = distributed.current()
         """This process's rank: rank 0 of 1 unless in a torchrun process group (only rank 0 writes files)."""
         seed_everything(self.dist.seed(seed))
-        self.env: RaceEnv | MixedRaceEnv = training_env(track, airframe, sim, stage, device=device,
+        self.env: RaceEnv | MixedRaceEnv = training_env(RaceSetting(track, airframe, sim), stage, device=device,
                                                         seed=self.dist.seed(seed))
         opponents = self._set_opponents(opponent)
         d = stage.drones_per_world
-        self.eval_env = RaceEnv(track, airframe, sim, stage.env, world_count=stage.selection.races,
+        self.eval_env = RaceEnv(RaceSetting(track, airframe, sim), stage.env, world_count=stage.selection.races,
                                 drones_per_world=d, learner_slots=list(range(d)), device=device,
                                 seed=stream_seed(seed, "selection"), training=False)
         self.vec_env = RaceVecEnv(self.env)

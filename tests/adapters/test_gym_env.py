@@ -12,7 +12,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 import spiral.env  # noqa: F401  (registers spiral/Race-v0)
 from spiral.adapters import RaceSingleEnv, RaceVectorEnv
 from spiral.config import AIRFRAMES, SimCfg, load_track
-from spiral.env import RaceEnv
+from spiral.env import RaceEnv, RaceSetting
 from spiral.env.factory import SHIPPED_TRACKS, resolve_track
 
 DOWN = np.array([0.0, 0.0, -1.0, 0.0], dtype=np.float32)
@@ -48,8 +48,8 @@ def test_make_returns_a_single_env_that_passes_check_env(small_env):
 def test_final_obs_is_the_last_observation_before_the_reset(small_env):
     """Put the crash-step observation of a non-resetting race in infos['final_obs'], the new race in obs."""
     envs = RaceVectorEnv(1, track="oval4", env_cfg=small_env, seed=3)
-    ref = RaceEnv(load_track(SHIPPED_TRACKS / "oval4.yaml"), AIRFRAMES["cf2x"], SimCfg(), small_env, world_count=1,
-                  drones_per_world=1, seed=3, training=False)
+    ref = RaceEnv(RaceSetting(load_track(SHIPPED_TRACKS / "oval4.yaml"), AIRFRAMES["cf2x"], SimCfg()), small_env,
+                  world_count=1, drones_per_world=1, seed=3, training=False)
     first, _ = envs.reset()
     np.testing.assert_allclose(first[0], ref.reset()["policy"][0].numpy(), atol=1e-6)
     for _ in range(200):

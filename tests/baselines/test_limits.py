@@ -13,7 +13,7 @@ from spiral.baselines.se_ibr import plan_limits
 from spiral.config import AIRFRAMES, EnvCfg, SimCfg
 from spiral.config.airframe import AirframeCfg, PIDCfg
 from spiral.config.env import ActionCfg
-from spiral.env import RaceEnv
+from spiral.env import RaceEnv, RaceSetting
 
 G = 9.81
 
@@ -55,8 +55,8 @@ def test_thrust_limited_airframe_and_acceleration_cap():
 
 def test_planner_takes_its_shares_of_the_cf2x_limits(circuit6):
     """Plan with 0.85 of the thrust, 0.9 of the tilt, the whole reach and level accel / (3 × attitude lag) of jerk."""
-    env = RaceEnv(circuit6, AIRFRAMES["cf2x"], SimCfg(), EnvCfg(), world_count=1, drones_per_world=1, seed=0,
-                  training=False)
+    env = RaceEnv(RaceSetting(circuit6, AIRFRAMES["cf2x"], SimCfg()), EnvCfg(), world_count=1, drones_per_world=1,
+                  seed=0, training=False)
     cfg = SEIBRCfg()
     lim = plan_limits(env, cfg)
     assert lim.thrust == pytest.approx(0.85 * 2.25 * G)

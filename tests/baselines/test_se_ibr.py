@@ -13,14 +13,14 @@ from spiral.baselines.best_response import BestResponseQP, PlanLimits, RowData, 
 from spiral.baselines.game import Player, plan_phases, player_rows
 from spiral.baselines.tracking import integrate_plan
 from spiral.config import AIRFRAMES, EnvCfg, SimCfg, TrackSpec
-from spiral.env import RaceEnv, run_races
+from spiral.env import RaceEnv, RaceSetting, run_races
 
 CF2X = AIRFRAMES["cf2x"]
 
 
 def make_env(track: TrackSpec, *, worlds: int = 1, drones: int = 1, learners=None) -> RaceEnv:
     learners = list(range(drones)) if learners is None else learners
-    return RaceEnv(track, CF2X, SimCfg(), EnvCfg(), world_count=worlds, drones_per_world=drones,
+    return RaceEnv(RaceSetting(track, CF2X, SimCfg()), EnvCfg(), world_count=worlds, drones_per_world=drones,
                    learner_slots=learners, seed=0, training=False)
 
 

@@ -10,7 +10,7 @@ from spiral.baselines import SEIBRPlanner
 from spiral.baselines.tracking import integrate_plan, sample_plans, target_actions
 from spiral.config import AIRFRAMES, EnvCfg, SimCfg
 from spiral.config.env import ActionCfg
-from spiral.env import RaceEnv
+from spiral.env import RaceEnv, RaceSetting
 
 
 def straight_plan(planner: SEIBRPlanner, p0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -38,7 +38,7 @@ def test_reference_passes_the_waypoints_with_the_planned_accelerations():
 
 def test_pid_follows_a_straight_plan_within_45_millimetres(line2):
     """Fly a hand-made plan (to 2.9 m/s through gate 0) through the env and PID: within 0.045 m of the reference."""
-    env = RaceEnv(line2, AIRFRAMES["cf2x"], SimCfg(), EnvCfg(), world_count=1, drones_per_world=1, seed=0,
+    env = RaceEnv(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), EnvCfg(), world_count=1, drones_per_world=1, seed=0,
                   training=False)
     env.reset()
     planner = SEIBRPlanner(env)

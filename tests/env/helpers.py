@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from spiral.config import AIRFRAMES, EnvCfg, ObsCfg, SimCfg, TrackSpec
-from spiral.env import RaceEnv
+from spiral.env import RaceEnv, RaceSetting
 
 CF2X = AIRFRAMES["cf2x"]
 
@@ -14,8 +14,8 @@ def make_env(track: TrackSpec, *, worlds: int = 2, drones: int = 1, learners=(0,
              obs: ObsCfg | None = None, **env_kw) -> RaceEnv:
     env_kw.setdefault("episode", {"track_start_prob": 0.0})
     cfg = EnvCfg(obs=obs or ObsCfg(history_len=3), **env_kw)
-    return RaceEnv(track, CF2X, SimCfg(), cfg, world_count=worlds, drones_per_world=drones, learner_slots=learners,
-                   seed=3, training=training)
+    return RaceEnv(RaceSetting(track, CF2X, SimCfg()), cfg, world_count=worlds, drones_per_world=drones,
+                   learner_slots=learners, seed=3, training=training)
 
 
 def place(env: RaceEnv, positions: list[list[float]]) -> None:

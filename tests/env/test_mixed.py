@@ -9,6 +9,7 @@ from pydantic import ValidationError
 from spiral.config import AIRFRAMES, SimCfg, StageSpec
 from spiral.env.mixed import MixedRaceEnv, training_env
 from spiral.env.race_env import RaceEnv
+from spiral.env.setting import RaceSetting
 
 
 def mixed_stage(**kw) -> StageSpec:
@@ -48,7 +49,7 @@ def test_mixed_env_puts_each_formats_drones_in_its_slots_and_routes_actions_to_t
     """Parts in split order: 2v2 (learners 0, 1; opponents 2, 3), solo (learner 0 alone), 1v1 (learner 0, opponent
     1). Each learner row's action reaches its own drone; opponents fly their policy; a solo world has no opponent."""
     stage = mixed_stage()
-    env = training_env(line2, AIRFRAMES["cf2x"], SimCfg(), stage, device="cpu", seed=0)
+    env = training_env(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), stage, device="cpu", seed=0)
     assert isinstance(env, MixedRaceEnv)
     assert list(env.parts) == ["2v2", "solo", "1v1"]
     shapes = {f: (p.world_count, p.drones_per_world, p.learner_slots, p.opponent_slots) for f, p in env.parts.items()}
@@ -74,7 +75,7 @@ def test_mixed_env_puts_each_formats_drones_in_its_slots_and_routes_actions_to_t
 
 
 def test_mixed_env_statistics_add_up_and_report_each_formats_success(line2):
-    env = training_env(line2, AIRFRAMES["cf2x"], SimCfg(), mixed_stage(), device="cpu", seed=0)
+    env = training_env(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), mixed_stage(), device="cpu", seed=0)
     parts = list(env.parts.values())
     for part, (episodes, successes) in zip(parts, [(4, 3), (2, 2), (2, 0)], strict=True):
         part.stats["episodes"], part.stats["successes"] = float(episodes), float(successes)
@@ -93,7 +94,7 @@ def test_learner_mirror_worlds_split_off_each_formats_mirror_share_as_all_learne
                      ("1v1", 1, [0], True), ("1v1-mirror", 1, [0, 1], False)]
     assert stage.iteration_budget() == 1 and StageSpec.model_validate(
         {**stage.model_dump(), "iterations": None, "env_steps": 24 * 16}).iteration_budget() == 1
-    env = training_env(line2, AIRFRAMES["cf2x"], SimCfg(), stage, device="cpu", seed=0)
+    env = training_env(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), stage, device="cpu", seed=0)
     assert env.num_envs == 2 * 2 + 2 * 4 + 2 + 1 + 2 == 17
     assert env.parts["2v2-mirror"].opponent_slots == [] and env.parts["2v2-mirror"].contested.all()
 
@@ -105,7 +106,7 @@ def test_other_mirror_actions_without_mirror_worlds_are_refused():
 
 def test_a_stage_without_mix_trains_on_one_plain_race_env(line2):
     stage = StageSpec(name="1v1", scenario="1v1", worlds=3, iterations=1, env={"obs": {"history_len": 1}})
-    env = training_env(line2, AIRFRAMES["cf2x"], SimCfg(), stage, device="cpu", seed=0)
+    env = training_env(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), stage, device="cpu", seed=0)
     assert type(env) is RaceEnv and env.num_envs == 3
 
 
@@ -116,7 +117,7 @@ def test_a_1v1_stage_with_2v2_worlds_races_a_learner_team_of_two_against_two_opp
                       env={"obs": {"history_len": 1}, "episode": {"track_start_prob": 0.0}})
     assert stage.world_split() == {"1v1": 6, "2v2": 2}
     assert stage.iteration_budget() == 1
-    env = training_env(line2, AIRFRAMES["cf2x"], SimCfg(), stage, device="cpu", seed=0)
+    env = training_env(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), stage, device="cpu", seed=0)
     shapes = {f: (p.world_count, p.drones_per_world, p.learner_slots, p.opponent_slots) for f, p in env.parts.items()}
     assert shapes == {"1v1": (6, 2, [0], [1]), "2v2": (2, 4, [0, 1], [2, 3])}
     assert env.num_envs == 6 + 2 * 2

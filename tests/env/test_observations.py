@@ -10,7 +10,7 @@ import torch
 
 from spiral.config import EnvCfg, ObsCfg, SimCfg
 from spiral.core.checkpoint import load_policy
-from spiral.env import HISTORY_FEATURES, RaceEnv
+from spiral.env import HISTORY_FEATURES, RaceEnv, RaceSetting
 from spiral.env.observations import HISTORY_FIELDS, OBS_TERMS, other_drone_columns
 from tests.env.helpers import CF2X, make_env, newest, place, term
 
@@ -47,7 +47,7 @@ def test_shipped_checkpoints_keep_their_stored_observation_layout(oval2):
     assert paths
     for path in paths:
         policy = load_policy(path)
-        env = RaceEnv(oval2, CF2X, SimCfg(), EnvCfg.model_validate(policy.meta["env"]), world_count=1,
+        env = RaceEnv(RaceSetting(oval2, CF2X, SimCfg()), EnvCfg.model_validate(policy.meta["env"]), world_count=1,
                       drones_per_world=2, learner_slots=(0,))
         assert env.obs_builder.layout() == policy.obs_layout, path
 

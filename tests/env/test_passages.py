@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from spiral.config import AIRFRAMES, EnvCfg, ObsCfg, PassageStartsCfg, SimCfg
-from spiral.env import RaceEnv
+from spiral.env import RaceEnv, RaceSetting
 from spiral.env.passages import PassageBuffer, clear_of_gates, closest_pair, passage_share
 
 CF2X = AIRFRAMES["cf2x"]
@@ -96,7 +96,7 @@ def test_a_training_env_starts_worlds_from_the_passages_its_drones_flew(line2):
     states: starts off the box, clear of the gates, at states the buffer recorded (no noise), heading on."""
     cfg = EnvCfg(obs=ObsCfg(history_len=1), episode={"track_start_prob": 0.0, "passage_starts": {
         "share_start": 1.0, "share_end": 1.0, "pos_noise": 0.0, "vel_noise": 0.0}})
-    env = RaceEnv(line2, CF2X, SimCfg(), cfg, world_count=4, drones_per_world=1, seed=0)
+    env = RaceEnv(RaceSetting(line2, CF2X, SimCfg()), cfg, world_count=4, drones_per_world=1, seed=0)
     assert env.passages.share == pytest.approx(1.0) and bool(env.passages.buffer.count.eq(0).all())
     policy = scripted(env)
     for _ in range(400):
@@ -119,7 +119,7 @@ def test_packs_in_a_training_env_start_behind_one_gate_no_closer_than_the_start_
     box's minimum separation apart; worlds whose draw is too close keep their box start."""
     cfg = EnvCfg(obs=ObsCfg(history_len=1), episode={"track_start_prob": 0.0, "passage_starts": {
         "share_start": 1.0, "share_end": 1.0, "pack": 1.0, "pos_noise": 0.0, "vel_noise": 0.0}})
-    env = RaceEnv(oval2, CF2X, SimCfg(), cfg, world_count=64, drones_per_world=2, seed=0)
+    env = RaceEnv(RaceSetting(oval2, CF2X, SimCfg()), cfg, world_count=64, drones_per_world=2, seed=0)
     buf, gen = env.passages.buffer, torch.Generator().manual_seed(0)
     centers = torch.tensor(oval2.gate_centers(), dtype=torch.float32)
     rot = torch.tensor(oval2.gate_rotations(), dtype=torch.float32)

@@ -8,7 +8,7 @@ import torch
 
 from spiral.config import AIRFRAMES, EnvCfg, ObsCfg, SeparationCfg, SimCfg, TrackSpec
 from spiral.config.env import ActionCfg
-from spiral.env import RaceEnv
+from spiral.env import RaceEnv, RaceSetting
 from spiral.env.actions import ActionMap
 from spiral.env.separation import separation_offsets
 
@@ -86,8 +86,8 @@ def test_filter_keeps_two_drones_flying_into_each_other_apart(line2: TrackSpec, 
     Without the filter they collide; with it they stay apart and end within 0.2 m of their goals."""
     cfg = EnvCfg(obs=ObsCfg(history_len=1), action={"separation": separation},
                  episode={"track_start_prob": 0.0, "time_limit_s": 3.0})
-    env = RaceEnv(line2, AIRFRAMES["cf2x"], SimCfg(), cfg, world_count=1, drones_per_world=2, learner_slots=(0,),
-                  seed=0, training=False)
+    env = RaceEnv(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), cfg, world_count=1, drones_per_world=2,
+                  learner_slots=(0,), seed=0, training=False)
     start, goal = torch.tensor(start), torch.tensor(goal)
 
     def fly(idx: torch.Tensor) -> torch.Tensor:

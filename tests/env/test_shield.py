@@ -8,7 +8,7 @@ from pydantic import ValidationError
 
 from spiral.config import AIRFRAMES, EnvCfg, ObsCfg, SimCfg, TrackSpec
 from spiral.config.env import ShieldCfg
-from spiral.env import RaceEnv
+from spiral.env import RaceEnv, RaceSetting
 
 
 @pytest.mark.parametrize(("progress", "scale"), [(0.0, 1.0), (0.2, 1.0), (0.35, 0.5), (0.5, 0.0), (0.9, 0.0)])
@@ -32,8 +32,8 @@ def closing_pair(track: TrackSpec, *, training: bool, weight: float = 0.5) -> Ra
     cfg = EnvCfg(obs=ObsCfg(history_len=1), episode={"track_start_prob": 0.0},
                  shield={"filter": {"distance": 0.25, "horizon_s": 0.4, "gain": 1.5}},
                  reward={"intervention": weight})
-    env = RaceEnv(track, AIRFRAMES["cf2x"], SimCfg(), cfg, world_count=1, drones_per_world=2, learner_slots=(0, 1),
-                  seed=0, training=training)
+    env = RaceEnv(RaceSetting(track, AIRFRAMES["cf2x"], SimCfg()), cfg, world_count=1, drones_per_world=2,
+                  learner_slots=(0, 1), seed=0, training=training)
     env.pos[:] = torch.tensor([[0.0, 0.0, 1.0], [0.4, 0.1, 1.0]])
     env.vel[:] = torch.tensor([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
     return env

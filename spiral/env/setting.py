@@ -1,0 +1,21 @@
+"""Where and with what races are flown: the track, the airframe and the simulator settings, which travel together."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from spiral.config.airframe import AirframeCfg
+from spiral.config.sim import SimCfg
+from spiral.config.track import TrackSpec
+
+__all__ = ["RaceSetting"]
+
+
+@dataclass(frozen=True)
+class RaceSetting:
+    """The track, the airframe and the simulator settings of a batch of races: what a :class:`~spiral.sim.World`
+    simulates (a race env's other settings are its :class:`~spiral.config.env.EnvCfg`)."""
+
+    track: TrackSpec
+    airframe: AirframeCfg
+    sim: SimCfg
