@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 
 from spiral.config import load_pipeline, resolve_airframe
+from spiral.env.setting import RaceSetting
 from spiral.train.batches import use_gather_once
 from spiral.train.runner import StageTrainer
 
@@ -39,9 +40,8 @@ def time_variants(pipeline: Path, stage_name: str, *, repeats: int, worlds: int 
         stage = stage.model_copy(update={"worlds": worlds})
     times: dict[str, list[float]] = defaultdict(list)
     with tempfile.TemporaryDirectory() as tmp:
-        trainer = StageTrainer(track, resolve_airframe(spec.airframe, source=str(pipeline)), spec.sim, stage,
-                               Path(tmp), device=device, seed=spec.seed, progress=False,
-                               selector=lambda trainer, it: {})
+        setting = RaceSetting(track, resolve_airframe(spec.airframe, source=str(pipeline)), spec.sim)
+        trainer = StageTrainer(setting, stage, Path(tmp), device=device, seed=spec.seed, progress=False)
         alg, storage = trainer.runner.alg, trainer.runner.alg.storage
         alg.train_mode()
         obs = trainer.collect(trainer.vec_env.get_observations())[0]

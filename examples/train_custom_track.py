@@ -49,7 +49,8 @@ def main() -> None:
     )
     airframe, sim = AIRFRAMES["cf2x"], SimCfg()
     run_dir = Path(tempfile.mkdtemp(prefix="spiral-example-"))
-    trainer = StageTrainer(TRACK, airframe, sim, stage, run_dir, device=args.device, seed=0, progress=False)
+    trainer = StageTrainer(RaceSetting(TRACK, airframe, sim), stage, run_dir, device=args.device, seed=0,
+                           progress=False)
     result = trainer.train()
     print(f"trained {result.iterations} iterations, {result.env_steps} env steps in {result.wall_time_s:.1f} s; "
           f"best checkpoint: {result.best_path}")

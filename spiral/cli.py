@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from spiral.config import SeparationCfg, StageSpec
     from spiral.eval.evaluate import FlightOverride
     from spiral.eval.report import ReportOptions
-    from spiral.train.profile import StageStart
+    from spiral.train.runner import StageStart
 
 __all__ = ["app", "main"]
 
@@ -552,6 +552,7 @@ def bench_ppo(
     the pool (self-play) or the frozen opponent's best (no self-play)."""
     device = check_device(device)
     from spiral.config.load import load_pipeline
+    from spiral.env.setting import RaceSetting
     from spiral.pipeline.graph import PipelinePlan
     from spiral.train.profile import profile_iteration
 
@@ -564,8 +565,8 @@ def bench_ppo(
     with tempfile.TemporaryDirectory() as scratch:
         start = None if inputs is None else _stage_start(spec_stage, *inputs, Path(scratch), device=device,
                                                          seed=spec.seed)
-        r = profile_iteration(track, plan.airframe, spec.sim, spec_stage, iterations=iterations, device=device,
-                              seed=spec.seed, start=start)
+        r = profile_iteration(RaceSetting(track, plan.airframe, spec.sim), spec_stage, iterations=iterations,
+                              device=device, seed=spec.seed, start=start)
     typer.echo(_profile_text(r))
     _write_json(json_out, r)
 
@@ -583,7 +584,7 @@ def _stage_start(stage: StageSpec, init: Path, pool: Path | None, frozen: Path |
     """What multi-drone ``stage`` starts from and races, from :func:`_published_inputs`'s checkpoints and pool (the
     pool copied into ``scratch``)."""
     from spiral.selfplay.curriculum import published_opponents
-    from spiral.train.profile import StageStart
+    from spiral.train.runner import StageStart
 
     opponents = published_opponents(stage, init, scratch, pool_dir=pool, opponent_checkpoint=frozen, device=device,
                                     seed=seed)

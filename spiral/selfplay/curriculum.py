@@ -19,11 +19,12 @@ from spiral.core.errors import UsageError
 from spiral.core.scenario import SCENARIO_DRONES
 from spiral.core.seeds import stream_seed
 from spiral.env.observations import other_drone_columns
+from spiral.env.setting import RaceSetting
 from spiral.selfplay.matchmaking import Matchmaker
 from spiral.selfplay.opponents import OpponentDraws, PoolOpponents
 from spiral.selfplay.pool import INITIAL_RATING, Pool
 from spiral.selfplay.promotion import PromotionSelector
-from spiral.train.runner import StageTrainer, TrainResult
+from spiral.train.runner import StageStart, StageTrainer, TrainResult
 
 __all__ = ["StageOpponents", "published_opponents", "run_stage", "stage_opponents"]
 
@@ -50,10 +51,10 @@ def run_stage(
     one policy, ``opponent_checkpoint`` (the initial policy when None), is the only opponent and the pool is left
     alone.
     """
-    run_dir = Path(run_dir)
+    run_dir, setting = Path(run_dir), RaceSetting(track, airframe, sim)
     if stage.scenario == "solo":
-        trainer = StageTrainer(track, airframe, sim, stage, run_dir, device=device, seed=seed,
-                               init_checkpoint=init_checkpoint, log=log, progress=progress)
+        trainer = StageTrainer(setting, stage, run_dir, start=StageStart(init_checkpoint), device=device, seed=seed,
+                               log=log, progress=progress)
         return trainer.train()
     if init_checkpoint is None:
         raise UsageError(f"stage {stage.name!r}: a {stage.scenario} stage needs an earlier stage to start from")
@@ -66,10 +67,9 @@ def run_stage(
     selector = PromotionSelector(stage, track, airframe, sim, best_path=best_path, pool=pool,
                                  best_rating=opponents.best_rating, device=device, seed=seed,
                                  on_promote=opponents.add if pool is not None else None, log=log)
-    trainer = StageTrainer(track, airframe, sim, stage, run_dir, device=device, seed=seed,
-                           init_checkpoint=init_checkpoint, opponent=opponents.worlds, selector=selector,
-                           selection_interval=selector.interval, log=log, progress=progress)
-    return trainer.train()
+    trainer = StageTrainer(setting, stage, run_dir, start=StageStart(init_checkpoint, opponents.worlds),
+                           device=device, seed=seed, log=log, progress=progress)
+    return trainer.train(selector, interval=selector.interval)
 
 
 @dataclass

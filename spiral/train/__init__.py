@@ -7,10 +7,11 @@
 from __future__ import annotations
 
 from spiral.core.checkpoint import load_policy
-from spiral.train.runner import EvalScore, StageTrainer, TrainResult, seed_everything
+from spiral.train.runner import EvalScore, StageStart, StageTrainer, TrainResult, seed_everything
 
 __all__ = [
     "EvalScore",
+    "StageStart",
     "StageTrainer",
     "TrainResult",
     "load_policy",

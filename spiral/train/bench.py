@@ -13,6 +13,7 @@ from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
+from spiral.env.setting import RaceSetting
 from spiral.train.runner import StageTrainer
 
 __all__ = ["LAYOUTS", "run_train_bench"]
@@ -33,10 +34,10 @@ def run_train_bench(track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, *, wor
             "name": f"bench-{name}", "worlds": worlds, "iterations": warmup + iterations,
             "env": {"obs": obs}, "ppo": {"save_interval": 10_000}, "selection": {"interval": 10_000}})
         with tempfile.TemporaryDirectory() as tmp:
-            trainer = StageTrainer(track, airframe, sim, stage, Path(tmp), device=device, seed=seed, progress=False,
-                                   selector=lambda trainer, it: {})
+            trainer = StageTrainer(RaceSetting(track, airframe, sim), stage, Path(tmp), device=device, seed=seed,
+                                   progress=False)
             t0 = time.perf_counter()
-            history = trainer.train().history[warmup:]
+            history = trainer.train(lambda trainer, it: {}).history[warmup:]
             wall = time.perf_counter() - t0
         collect = sum(r["collect_s"] for r in history)
         learn = sum(r["learn_s"] for r in history)

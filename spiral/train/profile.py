@@ -24,16 +24,14 @@ from typing import Any
 import torch
 from torch import nn
 
-from spiral.config.airframe import AirframeCfg
-from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
-from spiral.config.track import TrackSpec
 from spiral.core.errors import UsageError
 from spiral.core.policy import OpponentPolicy
 from spiral.env.mixed import MixedRaceEnv
-from spiral.train.runner import StageTrainer
+from spiral.env.setting import RaceSetting
+from spiral.train.runner import StageStart, StageTrainer
 
-__all__ = ["ENV_HOOKS", "StageStart", "linear_layers", "matmul_seconds", "profile_iteration", "timed_methods",
+__all__ = ["ENV_HOOKS", "linear_layers", "matmul_seconds", "profile_iteration", "timed_methods",
            "update_flops_per_sample"]
 
 ENV_HOOKS = ("apply_actions", "simulate", "race_events", "rewards", "dones", "reset_ended", "get_observations")
@@ -179,32 +177,19 @@ def _traced_update(alg: Any) -> torch.profiler.profile:
     return trace
 
 
-@dataclass(frozen=True)
-class StageStart:
-    """What a multi-drone stage's training starts from and races."""
-
-    init_checkpoint: Path
-    """The checkpoint of the policy the learner starts from."""
-    opponents: dict[str, OpponentPolicy]
-    """The opponents of each part of its worlds, as ``StageTrainer`` takes them
-    (:func:`spiral.selfplay.curriculum.published_opponents` builds a pipeline's)."""
-
-
-def profile_iteration(track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, stage: StageSpec, *,
-                      iterations: int = 3, device: str = "cpu", seed: int = 0,
-                      start: StageStart | None = None) -> dict[str, Any]:
+def profile_iteration(setting: RaceSetting, stage: StageSpec, *, iterations: int = 3, device: str = "cpu",
+                      seed: int = 0, start: StageStart | None = None) -> dict[str, Any]:
     """Profile ``iterations`` PPO iterations of ``stage`` after one warm-up iteration (times are per iteration).
 
     A multi-drone stage needs ``start``: the checkpoint it starts from and the opponents it races.
     """
-    opponents = start.opponents if start is not None else {}
-    if stage.scenario != "solo" and (start is None or not opponents):
+    start = start or StageStart()
+    opponents = start.opponents
+    if stage.scenario != "solo" and not opponents:
         raise UsageError(f"stage {stage.name!r}: profiling a {stage.scenario} stage needs the checkpoint it starts "
                          "from and its opponents")
     with tempfile.TemporaryDirectory() as tmp:
-        trainer = StageTrainer(track, airframe, sim, stage, Path(tmp), device=device, seed=seed,
-                               init_checkpoint=start.init_checkpoint if start is not None else None,
-                               opponent=opponents or None, progress=False, selector=lambda trainer, it: {},
+        trainer = StageTrainer(setting, stage, Path(tmp), start=start, device=device, seed=seed, progress=False,
                                log=lambda _: None)
         alg = trainer.runner.alg
         alg.train_mode()

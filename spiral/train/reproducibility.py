@@ -22,6 +22,7 @@ from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 from spiral.core.checkpoint import load_checkpoint
 from spiral.core.numerics import TORCH_AVX2_ENV, cpu_target, portable_build
+from spiral.env.setting import RaceSetting
 from spiral.sim.bench import DEFAULT_TRACK, _make_world, _time_warp, machine_info
 from spiral.sim.options import MODULE_OPTIONS
 from spiral.train.runner import StageTrainer
@@ -64,8 +65,8 @@ def training_digest(*, worlds: int = 64, iterations: int = 3, seed: int = 0) -> 
     torch.set_num_threads(1)
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            StageTrainer(load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"], SimCfg(), stage, Path(tmp), seed=seed,
-                         progress=False, selector=lambda trainer, it: {}).train()
+            StageTrainer(RaceSetting(load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"], SimCfg()), stage, Path(tmp),
+                         seed=seed, progress=False).train(lambda trainer, it: {})
             weights = load_checkpoint(Path(tmp) / "ckpt" / f"model_{iterations - 1}.pt")["actor_state_dict"]
     finally:
         torch.set_num_threads(threads)

@@ -9,12 +9,10 @@ from typing import Any
 
 from rsl_rl.algorithms import PPO
 
-from spiral.config.airframe import AirframeCfg
-from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
-from spiral.config.track import TrackSpec
 from spiral.core.checkpoint import CheckpointError, load_checkpoint, newest_valid_checkpoint, save_checkpoint
 from spiral.env.observations import HISTORY_FIELDS, ObservationBuilder
+from spiral.env.setting import RaceSetting
 from spiral.train.averaging import PolicyAverage
 from spiral.train.selection import EvalScore
 
@@ -24,20 +22,19 @@ AVERAGE_KEY = "average_actor_state_dict"
 """Checkpoint key of the moving average of the actor's weights (``selection.average``)."""
 
 
-def stage_meta(stage: StageSpec, track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, *, seed: int,
-               obs_builder: ObservationBuilder) -> dict[str, Any]:
+def stage_meta(stage: StageSpec, setting: RaceSetting, *, seed: int, obs_builder: ObservationBuilder) -> dict[str, Any]:
     """A stage's provenance, stored in every checkpoint: the observation layout (compared on load), where each
     observation term sits (``obs_slices``, ``obs_history_fields``) and the settings it trained with."""
     return {
         "stage": stage.name,
         "scenario": stage.scenario,
-        "track": track.name,
+        "track": setting.track.name,
         "seed": seed,
         "obs_layout": obs_builder.layout(),
         "obs_slices": {name: list(span) for name, span in obs_builder.slices().items()},
         "obs_history_fields": {name: list(span) for name, span in HISTORY_FIELDS.items()},
-        "airframe": airframe.model_dump(),
-        "sim": sim.model_dump(),
+        "airframe": setting.airframe.model_dump(),
+        "sim": setting.sim.model_dump(),
         "ppo": stage.ppo.model_dump(),
         "env": stage.env.model_dump(),
     }

@@ -16,7 +16,7 @@ import math
 import random
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -24,10 +24,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
-from spiral.config.airframe import AirframeCfg
-from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
-from spiral.config.track import TrackSpec
 from spiral.core.checkpoint import CheckpointError
 from spiral.core.policy import MirrorOpponent, OpponentPolicy
 from spiral.core.seeds import stream_seed
@@ -42,7 +39,7 @@ from spiral.train.progress import TrainLog
 from spiral.train.resume import AVERAGE_KEY, StageCheckpoints, stage_meta
 from spiral.train.selection import EvalScore, Selection
 
-__all__ = ["EvalScore", "StageTrainer", "TrainResult", "seed_everything"]
+__all__ = ["EvalScore", "StageStart", "StageTrainer", "TrainResult", "seed_everything"]
 
 
 def seed_everything(seed: int) -> None:
@@ -65,6 +62,18 @@ class TrainResult:
     history: list[dict[str, float]]
 
 
+@dataclass(frozen=True)
+class StageStart:
+    """What a stage's training starts from and races."""
+
+    init_checkpoint: Path | None = None
+    """The checkpoint of the policy the learner starts from (None: a fresh policy)."""
+    opponents: dict[str, OpponentPolicy] = field(default_factory=dict)
+    """The opponents of each part of its worlds that has opponent slots, by part name (the stage's own format is
+    named for its scenario; :func:`spiral.selfplay.curriculum.published_opponents` builds a pipeline's); slots
+    without one stay empty."""
+
+
 class StageTrainer:
     """Trains one stage's learner with rsl-rl PPO.
 
@@ -73,35 +82,21 @@ class StageTrainer:
     Resumes from the newest valid checkpoint in ``run_dir/ckpt``.
     """
 
-    def __init__(
-        self,
-        track: TrackSpec,
-        airframe: AirframeCfg,
-        sim: SimCfg,
-        stage: StageSpec,
-        run_dir: Path,
-        *,
-        device: str = "cpu",
-        seed: int = 0,
-        init_checkpoint: Path | None = None,
-        opponent: OpponentPolicy | dict[str, OpponentPolicy] | None = None,
-        selector: Callable[[StageTrainer, int], dict[str, float]] | None = None,
-        selection_interval: int | None = None,
-        log: Callable[[str], None] = print,
-        progress: bool = True,
-    ) -> None:
-        self.track, self.airframe, self.sim, self.stage = track, airframe, sim, stage
+    def __init__(self, setting: RaceSetting, stage: StageSpec, run_dir: Path, *, start: StageStart | None = None,
+                 device: str = "cpu", seed: int = 0, log: Callable[[str], None] = print,
+                 progress: bool = True) -> None:
+        start = start or StageStart()
+        self.setting, self.stage = setting, stage
         self.run_dir, self.device, self.seed, self.log = Path(run_dir), device, seed, log
         self.dist = distributed.current()
         """This process's rank: rank 0 of 1 unless in a torchrun process group (only rank 0 writes files)."""
         seed_everything(self.dist.seed(seed))
-        self.env: RaceEnv | MixedRaceEnv = training_env(RaceSetting(track, airframe, sim), stage, device=device,
-                                                        seed=self.dist.seed(seed))
-        opponents = self._set_opponents(opponent)
+        self.env: RaceEnv | MixedRaceEnv = training_env(setting, stage, device=device, seed=self.dist.seed(seed))
+        opponents = self._set_opponents(start.opponents)
         d = stage.drones_per_world
-        self.eval_env = RaceEnv(RaceSetting(track, airframe, sim), stage.env, world_count=stage.selection.races,
-                                drones_per_world=d, learner_slots=list(range(d)), device=device,
-                                seed=stream_seed(seed, "selection"), training=False)
+        self.eval_env = RaceEnv(setting, stage.env, world_count=stage.selection.races, drones_per_world=d,
+                                learner_slots=list(range(d)), device=device, seed=stream_seed(seed, "selection"),
+                                training=False)
         self.vec_env = RaceVecEnv(self.env)
         with contextlib.redirect_stdout(io.StringIO()):  # rsl-rl prints the model architecture
             self.runner = distributed.GroupRunner(self.vec_env, stage.ppo.to_rsl_rl(), log_dir=None, device=device)
@@ -109,24 +104,20 @@ class StageTrainer:
         self._mirror_learner(opponents)
         self.start_iteration = 0
         self.best = EvalScore(-1.0, -math.inf)
-        self.selector = selector or StageTrainer.select_by_solo_eval
-        """Called every ``selection_interval`` iterations; keeps ``best.pt`` and returns numbers to log."""
-        self.selection_interval = selection_interval or stage.selection.interval
         self.selection = Selection(self.eval_env, self.runner, stage.selection, device=device)
-        meta = stage_meta(stage, track, airframe, sim, seed=seed, obs_builder=self.env.obs_builder)
+        meta = stage_meta(stage, setting, seed=seed, obs_builder=self.env.obs_builder)
         self.checkpoints = StageCheckpoints(self.run_dir, self.runner.alg, meta, device=device, log=log)
         self.train_log = TrainLog(self.run_dir, stage.name, main=self.dist.is_main,
                                   show_progress=progress and self.dist.is_main, log=log)
-        self._resume_or_init(init_checkpoint)
+        self._resume_or_init(start.init_checkpoint)
         if self.runner.is_distributed:
             self.start_iteration, self.best = distributed.share_training_state(
                 self.runner.alg, self.start_iteration, self.best, device=self.device)
 
     # Setup
 
-    def _set_opponents(self, opponent: OpponentPolicy | dict[str, OpponentPolicy] | None) -> dict[str, Any]:
+    def _set_opponents(self, opponents: dict[str, OpponentPolicy]) -> dict[str, Any]:
         """Drive the training worlds' opponent slots (per part of a mixed stage); the first races restart."""
-        opponents = opponent if isinstance(opponent, dict) else {self.stage.scenario: opponent} if opponent else {}
         opponents = {name: policy for name, policy in opponents.items() if policy is not None}
         if opponents:
             if isinstance(self.env, MixedRaceEnv):
@@ -193,35 +184,27 @@ class StageTrainer:
 
     # Training loop
 
-    def train(self) -> TrainResult:
-        """Run the remaining iterations of the stage's budget and return where the best policy is."""
+    def train(self, selector: Callable[[StageTrainer, int], dict[str, float]] | None = None, *,
+              interval: int | None = None) -> TrainResult:
+        """Run the remaining iterations of the stage's budget and return where the best policy is.
+
+        ``selector`` keeps ``best.pt`` every ``interval`` iterations (the stage's ``selection.interval`` when None)
+        and returns numbers to log; :meth:`select_by_solo_eval` when None.
+        """
+        select, interval = selector or StageTrainer.select_by_solo_eval, interval or self.stage.selection.interval
         total, main = self.stage.iteration_budget(), self.dist.is_main
-        alg, steps_per_it = self.runner.alg, self.runner.cfg["num_steps_per_env"] * self.vec_env.num_envs
         history: list[dict[str, float]] = []
         t_start = time.perf_counter()
         obs = self.vec_env.get_observations().to(self.device)
-        alg.train_mode()
+        self.runner.alg.train_mode()
         if self.runner.is_distributed:  # as rsl-rl's learn(): every rank starts from rank 0's parameters
-            alg.broadcast_parameters()
+            self.runner.alg.broadcast_parameters()
         last_path = self.checkpoints.periodic(max(self.start_iteration - 1, 0))
         with self.train_log.open(total, self.start_iteration) as train_log:
             for it in range(self.start_iteration, total):
-                t0 = time.perf_counter()
-                self.env.set_training_progress(it / total)
-                obs, reward_sum = self.collect(obs)  # rollout
-                t_collect = time.perf_counter() - t0
-                losses = alg.update()  # PPO update
-                self.selection.update_average()
-                self.runner.current_learning_iteration = it
-                row = {"iteration": it, "wall_s": time.perf_counter() - t_start, "collect_s": t_collect,
-                       "learn_s": time.perf_counter() - t0 - t_collect,
-                       "fps": steps_per_it / (time.perf_counter() - t0),
-                       "reward_per_step": float(reward_sum) / steps_per_it,
-                       "action_std": float(alg.get_policy().output_std.detach().mean()),
-                       "learning_rate": float(alg.learning_rate),
-                       **{f"loss/{k}": float(v) for k, v in losses.items()}, **self.env.pop_stats()}
-                if main and ((it + 1) % self.selection_interval == 0 or it == total - 1):  # selection
-                    row.update(self.selector(self, it))
+                obs, row = self._iteration(it, total, obs, t_start)
+                if main and ((it + 1) % interval == 0 or it == total - 1):  # selection
+                    row.update(select(self, it))
                     train_log.evaluated(it, total, row)
                 train_log.write(it, row)  # the row first: a resume drops rows past its checkpoint, never misses one
                 if main and ((it + 1) % self.stage.ppo.save_interval == 0 or it == total - 1):  # checkpoint
@@ -229,9 +212,33 @@ class StageTrainer:
                     self.checkpoints.save(last_path, it, self.best, average=self.selection.average)
                 history.append(row)
                 train_log.advance(it, row)
-        env_steps = (total - self.start_iteration) * steps_per_it
+        env_steps = (total - self.start_iteration) * self._steps_per_iteration()
         return TrainResult(self.run_dir / "best.pt", last_path, self.best, total, time.perf_counter() - t_start,
                            env_steps, history)
+
+    def _iteration(self, it: int, total: int, obs: TensorDict, t_start: float) -> tuple[TensorDict, dict[str, float]]:
+        """Iteration ``it`` of ``total``, rollout and PPO update; the last observations and the iteration's row
+        (``t_start``: when the training began)."""
+        alg, steps_per_it = self.runner.alg, self._steps_per_iteration()
+        t0 = time.perf_counter()
+        self.env.set_training_progress(it / total)
+        obs, reward_sum = self.collect(obs)  # rollout
+        t_collect = time.perf_counter() - t0
+        losses = alg.update()  # PPO update
+        self.selection.update_average()
+        self.runner.current_learning_iteration = it
+        row = {"iteration": it, "wall_s": time.perf_counter() - t_start, "collect_s": t_collect,
+               "learn_s": time.perf_counter() - t0 - t_collect,
+               "fps": steps_per_it / (time.perf_counter() - t0),
+               "reward_per_step": float(reward_sum) / steps_per_it,
+               "action_std": float(alg.get_policy().output_std.detach().mean()),
+               "learning_rate": float(alg.learning_rate),
+               **{f"loss/{k}": float(v) for k, v in losses.items()}, **self.env.pop_stats()}
+        return obs, row
+
+    def _steps_per_iteration(self) -> int:
+        """Env steps of one rollout, over every learner drone."""
+        return self.runner.cfg["num_steps_per_env"] * self.vec_env.num_envs
 
     def collect(self, obs: TensorDict) -> tuple[TensorDict, torch.Tensor]:
         """One rollout of ``num_steps_per_env`` steps into PPO's storage, and its returns; the last observations

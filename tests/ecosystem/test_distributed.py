@@ -68,6 +68,7 @@ WORKER = textwrap.dedent("""
     from pathlib import Path
     import torch
     from spiral.config import AIRFRAMES, SimCfg, StageSpec, load_track
+    from spiral.env import RaceSetting
     from spiral.train import StageTrainer
     from spiral.train.distributed import init_distributed, shutdown
 
@@ -77,8 +78,8 @@ WORKER = textwrap.dedent("""
         "name": "dp", "worlds": 8, "iterations": 2, "env": {"obs": {"history_len": 1}},
         "ppo": {"num_steps_per_env": 8, "save_interval": 1, "actor_hidden_dims": [16], "critic_hidden_dims": [16]},
         "selection": {"interval": 2, "races": 2}})
-    trainer = StageTrainer(load_track(sys.argv[2]), AIRFRAMES["cf2x"], SimCfg(), stage, out / "run", device=device,
-                           seed=10, progress=False, log=lambda m: None)
+    trainer = StageTrainer(RaceSetting(load_track(sys.argv[2]), AIRFRAMES["cf2x"], SimCfg()), stage, out / "run",
+                           device=device, seed=10, progress=False, log=lambda m: None)
     first = {k: v.clone() for k, v in trainer.runner.alg.actor.state_dict().items()}
     trainer.train()
     last = trainer.runner.alg.actor.state_dict()
@@ -120,12 +121,13 @@ def test_two_cpu_ranks_stay_in_sync_and_only_rank_0_writes(tmp_path):
 def test_stage_trains_on_cuda(tmp_path):
     """Train a tiny stage with Warp and torch on cuda:0 and save a checkpoint whose tensors load on the CPU."""
     from spiral.config import AIRFRAMES, SimCfg, StageSpec, load_track
+    from spiral.env import RaceSetting
     from spiral.train import StageTrainer, load_policy
 
     stage = StageSpec.model_validate({"name": "gpu", "worlds": 64, "iterations": 2, "env": {"obs": {"history_len": 2}},
                                       "ppo": {"num_steps_per_env": 8}, "selection": {"interval": 2, "races": 4}})
-    trainer = StageTrainer(load_track(ROOT / "tracks" / "oval4.yaml"), AIRFRAMES["cf2x"], SimCfg(), stage, tmp_path,
-                           device="cuda:0", progress=False)
+    trainer = StageTrainer(RaceSetting(load_track(ROOT / "tracks" / "oval4.yaml"), AIRFRAMES["cf2x"], SimCfg()), stage,
+                           tmp_path, device="cuda:0", progress=False)
     assert trainer.env.pos.device.type == "cuda" and trainer.env.world.device == "cuda:0"
     result = trainer.train()
     assert result.iterations == 2

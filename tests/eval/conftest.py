@@ -8,6 +8,7 @@ import pytest
 import yaml
 
 from spiral.config import AIRFRAMES, SimCfg, StageSpec, TrackSpec
+from spiral.env import RaceSetting
 from spiral.train import StageTrainer
 
 SPRINT = {
@@ -51,8 +52,8 @@ def sprint_yaml(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def tiny_checkpoint(sprint: TrackSpec, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """best.pt of one PPO iteration on the sprint track (an almost untrained policy that hovers)."""
     run_dir = tmp_path_factory.mktemp("tiny")
-    result = StageTrainer(sprint, AIRFRAMES["cf2x"], SimCfg(), tiny_stage(), run_dir, seed=0, progress=False,
-                          log=lambda _: None).train()
+    result = StageTrainer(RaceSetting(sprint, AIRFRAMES["cf2x"], SimCfg()), tiny_stage(), run_dir, seed=0,
+                          progress=False, log=lambda _: None).train()
     return result.best_path
 
 
@@ -61,5 +62,5 @@ def tiny_checkpoint_other_inputs(sprint: TrackSpec, tmp_path_factory: pytest.Tem
     """Like ``tiny_checkpoint``, but trained with another observation layout (two history entries, other terms)."""
     run_dir = tmp_path_factory.mktemp("tiny-other")
     stage = tiny_stage(obs={"history_len": 2, "opponent_velocity": True})
-    return StageTrainer(sprint, AIRFRAMES["cf2x"], SimCfg(), stage, run_dir, seed=0, progress=False,
+    return StageTrainer(RaceSetting(sprint, AIRFRAMES["cf2x"], SimCfg()), stage, run_dir, seed=0, progress=False,
                         log=lambda _: None).train().best_path

@@ -11,8 +11,9 @@ from tensordict import TensorDict
 
 from spiral.config import SelfPlayCfg, SimCfg, StageSpec
 from spiral.core.checkpoint import FrozenPolicy
+from spiral.env import RaceSetting
 from spiral.selfplay import Matchmaker, OpponentDraws, PoolOpponents, run_stage
-from spiral.train import StageTrainer, load_policy
+from spiral.train import StageStart, StageTrainer, load_policy
 from tests.selfplay.helpers import CF2X, COMMON
 
 
@@ -134,8 +135,9 @@ def test_mirror_copies_fly_the_learners_mean_or_sampled_action(line2, tmp_path, 
     opponents = PoolOpponents([load_policy(tmp_path / "a" / "best.pt")], Matchmaker(1, latest=0, p_latest=0.5),
                               world_count=duel.worlds, per_world=1, generator=torch.Generator().manual_seed(0),
                               draws=OpponentDraws(p_self=1.0))
-    trainer = StageTrainer(line2, CF2X, SimCfg(), duel, tmp_path / "duel", opponent=opponents,
-                           init_checkpoint=tmp_path / "a" / "best.pt", progress=False, log=lambda _: None)
+    trainer = StageTrainer(RaceSetting(line2, CF2X, SimCfg()), duel, tmp_path / "duel",
+                           start=StageStart(tmp_path / "a" / "best.pt", {duel.scenario: opponents}), progress=False,
+                           log=lambda _: None)
     actor = trainer.runner.alg.get_policy()
     obs = trainer.vec_env.get_observations()
     rows = obs["policy"].repeat(512, 1)

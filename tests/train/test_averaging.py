@@ -7,6 +7,7 @@ import torch
 
 from spiral.config import AIRFRAMES, SimCfg
 from spiral.core.checkpoint import load_checkpoint
+from spiral.env import RaceSetting
 from spiral.train import StageTrainer
 from spiral.train.averaging import PolicyAverage
 from spiral.train.resume import AVERAGE_KEY
@@ -36,7 +37,7 @@ def test_best_checkpoint_keeps_the_average_and_a_resume_restores_it(oval2, tmp_p
     """best.pt's actor is the averaged policy selection raced; periodic checkpoints carry the average too, and a
     resumed stage continues from it rather than restarting it at the current weights."""
     stage = tiny_stage(4).model_copy(update={"selection": tiny_stage(4).selection.model_copy(update={"average": 0.5})})
-    trainer = StageTrainer(oval2, AIRFRAMES["cf2x"], SimCfg(), stage, tmp_path, seed=2, progress=False)
+    trainer = StageTrainer(RaceSetting(oval2, AIRFRAMES["cf2x"], SimCfg()), stage, tmp_path, seed=2, progress=False)
     trainer.train()
     best = load_checkpoint(tmp_path / "best.pt")
     actor, average = best["actor_state_dict"]["mlp.0.weight"], best[AVERAGE_KEY]["mlp.0.weight"]
@@ -44,8 +45,8 @@ def test_best_checkpoint_keeps_the_average_and_a_resume_restores_it(oval2, tmp_p
     last = load_checkpoint(tmp_path / "ckpt" / "model_3.pt")
     live, averaged = last["actor_state_dict"]["mlp.0.weight"], last[AVERAGE_KEY]["mlp.0.weight"]
     assert not torch.allclose(live, averaged)
-    resumed = StageTrainer(oval2, AIRFRAMES["cf2x"], SimCfg(), stage.model_copy(update={"iterations": 6}), tmp_path,
-                           seed=2, progress=False)
+    resumed = StageTrainer(RaceSetting(oval2, AIRFRAMES["cf2x"], SimCfg()), stage.model_copy(update={"iterations": 6}),
+                           tmp_path, seed=2, progress=False)
     assert resumed.selection.average is not None
     restored = resumed.selection.average.state_dict()["mlp.0.weight"]
     torch.testing.assert_close(restored, averaged)  # loaded from the checkpoint

@@ -8,6 +8,7 @@ from rsl_rl.modules.distribution import GaussianDistribution
 from torch import nn
 
 from spiral.config import AIRFRAMES, PPOCfg, SimCfg, StageSpec
+from spiral.env import RaceSetting
 from spiral.train import StageTrainer
 from spiral.train.distribution import BoundedGaussianDistribution, bound_loss
 
@@ -68,8 +69,8 @@ def saturated_means_after_updates(trainer: StageTrainer, updates: int) -> float:
 
 def test_a_stage_with_a_bound_loss_pulls_saturated_mean_actions_back_into_range(oval2, tmp_path):
     assert PPOCfg().to_rsl_rl()["actor"]["distribution_cfg"]["class_name"].endswith(".GaussianDistribution")
-    bounded = StageTrainer(oval2, AIRFRAMES["cf2x"], SimCfg(), stage(5.0), tmp_path / "on", progress=False)
-    plain = StageTrainer(oval2, AIRFRAMES["cf2x"], SimCfg(), stage(0.0), tmp_path / "off", progress=False)
+    bounded = StageTrainer(RaceSetting(oval2, AIRFRAMES["cf2x"], SimCfg()), stage(5.0), tmp_path / "on", progress=False)
+    plain = StageTrainer(RaceSetting(oval2, AIRFRAMES["cf2x"], SimCfg()), stage(0.0), tmp_path / "off", progress=False)
     assert isinstance(bounded.runner.alg.actor.distribution, BoundedGaussianDistribution)
     assert type(plain.runner.alg.actor.distribution) is GaussianDistribution
     pulled, kept = saturated_means_after_updates(bounded, 3), saturated_means_after_updates(plain, 3)

@@ -6,6 +6,7 @@ import torch
 from torch import nn
 
 from spiral.config import AIRFRAMES, PPOCfg, SimCfg, StageSpec
+from spiral.env import RaceSetting
 from spiral.train import StageTrainer
 
 
@@ -31,8 +32,8 @@ def layer_dtypes(trainer: StageTrainer) -> tuple[set[torch.dtype], set[torch.dty
 
 
 def test_mixed_precision_runs_the_updates_products_in_bfloat16_and_keeps_float32_weights(oval2, tmp_path):
-    on = StageTrainer(oval2, AIRFRAMES["cf2x"], SimCfg(), stage(True), tmp_path / "on", progress=False)
-    off = StageTrainer(oval2, AIRFRAMES["cf2x"], SimCfg(), stage(False), tmp_path / "off", progress=False)
+    on = StageTrainer(RaceSetting(oval2, AIRFRAMES["cf2x"], SimCfg()), stage(True), tmp_path / "on", progress=False)
+    off = StageTrainer(RaceSetting(oval2, AIRFRAMES["cf2x"], SimCfg()), stage(False), tmp_path / "off", progress=False)
     assert layer_dtypes(on) == ({torch.bfloat16}, {torch.float32})
     assert layer_dtypes(off) == ({torch.float32}, {torch.float32})
 

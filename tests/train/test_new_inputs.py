@@ -9,8 +9,9 @@ from tensordict import TensorDict
 from spiral.config import AIRFRAMES, SimCfg, StageSpec
 from spiral.core.checkpoint import CheckpointError, load_checkpoint
 from spiral.core.inputs import UNUSED_STD, silence_inputs, unused_inputs
+from spiral.env import RaceSetting
 from spiral.selfplay import run_stage
-from spiral.train import StageTrainer, load_policy
+from spiral.train import StageStart, StageTrainer, load_policy
 from spiral.train.inputs import calibrate_inputs
 
 CF2X = AIRFRAMES["cf2x"]
@@ -78,8 +79,8 @@ def test_1v1_stage_starts_as_the_solo_policy_with_calibrated_opponent_inputs(lin
     solo = load_policy(solo_best)
     unused = unused_inputs(solo.actor)
     stage = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 1, **COMMON})
-    trainer = StageTrainer(line2, CF2X, SimCfg(), stage, tmp_path, init_checkpoint=solo_best, opponent=solo,
-                           progress=False)
+    trainer = StageTrainer(RaceSetting(line2, CF2X, SimCfg()), stage, tmp_path,
+                           start=StageStart(solo_best, {stage.scenario: solo}), progress=False)
     actor = trainer.runner.alg.actor
     std = actor.obs_normalizer.std
     assert (std[unused] >= UNUSED_STD).any()  # the opponent's relative position now varies
@@ -96,8 +97,8 @@ def test_race_critic_starts_from_the_init_critic_and_calibrates_its_new_inputs(l
     solo = load_checkpoint(solo_best)["critic_state_dict"]
     spec = {**COMMON, "env": {**COMMON["env"], "critic": "race"}}
     stage = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 1, **spec})
-    trainer = StageTrainer(line2, CF2X, SimCfg(), stage, tmp_path / "race", init_checkpoint=solo_best,
-                           opponent=load_policy(solo_best), progress=False)
+    trainer = StageTrainer(RaceSetting(line2, CF2X, SimCfg()), stage, tmp_path / "race",
+                           start=StageStart(solo_best, {stage.scenario: load_policy(solo_best)}), progress=False)
     critic = trainer.runner.alg.critic
     width = solo["mlp.0.weight"].shape[1]
     assert critic.mlp[0].weight.shape[1] == width + 8
@@ -111,5 +112,5 @@ def test_race_critic_starts_from_the_init_critic_and_calibrates_its_new_inputs(l
     trainer.checkpoints.save(tmp_path / "race.pt", 0, trainer.best)
     plain = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 1, **COMMON})
     with pytest.raises(CheckpointError, match="critic"):
-        StageTrainer(line2, CF2X, SimCfg(), plain, tmp_path / "plain", init_checkpoint=tmp_path / "race.pt",
-                     opponent=load_policy(solo_best), progress=False)
+        StageTrainer(RaceSetting(line2, CF2X, SimCfg()), plain, tmp_path / "plain",
+                     start=StageStart(tmp_path / "race.pt", {plain.scenario: load_policy(solo_best)}), progress=False)

@@ -13,11 +13,12 @@ import pytest
 from torch import nn
 
 from spiral.config import AIRFRAMES, SimCfg, StageSpec
+from spiral.env import RaceSetting
 from spiral.selfplay import Pool, PoolOpponents, run_stage
 from spiral.selfplay.curriculum import published_opponents
+from spiral.train import StageStart
 from spiral.train.profile import (
     ENV_HOOKS,
-    StageStart,
     linear_layers,
     matmul_seconds,
     profile_iteration,
@@ -43,7 +44,7 @@ def test_profiled_iteration_splits_rollout_by_hook_and_update_by_part_and_unwrap
         "name": "tiny", "worlds": 8, "iterations": 4, "env": {"obs": {"history_len": 1, "gate_normals": True}},
         "ppo": {"num_steps_per_env": 4, "actor_hidden_dims": [16], "critic_hidden_dims": [16]},
         "selection": {"races": 2}})
-    r = profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), stage, iterations=1)
+    r = profile_iteration(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), stage, iterations=1)
     assert set(r["rollout_parts_s"]) == {*ENV_HOOKS, "act", "process_env_step", "compute_returns"}
     assert sum(r["rollout_parts_s"].values()) <= r["rollout_s"]
     parts = set(r["update_parts_share"])
@@ -63,7 +64,7 @@ def test_the_matmul_limit_of_a_mixed_precision_update_is_timed_in_bfloat16(line2
         "name": "tiny", "worlds": 8, "iterations": 4, "env": {"obs": {"history_len": 1}},
         "ppo": {"num_steps_per_env": 4, "actor_hidden_dims": [16], "critic_hidden_dims": [16],
                 "mixed_precision": True}, "selection": {"races": 2}})
-    r = profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), stage, iterations=1)
+    r = profile_iteration(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), stage, iterations=1)
     assert r["matmul_dtype"] == "torch.bfloat16"
     assert r["update_over_matmul_limit"] == pytest.approx(r["update_s"] / r["matmul_s"])
 
@@ -88,7 +89,8 @@ def test_a_profiled_self_play_stage_races_a_copy_of_the_pool_and_times_the_oppon
         "mix": {"2v2": 0.5}, "ppo": TINY_PPO, "selection": {"races": 2}, "selfplay": {"p_self": 0.5}})
     (tmp_path / "scratch").mkdir()
     opponents = published_opponents(duel, init, tmp_path / "scratch", pool_dir=tmp_path / "pool").worlds
-    r = profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), duel, iterations=1, start=StageStart(init, opponents))
+    r = profile_iteration(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), duel, iterations=1,
+                          start=StageStart(init, opponents))
     assert set(r["rollout_parts_s"]) == {*ENV_HOOKS, "act", "process_env_step", "compute_returns", "opponents"}
     assert r["rollout_parts_s"]["opponents"] > 0 and r["rollout_parts_s"]["apply_actions"] > 0
     assert sum(r["rollout_parts_s"].values()) <= r["rollout_s"]
@@ -98,11 +100,11 @@ def test_a_profiled_self_play_stage_races_a_copy_of_the_pool_and_times_the_oppon
     frozen = duel.model_copy(update={"selfplay": duel.selfplay.model_copy(update={"mode": "frozen"})})
     (tmp_path / "scratch2").mkdir()
     opponents = published_opponents(frozen, init, tmp_path / "scratch2").worlds
-    r = profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), frozen, iterations=1,
+    r = profile_iteration(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), frozen, iterations=1,
                           start=StageStart(init, opponents))
     assert r["rollout_parts_s"]["opponents"] > 0
     with pytest.raises(ValueError, match="needs the checkpoint it starts from and its opponents"):
-        profile_iteration(line2, AIRFRAMES["cf2x"], SimCfg(), duel, iterations=1)
+        profile_iteration(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), duel, iterations=1)
 
 
 def test_timed_methods_put_a_classs_own_method_back():

@@ -10,6 +10,7 @@ import torch
 
 from spiral.config import AIRFRAMES, SimCfg, StageSpec
 from spiral.core.checkpoint import load_checkpoint
+from spiral.env import RaceSetting
 from spiral.train import StageTrainer
 from spiral.train.selection import EvalScore, paired_scores
 from tests.env.helpers import make_env, waypoint_policy
@@ -60,7 +61,7 @@ def test_a_solo_stage_with_a_tolerance_writes_the_faster_best_pt(oval2, tmp_path
         "name": "tiny", "worlds": 4, "iterations": 1, "env": {"obs": {"history_len": 1}},
         "ppo": {"num_steps_per_env": 4, "actor_hidden_dims": [8], "critic_hidden_dims": [8]},
         "selection": {"races": 2, "success_tolerance": 0.05}})
-    trainer = StageTrainer(oval2, AIRFRAMES["cf2x"], SimCfg(), stage, tmp_path, progress=False)
+    trainer = StageTrainer(RaceSetting(oval2, AIRFRAMES["cf2x"], SimCfg()), stage, tmp_path, progress=False)
     scores = iter(EvalScore(s, -lap, it) for it, s, lap in EVALS)
     trainer.selection.evaluate = lambda it: next(scores)
     for it, _, _ in EVALS:

@@ -9,8 +9,9 @@ import torch
 
 from spiral.config import AIRFRAMES, PPOCfg, SimCfg, StageSpec
 from spiral.core.checkpoint import CheckpointError, list_checkpoints, load_checkpoint, newest_valid_checkpoint
+from spiral.env import RaceSetting
 from spiral.eval.evaluate import RaceSet, evaluate_policy
-from spiral.train import StageTrainer, load_policy
+from spiral.train import StageStart, StageTrainer, load_policy
 
 CF2X = AIRFRAMES["cf2x"]
 
@@ -28,7 +29,7 @@ def test_short_training_improves_the_mean_reward(line2, tmp_path):
     """Raise the mean per-step reward of a 2-gate track within a few dozen iterations."""
     stage = tiny_stage(40, worlds=128).model_copy(update={"ppo": PPOCfg(
         num_steps_per_env=24, actor_hidden_dims=[64, 64], critic_hidden_dims=[64, 64], save_interval=100)})
-    result = StageTrainer(line2, CF2X, SimCfg(), stage, tmp_path, seed=1, progress=False).train()
+    result = StageTrainer(RaceSetting(line2, CF2X, SimCfg()), stage, tmp_path, seed=1, progress=False).train()
     rows = [json.loads(line) for line in (tmp_path / "train_log.jsonl").read_text().splitlines()]
     early = sum(r["reward_per_step"] for r in rows[:5]) / 5
     late = sum(r["reward_per_step"] for r in rows[-5:]) / 5
@@ -38,14 +39,14 @@ def test_short_training_improves_the_mean_reward(line2, tmp_path):
 
 def test_checkpoint_round_trip_and_resume_continue_the_iteration_count(oval2, tmp_path):
     """Resume a stopped stage from its newest checkpoint and end at the full iteration count."""
-    StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(4), tmp_path, seed=2, progress=False).train()
+    StageTrainer(RaceSetting(oval2, CF2X, SimCfg()), tiny_stage(4), tmp_path, seed=2, progress=False).train()
     assert [it for it, _ in list_checkpoints(tmp_path / "ckpt")] == [3, 1]
     data = load_checkpoint(tmp_path / "ckpt" / "model_3.pt")
     assert data["iter"] == 3 and data["spiral"]["stage"] == "tiny"
     assert data["spiral"]["obs_slices"] == {"ego": [0, 12], "presence": [12, 14], "gate_normals": [14, 20],
                                             "pid_integral": [20, 23], "history": [23, 39]}
     assert data["spiral"]["obs_history_fields"] == {"opponents": [0, 6], "gates": [6, 12], "action": [12, 16]}
-    trainer = StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(6), tmp_path, seed=2, progress=False)
+    trainer = StageTrainer(RaceSetting(oval2, CF2X, SimCfg()), tiny_stage(6), tmp_path, seed=2, progress=False)
     assert trainer.start_iteration == 4
     result = trainer.train()
     assert result.iterations == 6
@@ -56,7 +57,7 @@ def test_checkpoint_round_trip_and_resume_continue_the_iteration_count(oval2, tm
 
 def test_corrupt_newest_checkpoint_falls_back_to_the_previous_one(oval2, tmp_path):
     """Skip a truncated newest checkpoint with a warning and resume from the one before."""
-    StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(4), tmp_path, seed=2, progress=False).train()
+    StageTrainer(RaceSetting(oval2, CF2X, SimCfg()), tiny_stage(4), tmp_path, seed=2, progress=False).train()
     newest = tmp_path / "ckpt" / "model_3.pt"
     newest.write_bytes(newest.read_bytes()[:100])
     with pytest.raises(CheckpointError, match="checksum"):
@@ -64,13 +65,14 @@ def test_corrupt_newest_checkpoint_falls_back_to_the_previous_one(oval2, tmp_pat
     warnings: list[str] = []
     assert newest_valid_checkpoint(tmp_path / "ckpt", warn=warnings.append) == tmp_path / "ckpt" / "model_1.pt"
     assert "model_3.pt" in warnings[0]
-    trainer = StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(4), tmp_path, seed=2, progress=False, log=warnings.append)
+    trainer = StageTrainer(RaceSetting(oval2, CF2X, SimCfg()), tiny_stage(4), tmp_path, seed=2, progress=False,
+                           log=warnings.append)
     assert trainer.start_iteration == 2
 
 
 def test_loaded_policy_reproduces_the_trained_actor(oval2, tmp_path):
     """Give the same actions from a reloaded best.pt as from the trainer's inference policy."""
-    trainer = StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(4), tmp_path, seed=3, progress=False)
+    trainer = StageTrainer(RaceSetting(oval2, CF2X, SimCfg()), tiny_stage(4), tmp_path, seed=3, progress=False)
     trainer.train()
     data = load_checkpoint(tmp_path / "best.pt")
     trainer.runner.alg.load(data, {"actor": True}, strict=True)
@@ -85,9 +87,9 @@ def test_loaded_policy_reproduces_the_trained_actor(oval2, tmp_path):
 @pytest.mark.bitwise
 def test_same_seed_gives_the_same_training_on_cpu(oval2, tmp_path):
     """Produce bit-identical weights from two runs with the same seed."""
-    a = StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(2), tmp_path / "a", seed=5, progress=False)
+    a = StageTrainer(RaceSetting(oval2, CF2X, SimCfg()), tiny_stage(2), tmp_path / "a", seed=5, progress=False)
     a.train()
-    b = StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(2), tmp_path / "b", seed=5, progress=False)
+    b = StageTrainer(RaceSetting(oval2, CF2X, SimCfg()), tiny_stage(2), tmp_path / "b", seed=5, progress=False)
     b.train()
     wa = load_checkpoint(tmp_path / "a" / "ckpt" / "model_1.pt")["actor_state_dict"]
     wb = load_checkpoint(tmp_path / "b" / "ckpt" / "model_1.pt")["actor_state_dict"]
@@ -104,7 +106,7 @@ def test_simulator_threads_leave_the_training_unchanged(oval2, tmp_path, monkeyp
     for threads in (1, 2):
         monkeypatch.setattr(World, "cpu_threads", threads)
         out = tmp_path / str(threads)
-        StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(4), out, seed=5, progress=False).train()
+        StageTrainer(RaceSetting(oval2, CF2X, SimCfg()), tiny_stage(4), out, seed=5, progress=False).train()
         runs[threads] = (load_checkpoint(out / "ckpt" / "model_3.pt")["actor_state_dict"],
                          [json.dumps({k: v for k, v in json.loads(x).items() if not k.endswith("_s") and k != "fps"})
                           for x in (out / "train_log.jsonl").read_text().splitlines()])  # as text: NaN == NaN
@@ -116,7 +118,7 @@ def test_simulator_threads_leave_the_training_unchanged(oval2, tmp_path, monkeyp
 @pytest.mark.bitwise
 def test_paired_evaluation_races_both_policies_from_the_same_fresh_placements(oval2, tmp_path):
     """Start the learner's and the other policy's self-match from one draw, and the next pair from a new one."""
-    trainer = StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(2), tmp_path, seed=4, progress=False)
+    trainer = StageTrainer(RaceSetting(oval2, CF2X, SimCfg()), tiny_stage(2), tmp_path, seed=4, progress=False)
     env, reset, starts = trainer.eval_env, trainer.eval_env.reset, []
 
     def recording_reset():
@@ -136,11 +138,12 @@ def test_paired_evaluation_races_both_policies_from_the_same_fresh_placements(ov
 def test_stage_takes_over_its_init_noise_clamped_to_its_own_range_and_keeps_training_it(oval2, tmp_path):
     """A stage whose max_noise_std is below its init policy's noise starts at that maximum, not stuck on it."""
     first = tiny_stage(2).model_copy(update={"ppo": tiny_stage(2).ppo.model_copy(update={"init_noise_std": 0.4})})
-    init = StageTrainer(oval2, CF2X, SimCfg(), first, tmp_path / "a", seed=0, progress=False).train().best_path
+    init = StageTrainer(RaceSetting(oval2, CF2X, SimCfg()), first, tmp_path / "a", seed=0,
+                        progress=False).train().best_path
     quiet = tiny_stage(2)
     quiet = quiet.model_copy(update={"ppo": quiet.ppo.model_copy(update={"max_noise_std": 0.1})})
-    trainer = StageTrainer(oval2, CF2X, SimCfg(), quiet, tmp_path / "b", seed=0, progress=False,
-                           init_checkpoint=init)
+    trainer = StageTrainer(RaceSetting(oval2, CF2X, SimCfg()), quiet, tmp_path / "b", seed=0, progress=False,
+                           start=StageStart(init))
     std = trainer.runner.alg.actor.distribution.std_param
     assert torch.allclose(std, torch.full_like(std, 0.1))
     trainer.train()
@@ -157,7 +160,7 @@ def test_noise_range_must_not_be_empty():
 def test_frozen_policy_acts_as_its_actor_modules_to_the_bit_after_a_reload_or_a_cast_too(oval2, tmp_path):
     """A frozen policy's direct forward pass gives what the actor's modules give, for any number of rows, and
     follows weights loaded into it or cast afterwards."""
-    StageTrainer(oval2, CF2X, SimCfg(), tiny_stage(4), tmp_path, seed=3, progress=False).train()
+    StageTrainer(RaceSetting(oval2, CF2X, SimCfg()), tiny_stage(4), tmp_path, seed=3, progress=False).train()
     policy, other = load_policy(tmp_path / "best.pt"), load_policy(tmp_path / "ckpt" / "model_1.pt")
     obs = torch.randn(200, policy.obs_layout["obs_dim"])
     actor = policy.actor
