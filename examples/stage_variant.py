@@ -26,8 +26,9 @@ from pathlib import Path
 import yaml
 
 from spiral.config import StageSpec, load_pipeline, resolve_airframe
+from spiral.env import RaceSetting
 from spiral.eval import RaceSet, evaluate_methods
-from spiral.selfplay import run_stage
+from spiral.selfplay import StageSources, run_stage
 from spiral.selfplay.pool import Pool
 
 
@@ -117,9 +118,9 @@ def main() -> None:
     if args.first_opponent:
         put_first(Pool(pool), args.first_opponent, init)
     start = time.perf_counter()
-    result = run_stage(track, resolve_airframe(spec.airframe), spec.sim, stage, args.out, pool_dir=pool,
-                       init_checkpoint=init, opponent_checkpoint=args.opponent, device=args.device,
-                       seed=stage.seed if stage.seed is not None else spec.seed, progress=False)
+    result = run_stage(RaceSetting(track, resolve_airframe(spec.airframe), spec.sim), stage, args.out,
+                       sources=StageSources(pool_dir=pool, init_checkpoint=init, opponent_checkpoint=args.opponent),
+                       device=args.device, seed=stage.seed if stage.seed is not None else spec.seed, progress=False)
     wall = time.perf_counter() - start
     evaluation = evaluate_methods(RaceSet(track, stage.scenario, 50, 0), {"variant": result.best_path},
                                   device=args.device)

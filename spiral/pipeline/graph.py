@@ -16,10 +16,11 @@ from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
 from spiral.core.errors import UsageError
 from spiral.core.files import atomic_write_bytes
+from spiral.env.setting import RaceSetting
 from spiral.eval.evaluate import RaceSet, evaluate_methods
 from spiral.pipeline.report_steps import PLANNER_STEP, report_steps
 from spiral.pipeline.step import Step, StepContext
-from spiral.selfplay.curriculum import run_stage
+from spiral.selfplay.curriculum import StageSources, run_stage
 
 __all__ = ["PLANNER_STEP", "PipelinePlan", "select_steps"]
 
@@ -89,9 +90,10 @@ class PipelinePlan:
             inherited = ctx.inputs[previous]["outputs"].get("pool") if previous else None
             if inherited is not None and not pool_dir.exists():  # the pool carries over from stage to stage
                 shutil.copytree(Path(inherited["path"]).parent, pool_dir)
-            result = run_stage(self.track, self.airframe, self.spec.sim, stage, ctx.step_dir,
-                               pool_dir=pool_dir, init_checkpoint=init, opponent_checkpoint=frozen,
-                               device=self.spec.device, seed=section["seed"], log=ctx.log, progress=ctx.progress)
+            sources = StageSources(pool_dir=pool_dir, init_checkpoint=init, opponent_checkpoint=frozen)
+            result = run_stage(RaceSetting(self.track, self.airframe, self.spec.sim), stage, ctx.step_dir,
+                               sources=sources, device=self.spec.device, seed=section["seed"], log=ctx.log,
+                               progress=ctx.progress)
             info = {"iterations": result.iterations, "wall_time_s": result.wall_time_s, "env_steps": result.env_steps,
                     "best": {"success": result.best.success, "lap_time": result.best.lap_time,
                              "iteration": result.best.iteration}}

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from spiral.selfplay.curriculum import run_stage
+from spiral.selfplay.curriculum import StageSources, run_stage
 from spiral.selfplay.matchmaking import Matchmaker
 from spiral.selfplay.opponents import OpponentDraws, PoolOpponents
 from spiral.selfplay.pool import INITIAL_RATING, Pool, PoolMember
@@ -17,6 +17,7 @@ __all__ = [
     "PoolMember",
     "PoolOpponents",
     "PromotionSelector",
+    "StageSources",
     "elo_update",
     "head_to_head",
     "run_stage",

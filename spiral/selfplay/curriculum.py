@@ -10,10 +10,7 @@ from typing import Any
 
 import torch
 
-from spiral.config.airframe import AirframeCfg
-from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
-from spiral.config.track import TrackSpec
 from spiral.core.checkpoint import CheckpointError, FrozenPolicy, list_checkpoints, load_checkpoint, load_policy
 from spiral.core.errors import UsageError
 from spiral.core.scenario import SCENARIO_DRONES
@@ -21,74 +18,57 @@ from spiral.core.seeds import stream_seed
 from spiral.env.observations import other_drone_columns
 from spiral.env.setting import RaceSetting
 from spiral.selfplay.matchmaking import Matchmaker
-from spiral.selfplay.opponents import OpponentDraws, PoolOpponents
+from spiral.selfplay.opponents import OpponentDraws, PoolOpponents, StageOpponents
 from spiral.selfplay.pool import INITIAL_RATING, Pool
 from spiral.selfplay.promotion import PromotionSelector
 from spiral.train.runner import StageStart, StageTrainer, TrainResult
 
-__all__ = ["StageOpponents", "published_opponents", "run_stage", "stage_opponents"]
+__all__ = ["StageSources", "published_opponents", "run_stage", "stage_opponents"]
 
 
-def run_stage(
-    track: TrackSpec,
-    airframe: AirframeCfg,
-    sim: SimCfg,
-    stage: StageSpec,
-    run_dir: Path,
-    *,
-    pool_dir: Path,
-    init_checkpoint: Path | None,
-    opponent_checkpoint: Path | None = None,
-    device: str = "cpu",
-    seed: int = 0,
-    log: Callable[[str], None] = print,
-    progress: bool = True,
-) -> TrainResult:
-    """Train ``stage`` and return its result; ``run_dir/best.pt`` is its best policy.
+@dataclass(frozen=True)
+class StageSources:
+    """Where a stage's policies come from, as files."""
 
-    Multi-drone stages need ``init_checkpoint`` (the policy they start from and their first best). In ``pool``
-    mode the pool in ``pool_dir`` supplies the opponents and receives every promoted policy; in ``frozen`` mode
-    one policy, ``opponent_checkpoint`` (the initial policy when None), is the only opponent and the pool is left
-    alone.
+    pool_dir: Path
+    """The pool folder: in ``pool`` mode the opponents come from it and every promoted policy joins it."""
+    init_checkpoint: Path | None = None
+    """The checkpoint of the policy the stage starts from and its first best (multi-drone stages need one)."""
+    opponent_checkpoint: Path | None = None
+    """In ``frozen`` mode the checkpoint of the one opponent policy (the initial policy when None)."""
+
+
+def run_stage(setting: RaceSetting, stage: StageSpec, run_dir: Path, *, sources: StageSources, device: str = "cpu",
+              seed: int = 0, log: Callable[[str], None] = print, progress: bool = True) -> TrainResult:
+    """Train ``stage`` from ``sources`` and return its result; ``run_dir/best.pt`` is its best policy.
+
+    A multi-drone stage promotes its learner against its best (:class:`PromotionSelector`); in ``pool`` mode it
+    races the pool, in ``frozen`` mode one policy, which leaves the pool alone.
     """
-    run_dir, setting = Path(run_dir), RaceSetting(track, airframe, sim)
+    run_dir = Path(run_dir)
     if stage.scenario == "solo":
-        trainer = StageTrainer(setting, stage, run_dir, start=StageStart(init_checkpoint), device=device, seed=seed,
-                               log=log, progress=progress)
+        trainer = StageTrainer(setting, stage, run_dir, start=StageStart(sources.init_checkpoint), device=device,
+                               seed=seed, log=log, progress=progress)
         return trainer.train()
-    if init_checkpoint is None:
-        raise UsageError(f"stage {stage.name!r}: a {stage.scenario} stage needs an earlier stage to start from")
-    if opponent_checkpoint is not None and stage.selfplay.mode != "frozen":
-        raise UsageError(f"stage {stage.name!r}: an opponent checkpoint is for frozen opponents; pool mode races "
-                         "the pool")
+    init_checkpoint = _multi_drone_init(stage, sources)
     best_path = _first_best(run_dir, init_checkpoint)
-    pool = Pool(pool_dir, log=log) if stage.selfplay.mode == "pool" else None
-    opponents = stage_opponents(stage, pool, init_checkpoint, opponent_checkpoint, device=device, seed=seed)
-    selector = PromotionSelector(stage, track, airframe, sim, best_path=best_path, pool=pool,
-                                 best_rating=opponents.best_rating, device=device, seed=seed,
-                                 on_promote=opponents.add if pool is not None else None, log=log)
+    pool = Pool(sources.pool_dir, log=log) if stage.selfplay.mode == "pool" else None
+    opponents = stage_opponents(stage, pool, init_checkpoint, sources.opponent_checkpoint, device=device, seed=seed)
+    selector = PromotionSelector(stage, setting, best_path=best_path, pool=pool, opponents=opponents, device=device,
+                                 seed=seed, log=log)
     trainer = StageTrainer(setting, stage, run_dir, start=StageStart(init_checkpoint, opponents.worlds),
                            device=device, seed=seed, log=log, progress=progress)
     return trainer.train(selector, interval=selector.interval)
 
 
-@dataclass
-class StageOpponents:
-    """The opponents of a multi-drone stage's training worlds: one list of policies and one matchmaker, shared by
-    every format's worlds."""
-
-    members: list[FrozenPolicy]
-    matchmaker: Matchmaker
-    worlds: dict[str, PoolOpponents]
-    """The opponents of each part of the training worlds that has opponent slots (``StageTrainer``'s ``opponent``)."""
-    best_rating: float
-    """The rating of the latest best (the initial policy's in a new pool)."""
-    device: str
-
-    def add(self, path: Path) -> None:
-        """Race ``path``'s policy too (a promoted learner), as the latest best."""
-        self.members.append(load_policy(path, device=self.device))
-        self.matchmaker.add_member()
+def _multi_drone_init(stage: StageSpec, sources: StageSources) -> Path:
+    """The checkpoint multi-drone ``stage`` starts from, once ``sources`` are known to suit its self-play mode."""
+    if sources.init_checkpoint is None:
+        raise UsageError(f"stage {stage.name!r}: a {stage.scenario} stage needs an earlier stage to start from")
+    if sources.opponent_checkpoint is not None and stage.selfplay.mode != "frozen":
+        raise UsageError(f"stage {stage.name!r}: an opponent checkpoint is for frozen opponents; pool mode races "
+                         "the pool")
+    return sources.init_checkpoint
 
 
 def stage_opponents(stage: StageSpec, pool: Pool | None, init_checkpoint: Path, opponent_checkpoint: Path | None = None,

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 from tensordict import TensorDict
 
-from spiral.core.checkpoint import FrozenPolicy
+from spiral.core.checkpoint import FrozenPolicy, load_policy
 from spiral.selfplay.matchmaking import Matchmaker
 
-__all__ = ["OpponentDraws", "PoolOpponents"]
+__all__ = ["OpponentDraws", "PoolOpponents", "StageOpponents"]
 
 
 @dataclass(frozen=True)
@@ -126,3 +127,22 @@ class PoolOpponents:
         """Feed race outcomes of ended pool worlds (indices) to the matchmaker."""
         pooled = ~self.mirror[worlds]
         self.matchmaker.record(self.assignment[worlds][pooled], learner_won[pooled])
+
+
+@dataclass
+class StageOpponents:
+    """The opponents of a multi-drone stage's training worlds: one list of policies and one matchmaker, shared by
+    every format's worlds."""
+
+    members: list[FrozenPolicy]
+    matchmaker: Matchmaker
+    worlds: dict[str, PoolOpponents]
+    """The opponents of each part of the training worlds that has opponent slots (a ``StageStart``'s ``opponents``)."""
+    best_rating: float
+    """The rating of the latest best (the initial policy's in a new pool)."""
+    device: str
+
+    def add(self, path: Path) -> None:
+        """Race ``path``'s policy too (a promoted learner), as the latest best."""
+        self.members.append(load_policy(path, device=self.device))
+        self.matchmaker.add_member()

@@ -6,10 +6,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from spiral.config.airframe import AirframeCfg
-from spiral.config.sim import SimCfg
 from spiral.config.stage import PromotionCfg, StageSpec
-from spiral.config.track import TrackSpec
 from spiral.core.checkpoint import FrozenPolicy, load_policy
 from spiral.core.outcome import race_winner
 from spiral.core.policy import Policy
@@ -18,6 +15,7 @@ from spiral.core.seeds import stream_seed
 from spiral.env.race_env import RaceEnv
 from spiral.env.racing import run_races
 from spiral.env.setting import RaceSetting
+from spiral.selfplay.opponents import StageOpponents
 from spiral.selfplay.pool import Pool
 from spiral.train.runner import StageTrainer
 from spiral.train.selection import paired_scores
@@ -85,8 +83,7 @@ def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[floa
     return (faster and own >= best - cfg.max_success_drop) or safer
 
 
-def self_match_envs(stage: StageSpec, track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, *, device: str,
-                    seed: int) -> dict[str, RaceEnv]:
+def self_match_envs(stage: StageSpec, setting: RaceSetting, *, device: str, seed: int) -> dict[str, RaceEnv]:
     """The self-match races a promotion also weighs, by key: each other format of the stage's mix from the start box
     (``promotion.formats``; key: the format) and, with ``promotion.track_starts``, the stage's format and those from
     track starts (key: ``track-<format>``). Each has ``promotion.races`` worlds and a seed of its own."""
@@ -102,8 +99,8 @@ def self_match_envs(stage: StageSpec, track: TrackSpec, airframe: AirframeCfg, s
             env_cfg = env_cfg.model_copy(update={"episode": episode})
         drones = SCENARIO_DRONES[fmt]
         envs[fmt if starts == "box" else f"track-{fmt}"] = RaceEnv(
-            RaceSetting(track, airframe, sim), env_cfg, world_count=cfg.races, drones_per_world=drones,
-            learner_slots=list(range(drones)), device=device, seed=stream_seed(seed, "formats", i), training=False)
+            setting, env_cfg, world_count=cfg.races, drones_per_world=drones, learner_slots=list(range(drones)),
+            device=device, seed=stream_seed(seed, "formats", i), training=False)
     return envs
 
 
@@ -117,22 +114,21 @@ def elo_update(rating_a: float, rating_b: float, score_a: float, k: float) -> tu
 class PromotionSelector:
     """Stage selection for multi-drone stages: promote the learner when it beats the current best.
 
-    In ``pool`` mode a promoted learner also joins the pool (and ``on_promote`` refreshes the training
-    opponents); in ``frozen`` mode only the stage's best changes.
+    In ``pool`` mode a promoted learner also joins the pool and the stage's training ``opponents``; in ``frozen``
+    mode only the stage's best changes. The best starts with the rating of the opponents' latest best.
     """
 
-    def __init__(self, stage: StageSpec, track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, *, best_path: Path,
-                 pool: Pool | None, best_rating: float, device: str, seed: int,
-                 on_promote: Callable[[Path], None] | None = None, log: Callable[[str], None] = print) -> None:
+    def __init__(self, stage: StageSpec, setting: RaceSetting, *, best_path: Path, pool: Pool | None,
+                 opponents: StageOpponents, device: str, seed: int, log: Callable[[str], None] = print) -> None:
         self.cfg, self.stage, self.pool, self.device = stage.selfplay.promotion, stage, pool, device
-        self.best_path, self.best_rating, self.on_promote, self.log = best_path, best_rating, on_promote, log
+        self.best_path, self.best_rating, self.opponents, self.log = best_path, opponents.best_rating, opponents, log
         self.best: FrozenPolicy = load_policy(best_path, device=device)
         d = stage.drones_per_world
-        self.env = RaceEnv(RaceSetting(track, airframe, sim), stage.env, world_count=self.cfg.races, drones_per_world=d,
+        self.env = RaceEnv(setting, stage.env, world_count=self.cfg.races, drones_per_world=d,
                            learner_slots=stage.learner_slots(), device=device, seed=stream_seed(seed, "promotion"),
                            training=False)
         self.interval = self.cfg.interval
-        self.format_envs = self_match_envs(stage, track, airframe, sim, device=device, seed=seed)
+        self.format_envs = self_match_envs(stage, setting, device=device, seed=seed)
 
     def __call__(self, trainer: StageTrainer, it: int) -> dict[str, float]:
         """Race the learner against the best and in a self-match; promote it when the rule holds."""
@@ -158,8 +154,8 @@ class PromotionSelector:
                 self.pool.add(path, stage=self.stage.name, iteration=it, evaluation=asdict(result),
                               rating=learner_rating)
             self.best, self.best_rating = load_policy(path, device=self.device), learner_rating
-            if self.on_promote is not None:
-                self.on_promote(path)
+            if self.pool is not None:
+                self.opponents.add(path)
             self.log(f"iteration {it}: promoted (win rate {result.win_rate:.2f}, success "
                      f"{result.a_success:.2f} vs {result.b_success:.2f}, self-match {own.success:.2f})")
             row["h2h/promoted"] = 1.0

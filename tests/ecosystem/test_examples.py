@@ -47,12 +47,13 @@ def test_gym_loop_steps_the_vector_and_the_single_env(script_env, capsys):
 def test_stage_variant_trains_an_overridden_stage_and_evaluates_it(script_env, monkeypatch, capsys):
     """Override the smoke pipeline's 1v1 stage (mirror self-play only), train it from a solo policy, evaluate."""
     from spiral.config import load_pipeline, resolve_airframe
-    from spiral.selfplay import run_stage
+    from spiral.env import RaceSetting
+    from spiral.selfplay import StageSources, run_stage
 
     pipeline = EXAMPLES.parent / "pipelines" / "smoke.yaml"
     spec, track = load_pipeline(pipeline)
-    run_stage(track, resolve_airframe(spec.airframe), spec.sim, spec.stages[0], script_env / "solo",
-              pool_dir=script_env / "unused", init_checkpoint=None, progress=False)
+    run_stage(RaceSetting(track, resolve_airframe(spec.airframe), spec.sim), spec.stages[0], script_env / "solo",
+              sources=StageSources(pool_dir=script_env / "unused"), progress=False)
     out = script_env / "variant"
     monkeypatch.setattr(sys, "argv", ["stage_variant.py", str(pipeline), "1v1", str(script_env / "solo" / "best.pt"),
                                       str(out), "--set", "selfplay.p_self=1.0", "--set", "iterations=1"])

@@ -13,7 +13,8 @@ from tensordict import TensorDict
 
 from spiral.config import SelfPlayCfg, SimCfg, StageSpec
 from spiral.core.checkpoint import CheckpointError
-from spiral.selfplay import Pool, PoolOpponents, run_stage
+from spiral.env import RaceSetting
+from spiral.selfplay import Pool, PoolOpponents, StageSources, run_stage
 from spiral.train import load_policy
 from tests.selfplay.helpers import CF2X, COMMON, PERMISSIVE
 
@@ -36,12 +37,13 @@ def test_only_frozen_opponents_name_the_stage_they_come_from():
 def test_short_1v1_stage_promotes_into_the_pool_and_resumes(line2, tmp_path):
     """Promote at least once with a permissive rule, add members to the pool, and resume the stage."""
     solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
-    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "solo", pool_dir=tmp_path / "pool", init_checkpoint=None,
-              progress=False)
+    run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, tmp_path / "solo",
+              sources=StageSources(pool_dir=tmp_path / "pool"), progress=False)
     duel = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 2, "selfplay": PERMISSIVE,
                                      **COMMON})
-    result = run_stage(line2, CF2X, SimCfg(), duel, tmp_path / "duel", pool_dir=tmp_path / "pool",
-                       init_checkpoint=tmp_path / "solo" / "best.pt", progress=False)
+    result = run_stage(RaceSetting(line2, CF2X, SimCfg()), duel, tmp_path / "duel",
+                       sources=StageSources(pool_dir=tmp_path / "pool", init_checkpoint=tmp_path / "solo" / "best.pt"),
+                       progress=False)
     pool = Pool(tmp_path / "pool")
     assert len(pool.members) == 3  # the initial policy and two promotions
     assert pool.latest_best == pool.members[-1].id
@@ -49,8 +51,9 @@ def test_short_1v1_stage_promotes_into_the_pool_and_resumes(line2, tmp_path):
     rows = [json.loads(x) for x in (tmp_path / "duel" / "train_log.jsonl").read_text().splitlines()]
     assert [r["h2h/promoted"] for r in rows] == pytest.approx([1.0, 1.0])  # 0/1 flags
     longer = duel.model_copy(update={"iterations": 3})
-    run_stage(line2, CF2X, SimCfg(), longer, tmp_path / "duel", pool_dir=tmp_path / "pool",
-              init_checkpoint=tmp_path / "solo" / "best.pt", progress=False)
+    run_stage(RaceSetting(line2, CF2X, SimCfg()), longer, tmp_path / "duel",
+              sources=StageSources(pool_dir=tmp_path / "pool", init_checkpoint=tmp_path / "solo" / "best.pt"),
+              progress=False)
     rows = [json.loads(x) for x in (tmp_path / "duel" / "train_log.jsonl").read_text().splitlines()]
     assert [r["iteration"] for r in rows] == [0, 1, 2]
     assert len(Pool(tmp_path / "pool").members) == 4
@@ -62,8 +65,8 @@ def test_frozen_opponents_run_the_opponent_checkpoint_not_the_initial_policy(lin
 
     solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
     for name, seed in (("a", 1), ("b", 2)):
-        run_stage(line2, CF2X, SimCfg(), solo, tmp_path / name, pool_dir=tmp_path / "p", init_checkpoint=None,
-                  progress=False, seed=seed)
+        run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, tmp_path / name,
+                  sources=StageSources(pool_dir=tmp_path / "p"), progress=False, seed=seed)
     seen: list[list] = []
 
     def recording(policies, *args, **kwargs):
@@ -73,9 +76,9 @@ def test_frozen_opponents_run_the_opponent_checkpoint_not_the_initial_policy(lin
     monkeypatch.setattr(curriculum, "PoolOpponents", recording)
     frozen = StageSpec.model_validate({"name": "nsp", "scenario": "1v1", "iterations": 1, **COMMON,
                                        "selfplay": {**PERMISSIVE, "mode": "frozen", "opponent_from": "b"}})
-    run_stage(line2, CF2X, SimCfg(), frozen, tmp_path / "nsp", pool_dir=tmp_path / "nsp-pool",
-              init_checkpoint=tmp_path / "a" / "best.pt", opponent_checkpoint=tmp_path / "b" / "best.pt",
-              progress=False)
+    run_stage(RaceSetting(line2, CF2X, SimCfg()), frozen, tmp_path / "nsp",
+              sources=StageSources(pool_dir=tmp_path / "nsp-pool", init_checkpoint=tmp_path / "a" / "best.pt",
+                                   opponent_checkpoint=tmp_path / "b" / "best.pt"), progress=False)
     (opponent,) = seen[0]
     a, b = (load_policy(tmp_path / name / "best.pt") for name in ("a", "b"))
     x = torch.randn(16, b.obs_layout["obs_dim"])
@@ -85,18 +88,18 @@ def test_frozen_opponents_run_the_opponent_checkpoint_not_the_initial_policy(lin
     assert not (tmp_path / "nsp-pool").exists()
     other = StageSpec.model_validate({**COMMON, "name": "solo", "iterations": 1,
                                       "env": {"obs": {**COMMON["env"]["obs"], "history_len": 2}}})
-    run_stage(line2, CF2X, SimCfg(), other, tmp_path / "c", pool_dir=tmp_path / "p", init_checkpoint=None,
+    run_stage(RaceSetting(line2, CF2X, SimCfg()), other, tmp_path / "c", sources=StageSources(pool_dir=tmp_path / "p"),
               progress=False)
     with pytest.raises(CheckpointError, match=r"c/best\.pt: observation layout"):
-        run_stage(line2, CF2X, SimCfg(), frozen, tmp_path / "nsp2", pool_dir=tmp_path / "nsp-pool",
-                  init_checkpoint=tmp_path / "a" / "best.pt", opponent_checkpoint=tmp_path / "c" / "best.pt",
-                  progress=False)
+        run_stage(RaceSetting(line2, CF2X, SimCfg()), frozen, tmp_path / "nsp2",
+                  sources=StageSources(pool_dir=tmp_path / "nsp-pool", init_checkpoint=tmp_path / "a" / "best.pt",
+                                       opponent_checkpoint=tmp_path / "c" / "best.pt"), progress=False)
     pooled = frozen.model_copy(update={"selfplay": frozen.selfplay.model_copy(update={"mode": "pool",
                                                                                       "opponent_from": None})})
     with pytest.raises(ValueError, match="opponent checkpoint"):
-        run_stage(line2, CF2X, SimCfg(), pooled, tmp_path / "pooled", pool_dir=tmp_path / "p",
-                  init_checkpoint=tmp_path / "a" / "best.pt", opponent_checkpoint=tmp_path / "b" / "best.pt",
-                  progress=False)
+        run_stage(RaceSetting(line2, CF2X, SimCfg()), pooled, tmp_path / "pooled",
+                  sources=StageSources(pool_dir=tmp_path / "p", init_checkpoint=tmp_path / "a" / "best.pt",
+                                       opponent_checkpoint=tmp_path / "b" / "best.pt"), progress=False)
 
 
 def test_init_snapshots_start_a_new_pool_with_the_init_stages_earlier_checkpoints(line2, tmp_path):
@@ -104,15 +107,15 @@ def test_init_snapshots_start_a_new_pool_with_the_init_stages_earlier_checkpoint
     pool oldest first, then the initial policy as its latest best; a carried-over pool is left as it is, and an init
     policy without earlier checkpoints beside it is an error naming the folder."""
     solo = StageSpec.model_validate({"name": "solo", "iterations": 4, **COMMON})
-    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "solo", pool_dir=tmp_path / "unused", init_checkpoint=None,
-              progress=False)
+    run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, tmp_path / "solo",
+              sources=StageSources(pool_dir=tmp_path / "unused"), progress=False)
     init = tmp_path / "solo" / "best.pt"
     best_iteration = json.loads(init.with_suffix(".json").read_text())["iteration"]
     assert best_iteration >= 1  # the stage saved a checkpoint at every iteration (save_interval 1)
     duel = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 1, **COMMON,
                                      "selfplay": {"p_self": 0.5, "init_snapshots": True}})
-    run_stage(line2, CF2X, SimCfg(), duel, tmp_path / "duel", pool_dir=tmp_path / "pool", init_checkpoint=init,
-              progress=False)
+    run_stage(RaceSetting(line2, CF2X, SimCfg()), duel, tmp_path / "duel",
+              sources=StageSources(pool_dir=tmp_path / "pool", init_checkpoint=init), progress=False)
     pool = Pool(tmp_path / "pool")
     first = pool.members[:best_iteration + 1]
     assert [(m.stage, m.iteration) for m in first] == [("solo", i) for i in range(best_iteration)] + [("init", 0)]
@@ -120,8 +123,8 @@ def test_init_snapshots_start_a_new_pool_with_the_init_stages_earlier_checkpoint
     for m in first[:-1]:  # byte copies of the stage's own checkpoints
         assert m.sha256 == json.loads((tmp_path / "solo" / "ckpt" / f"model_{m.iteration}.json").read_text())["sha256"]
     size = len(pool.members)
-    run_stage(line2, CF2X, SimCfg(), duel.model_copy(update={"name": "again"}), tmp_path / "again",
-              pool_dir=tmp_path / "pool", init_checkpoint=init, progress=False)
+    run_stage(RaceSetting(line2, CF2X, SimCfg()), duel.model_copy(update={"name": "again"}), tmp_path / "again",
+              sources=StageSources(pool_dir=tmp_path / "pool", init_checkpoint=init), progress=False)
     assert [m.stage for m in Pool(tmp_path / "pool").members[:size]] == [m.stage for m in pool.members]
     assert {m.stage for m in Pool(tmp_path / "pool").members[size:]} <= {"again"}  # promotions only, no snapshots
     (tmp_path / "bare").mkdir()
@@ -129,8 +132,9 @@ def test_init_snapshots_start_a_new_pool_with_the_init_stages_earlier_checkpoint
         shutil.copyfile(init.with_suffix(suffix), tmp_path / "bare" / f"best{suffix}")
     missing = r"init_snapshots: no periodic checkpoint before iteration \d+ of .*bare/best\.pt in .*bare/ckpt"
     with pytest.raises(ValueError, match=missing):
-        run_stage(line2, CF2X, SimCfg(), duel, tmp_path / "duel2", pool_dir=tmp_path / "pool2",
-                  init_checkpoint=tmp_path / "bare" / "best.pt", progress=False)
+        run_stage(RaceSetting(line2, CF2X, SimCfg()), duel, tmp_path / "duel2",
+                  sources=StageSources(pool_dir=tmp_path / "pool2", init_checkpoint=tmp_path / "bare" / "best.pt"),
+                  progress=False)
     with pytest.raises(ValueError, match="init_snapshots"):
         StageSpec.model_validate({"name": "nsp", "scenario": "1v1",
                                   "selfplay": {"mode": "frozen", "init_snapshots": True}})
@@ -148,13 +152,14 @@ def test_a_stage_with_blind_opponents_hides_what_its_layout_shows_of_other_drone
         return built[-1]
 
     solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
-    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "solo", pool_dir=tmp_path / "pool", init_checkpoint=None,
-              progress=False)
+    run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, tmp_path / "solo",
+              sources=StageSources(pool_dir=tmp_path / "pool"), progress=False)
     monkeypatch.setattr(curriculum, "PoolOpponents", recording)
     duel = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 1, "mix": {"2v2": 0.5},
                                      "selfplay": {**PERMISSIVE, "opponent_blind": 0.4}, **COMMON})
-    run_stage(line2, CF2X, SimCfg(), duel, tmp_path / "duel", pool_dir=tmp_path / "pool",
-              init_checkpoint=tmp_path / "solo" / "best.pt", progress=False)
+    run_stage(RaceSetting(line2, CF2X, SimCfg()), duel, tmp_path / "duel",
+              sources=StageSources(pool_dir=tmp_path / "pool", init_checkpoint=tmp_path / "solo" / "best.pt"),
+              progress=False)
     hidden = other_drone_columns(duel.env.obs)
     assert len(built) == 2 and {o.per_world for o in built} == {1, 2}
     assert all(o.draws.blind == pytest.approx(0.4) for o in built)

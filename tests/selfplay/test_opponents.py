@@ -12,7 +12,7 @@ from tensordict import TensorDict
 from spiral.config import SelfPlayCfg, SimCfg, StageSpec
 from spiral.core.checkpoint import FrozenPolicy
 from spiral.env import RaceSetting
-from spiral.selfplay import Matchmaker, OpponentDraws, PoolOpponents, run_stage
+from spiral.selfplay import Matchmaker, OpponentDraws, PoolOpponents, StageSources, run_stage
 from spiral.train import StageStart, StageTrainer, load_policy
 from tests.selfplay.helpers import CF2X, COMMON
 
@@ -52,16 +52,17 @@ def solo_policy(line2, tmp_path_factory) -> FrozenPolicy:
     """The best of a one-iteration solo stage on line2: the frozen pool member the opponent tests race."""
     root = tmp_path_factory.mktemp("solo")
     solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
-    run_stage(line2, CF2X, SimCfg(), solo, root / "a", pool_dir=root / "p", init_checkpoint=None, progress=False)
+    run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, root / "a", sources=StageSources(pool_dir=root / "p"),
+              progress=False)
     return load_policy(root / "a" / "best.pt")
 
 
 def test_batched_opponents_match_one_by_one_inference(line2, tmp_path):
     """Give the same actions when worlds sharing a member are batched as when each row is run alone."""
     solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
-    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "a", pool_dir=tmp_path / "p", init_checkpoint=None,
+    run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, tmp_path / "a", sources=StageSources(pool_dir=tmp_path / "p"),
               progress=False, seed=1)
-    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "b", pool_dir=tmp_path / "p", init_checkpoint=None,
+    run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, tmp_path / "b", sources=StageSources(pool_dir=tmp_path / "p"),
               progress=False, seed=2)
     policies = [load_policy(tmp_path / "a" / "best.pt"), load_policy(tmp_path / "b" / "best.pt")]
     gen = torch.Generator().manual_seed(0)
@@ -128,7 +129,7 @@ def load_policy_copy(policy: FrozenPolicy, *, scale: float) -> FrozenPolicy:
 def test_mirror_copies_fly_the_learners_mean_or_sampled_action(line2, tmp_path, mirror_actions):
     """Mirror opponents run the live actor: its mean action, or a draw with the learner's own action noise."""
     solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
-    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "a", pool_dir=tmp_path / "p", init_checkpoint=None,
+    run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, tmp_path / "a", sources=StageSources(pool_dir=tmp_path / "p"),
               progress=False)
     duel = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 1, **COMMON,
                                      "selfplay": {"p_self": 1.0, "mirror_actions": mirror_actions}})

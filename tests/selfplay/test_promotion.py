@@ -8,7 +8,8 @@ import json
 import pytest
 
 from spiral.config import PromotionCfg, SimCfg, StageSpec
-from spiral.selfplay import HeadToHead, elo_update, run_stage, should_promote
+from spiral.env import RaceSetting
+from spiral.selfplay import HeadToHead, StageSources, elo_update, run_stage, should_promote
 from spiral.selfplay.promotion import self_match_envs
 from tests.selfplay.helpers import CF2X, COMMON, PERMISSIVE
 
@@ -72,16 +73,17 @@ def test_promotion_with_formats_races_the_learner_and_the_best_in_each_other_for
     """With `promotion.formats` a 1v1 stage mixing in solo worlds logs, at each promotion check, the solo success of
     learner and best (four one-drone races each: a multiple of 1/4), and nothing of it without the option."""
     solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
-    run_stage(line2, CF2X, SimCfg(), solo, tmp_path / "solo", pool_dir=tmp_path / "pool", init_checkpoint=None,
-              progress=False)
+    run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, tmp_path / "solo",
+              sources=StageSources(pool_dir=tmp_path / "pool"), progress=False)
     logged = {}
     for formats in (True, False):
         duel = StageSpec.model_validate({
             "name": "1v1", "scenario": "1v1", "iterations": 1, "mix": {"solo": 0.25},
             "selfplay": {"promotion": {**PERMISSIVE["promotion"], "formats": formats}}, **COMMON})
         run_dir = tmp_path / f"duel-{formats}"
-        run_stage(line2, CF2X, SimCfg(), duel, run_dir, pool_dir=tmp_path / f"pool-{formats}",
-                  init_checkpoint=tmp_path / "solo" / "best.pt", progress=False)
+        run_stage(RaceSetting(line2, CF2X, SimCfg()), duel, run_dir,
+                  sources=StageSources(pool_dir=tmp_path / f"pool-{formats}",
+                                       init_checkpoint=tmp_path / "solo" / "best.pt"), progress=False)
         row = json.loads((run_dir / "train_log.jsonl").read_text().splitlines()[-1])
         logged[formats] = {k: v for k, v in row.items() if k.startswith("formats/")}
     assert set(logged[True]) == {"formats/solo_success", "formats/solo_best_success"}
@@ -97,7 +99,7 @@ def test_promotion_with_track_starts_also_races_self_matches_from_the_track(line
 
     def envs(**promotion):
         stage = StageSpec.model_validate({**spec, "selfplay": {"promotion": promotion}})
-        return self_match_envs(stage, line2, CF2X, SimCfg(), device="cpu", seed=0)
+        return self_match_envs(stage, RaceSetting(line2, CF2X, SimCfg()), device="cpu", seed=0)
 
     both = envs(formats=True, track_starts=True)
     assert list(both) == ["solo", "track-1v1", "track-solo"]

@@ -10,7 +10,7 @@ from spiral.config import AIRFRAMES, SimCfg, StageSpec
 from spiral.core.checkpoint import CheckpointError, load_checkpoint
 from spiral.core.inputs import UNUSED_STD, silence_inputs, unused_inputs
 from spiral.env import RaceSetting
-from spiral.selfplay import run_stage
+from spiral.selfplay import StageSources, run_stage
 from spiral.train import StageStart, StageTrainer, load_policy
 from spiral.train.inputs import calibrate_inputs
 
@@ -24,7 +24,8 @@ COMMON = {"worlds": 8, "env": {"obs": {"history_len": 1, "gate_normals": True, "
 def solo_best(line2, tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("solo")
     solo = StageSpec.model_validate({"name": "solo", "iterations": 2, **COMMON})
-    run_stage(line2, CF2X, SimCfg(), solo, run_dir, pool_dir=run_dir / "pool", init_checkpoint=None, progress=False)
+    run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, run_dir, sources=StageSources(pool_dir=run_dir / "pool"),
+              progress=False)
     return run_dir / "best.pt"
 
 

@@ -14,7 +14,7 @@ from torch import nn
 
 from spiral.config import AIRFRAMES, SimCfg, StageSpec
 from spiral.env import RaceSetting
-from spiral.selfplay import Pool, PoolOpponents, run_stage
+from spiral.selfplay import Pool, PoolOpponents, StageSources, run_stage
 from spiral.selfplay.curriculum import published_opponents
 from spiral.train import StageStart
 from spiral.train.profile import (
@@ -78,8 +78,8 @@ def test_a_profiled_self_play_stage_races_a_copy_of_the_pool_and_times_the_oppon
     stage without the checkpoint it starts from and its opponents is refused."""
     solo = StageSpec.model_validate({"name": "solo", "worlds": 4, "iterations": 1, "env": {"obs": {"history_len": 1}},
                                      "ppo": TINY_PPO, "selection": {"interval": 1, "races": 2}})
-    run_stage(line2, AIRFRAMES["cf2x"], SimCfg(), solo, tmp_path / "solo", pool_dir=tmp_path / "unused",
-              init_checkpoint=None, progress=False)
+    run_stage(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), solo, tmp_path / "solo",
+              sources=StageSources(pool_dir=tmp_path / "unused"), progress=False)
     init = tmp_path / "solo" / "best.pt"
     pool = Pool(tmp_path / "pool", log=lambda _: None)
     pool.add(init, stage="solo", iteration=0, evaluation={})
