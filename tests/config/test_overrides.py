@@ -18,7 +18,7 @@ FULL = ROOT / "pipelines" / "full.yaml"
 def test_an_override_value_is_parsed_as_yaml():
     assert parse_override("stages.1v1.iterations=600") == (("stages", "1v1", "iterations"), 600)
     assert parse_override("report.racing=null") == (("report", "racing"), None)
-    assert parse_override("mix={solo: 0.1}") == (("mix",), {"solo": 0.1})
+    assert parse_override("mix={solo: 1}") == (("mix",), {"solo": 1})
     assert parse_override("name=a=b") == (("name",), "a=b")
     for bad in ("seed", "=1", "a..b=1", "a={b"):
         with pytest.raises(SpecError, match="--set"):
