@@ -19,7 +19,7 @@ from spiral.config.load import KINDS, load_pipeline, load_spec, load_track
 from spiral.config.pipeline import EvaluationCfg, PipelineSpec, ReportCfg
 from spiral.config.ppo import PPOCfg
 from spiral.config.sim import SimCfg
-from spiral.config.stage import PromotionCfg, SelectionCfg, SelfPlayCfg, StageSpec
+from spiral.config.stage import FinalPickCfg, PromotionCfg, SelectionCfg, SelfPlayCfg, StageSpec
 from spiral.config.track import BoundsCfg, GateSpec, StartCfg, TrackSpec, gate_rotation
 
 __all__ = [
@@ -32,6 +32,7 @@ __all__ = [
     "EnvCfg",
     "EpisodeCfg",
     "EvaluationCfg",
+    "FinalPickCfg",
     "GateSpec",
     "ObsCfg",
     "PIDCfg",

@@ -114,7 +114,18 @@ class PipelineSpec(StrictModel):
                 raise ValueError(f"stages.{i}.selfplay.opponent_from: {source!r} is not an earlier stage")
         if self.report.racing is not None and not self.evaluation.holdout_runs:
             raise ValueError("report.racing: races the held-out placements; set evaluation.holdout_runs")
+        self._final_picks_on_their_own_placements()
         return self
+
+    def _final_picks_on_their_own_placements(self) -> None:
+        """A stage's final pick may not race the placements the pipeline reports on."""
+        ev = self.evaluation
+        reported = {ev.seed, *([ev.holdout_seed] if ev.holdout_runs else [])}
+        for i, stage in enumerate(self.stages):
+            final = stage.selection.final
+            if final is not None and final.seed in reported:
+                raise ValueError(f"stages.{i}.selection.final.seed: {final.seed} is a seed the pipeline reports on "
+                                 f"(evaluation: {sorted(reported)}); the final pick needs placements of its own")
 
     def init_stage(self, index: int) -> str | None:
         """Name of the stage whose best policy stage ``index`` starts from."""

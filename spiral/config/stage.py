@@ -12,7 +12,7 @@ from spiral.config.env import EnvCfg
 from spiral.config.ppo import PPOCfg
 from spiral.core.scenario import SCENARIO_DRONES, Scenario, learner_slots
 
-__all__ = ["PromotionCfg", "SelectionCfg", "SelfPlayCfg", "StageSpec", "WorldPart"]
+__all__ = ["FinalPickCfg", "PromotionCfg", "SelectionCfg", "SelfPlayCfg", "StageSpec", "WorldPart"]
 
 
 @dataclass(frozen=True)
@@ -26,6 +26,17 @@ class WorldPart:
     learner_slots: list[int]
     opponents: bool
     """Whether the other slots are opponents (pool or frozen policies); otherwise they are absent or learners."""
+
+
+class FinalPickCfg(StrictModel):
+    """After a multi-drone stage's training, every policy it promoted races self-matches on validation placements
+    and the one racing best becomes the stage's best (not in the paper)."""
+
+    laps: PosInt = Field(default=3, description="Laps of each race")
+    races: PosInt = Field(default=256, description="Races per format and start (validation placements)")
+    seed: int = Field(default=2, description="Seed of the validation placements: none the pipeline reports on")
+    starts: list[Literal["box", "track"]] = Field(default=["box", "track"], min_length=1,
+                                                  description="Where the races start")
 
 
 class SelectionCfg(StrictModel):
@@ -42,6 +53,12 @@ class SelectionCfg(StrictModel):
         default=0.0, ge=0, le=1,
         description="Stages kept by their self-match (no promotion): evaluations whose success is within this of "
         "the highest seen count as equal and the faster lap wins among them; 0: success first, then lap",
+    )
+    final: FinalPickCfg | None = Field(
+        default=None,
+        description="Multi-drone stages: after training, the policy the stage promoted that races best in "
+        "self-matches of its format and each of its mix's, from `starts`, over `laps` laps, on validation "
+        "placements, becomes the stage's best (highest mean success; ties: the later); null: the last promoted",
     )
 
 

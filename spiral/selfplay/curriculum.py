@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import shutil
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -17,11 +17,13 @@ from spiral.core.scenario import SCENARIO_DRONES
 from spiral.core.seeds import stream_seed
 from spiral.env.observations import other_drone_columns
 from spiral.env.setting import RaceSetting
+from spiral.selfplay.final import pick_final
 from spiral.selfplay.matchmaking import Matchmaker
 from spiral.selfplay.opponents import OpponentDraws, PoolOpponents, StageOpponents
 from spiral.selfplay.pool import INITIAL_RATING, Pool
 from spiral.selfplay.promotion import PromotionSelector
 from spiral.train.runner import StageStart, StageTrainer, TrainResult
+from spiral.train.selection import EvalScore
 
 __all__ = ["StageSources", "published_opponents", "run_stage", "stage_opponents"]
 
@@ -58,7 +60,11 @@ def run_stage(setting: RaceSetting, stage: StageSpec, run_dir: Path, *, sources:
                                  seed=seed, log=log)
     trainer = StageTrainer(setting, stage, run_dir, start=StageStart(init_checkpoint, opponents.worlds),
                            device=device, seed=seed, log=log, progress=progress)
-    return trainer.train(selector, interval=selector.interval)
+    result = trainer.train(selector, interval=selector.interval)
+    chosen = pick_final(stage, setting, run_dir, device=device, log=log)
+    if chosen is None:
+        return result
+    return replace(result, best=EvalScore(chosen.score, float("-inf"), iteration=chosen.iteration))
 
 
 def _multi_drone_init(stage: StageSpec, sources: StageSources) -> Path:

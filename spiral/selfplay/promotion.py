@@ -8,6 +8,7 @@ from pathlib import Path
 
 from spiral.config.stage import PromotionCfg, StageSpec
 from spiral.core.checkpoint import FrozenPolicy, load_policy
+from spiral.core.files import atomic_write_bytes
 from spiral.core.outcome import race_winner
 from spiral.core.policy import Policy
 from spiral.core.scenario import SCENARIO_DRONES
@@ -20,7 +21,11 @@ from spiral.selfplay.pool import Pool
 from spiral.train.runner import StageTrainer
 from spiral.train.selection import paired_scores
 
-__all__ = ["HeadToHead", "PromotionSelector", "elo_update", "head_to_head", "self_match_envs", "should_promote"]
+__all__ = ["PROMOTED_DIR", "HeadToHead", "PromotionSelector", "elo_update", "head_to_head", "keep_promoted",
+           "self_match_envs", "should_promote"]
+
+PROMOTED_DIR = "promoted"
+"""Folder beside a stage's ``best.pt`` with a copy of every policy the stage promoted."""
 
 
 @dataclass
@@ -104,6 +109,17 @@ def self_match_envs(stage: StageSpec, setting: RaceSetting, *, device: str, seed
     return envs
 
 
+def keep_promoted(best: Path, iteration: int) -> Path:
+    """Copy the just promoted ``best`` (with its metadata) into ``promoted/`` beside it, named for ``iteration``: the
+    stage's candidates for its final pick (:mod:`spiral.selfplay.final`)."""
+    folder = best.parent / PROMOTED_DIR
+    folder.mkdir(exist_ok=True)
+    copy = folder / f"best-{iteration:05d}.pt"
+    atomic_write_bytes(copy.with_suffix(".json"), best.with_suffix(".json").read_bytes())
+    atomic_write_bytes(copy, best.read_bytes())
+    return copy
+
+
 def elo_update(rating_a: float, rating_b: float, score_a: float, k: float) -> tuple[float, float]:
     """Elo update for a match in which A scored ``score_a`` in [0, 1] against B."""
     expected = 1.0 / (1.0 + 10.0 ** ((rating_b - rating_a) / 400.0))
@@ -148,6 +164,7 @@ class PromotionSelector:
             row[f"formats/{key}_success"], row[f"formats/{key}_best_success"] = mine, theirs
         if should_promote(result, self.cfg, (own.success, best_own.success), formats):
             path = trainer.save_best(it)
+            keep_promoted(path, it)
             if self.pool is not None:
                 if self.pool.latest_best is not None:
                     self.pool.member(self.pool.latest_best).rating = best_rating

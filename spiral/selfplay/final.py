@@ -1,0 +1,95 @@
+"""A multi-drone stage's final pick (``selection.final``): every policy the stage promoted races self-matches on
+validation placements, in the stage's format and each format of its mix, from the start box and from track starts,
+over several laps, and the one with the highest mean success becomes the stage's ``best.pt``.
+
+Promotion weighs one-lap races of 64 placements as training goes; the policy it promoted last is not always the one
+that races best over a longer race or off the box. The validation placements are a seed of their own, so that the
+placements a pipeline reports on choose nothing.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from spiral.config.stage import FinalPickCfg, StageSpec
+from spiral.core.checkpoint import load_policy
+from spiral.core.files import atomic_write_bytes
+from spiral.core.scenario import SCENARIO_DRONES
+from spiral.env.race_env import RaceEnv
+from spiral.env.racing import run_races
+from spiral.env.setting import RaceSetting
+from spiral.selfplay.promotion import PROMOTED_DIR
+
+__all__ = ["FINAL_PICK_FILE", "Candidate", "pick_final", "rank_candidates"]
+
+FINAL_PICK_FILE = "final_pick.json"
+"""What the final pick raced and chose, beside the stage's ``best.pt``."""
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A promoted policy and its validation success per race (``<starts>-<format>`` → share of drones home)."""
+
+    path: Path
+    iteration: int
+    success: dict[str, float]
+
+    @property
+    def score(self) -> float:
+        """Mean success over the races."""
+        return sum(self.success.values()) / len(self.success)
+
+
+def rank_candidates(candidates: list[Candidate]) -> Candidate:
+    """The candidate with the highest score; among equal scores the later (higher iteration)."""
+    return max(candidates, key=lambda c: (c.score, c.iteration))
+
+
+def _validation_envs(stage: StageSpec, setting: RaceSetting, cfg: FinalPickCfg, *, device: str) -> dict[str, RaceEnv]:
+    """One self-match env per format (the stage's, then its mix's) and start, racing ``cfg.laps`` laps from
+    ``cfg.races`` placements of ``cfg.seed``."""
+    laps = RaceSetting(setting.track.with_laps(cfg.laps), setting.airframe, setting.sim)
+    envs = {}
+    for fmt in [stage.scenario, *sorted(stage.mix)]:
+        for starts in cfg.starts:
+            episode = stage.env.episode.model_copy(update={"eval_starts": starts})
+            drones = SCENARIO_DRONES[fmt]
+            envs[f"{starts}-{fmt}"] = RaceEnv(laps, stage.env.model_copy(update={"episode": episode}),
+                                              world_count=cfg.races, drones_per_world=drones,
+                                              learner_slots=list(range(drones)), device=device, seed=cfg.seed,
+                                              training=False)
+    return envs
+
+
+def _candidates(run_dir: Path) -> list[tuple[Path, int]]:
+    """The policies the stage promoted (``promoted/best-<iteration>.pt``), oldest first."""
+    paths = sorted((run_dir / PROMOTED_DIR).glob("best-*.pt"))
+    return [(p, int(p.stem.split("-")[1])) for p in paths]
+
+
+def pick_final(stage: StageSpec, setting: RaceSetting, run_dir: Path, *, device: str = "cpu",
+               log: Callable[[str], None] = print) -> Candidate | None:
+    """Race the stage's promoted policies as ``stage.selection.final`` says and make the best one ``run_dir/best.pt``
+    (recorded in ``final_pick.json``). None when the stage has no final pick or promoted fewer than two policies."""
+    cfg, found = stage.selection.final, _candidates(Path(run_dir))
+    if cfg is None or len(found) < 2:
+        return None
+    envs = _validation_envs(stage, setting, cfg, device=device)
+    raced = []
+    for path, iteration in found:
+        policy = load_policy(path, device=device)
+        success = {key: float(run_races(env, policy).finished.float().mean()) for key, env in envs.items()}
+        raced.append(Candidate(path, iteration, success))
+    chosen = rank_candidates(raced)
+    best = Path(run_dir) / "best.pt"
+    atomic_write_bytes(best.with_suffix(".json"), chosen.path.with_suffix(".json").read_bytes())
+    atomic_write_bytes(best, chosen.path.read_bytes())
+    record = {"laps": cfg.laps, "races": cfg.races, "seed": cfg.seed, "chosen": chosen.iteration,
+              "candidates": [{"iteration": c.iteration, "score": c.score, "success": c.success} for c in raced]}
+    atomic_write_bytes(Path(run_dir) / FINAL_PICK_FILE, json.dumps(record, indent=2).encode())
+    log(f"final pick: the policy promoted at iteration {chosen.iteration} (mean success {chosen.score:.3f} over "
+        f"{len(envs)} validation races of {cfg.laps} laps; {len(raced)} candidates)")
+    return chosen
