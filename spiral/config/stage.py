@@ -37,6 +37,8 @@ class FinalPickCfg(StrictModel):
     seed: int = Field(default=2, description="Seed of the validation placements: none the pipeline reports on")
     starts: list[Literal["box", "track"]] = Field(default=["box", "track"], min_length=1,
                                                   description="Where the races start")
+    candidates: PosInt = Field(default=4, description="How many of the latest promoted policies race (each costs "
+                               "a self-match per format and start)")
 
 
 class SelectionCfg(StrictModel):

@@ -72,11 +72,13 @@ def _candidates(run_dir: Path) -> list[tuple[Path, int]]:
 
 def pick_final(stage: StageSpec, setting: RaceSetting, run_dir: Path, *, device: str = "cpu",
                log: Callable[[str], None] = print) -> Candidate | None:
-    """Race the stage's promoted policies as ``stage.selection.final`` says and make the best one ``run_dir/best.pt``
-    (recorded in ``final_pick.json``). None when the stage has no final pick or promoted fewer than two policies."""
+    """Race the stage's latest promoted policies as ``stage.selection.final`` says and make the best one
+    ``run_dir/best.pt`` (recorded in ``final_pick.json``). None when the stage has no final pick or promoted fewer
+    than two policies."""
     cfg, found = stage.selection.final, _candidates(Path(run_dir))
     if cfg is None or len(found) < 2:
         return None
+    found = found[-cfg.candidates:]
     envs = _validation_envs(stage, setting, cfg, device=device)
     raced = []
     for path, iteration in found:
