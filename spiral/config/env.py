@@ -272,6 +272,10 @@ class EnvCfg(StrictModel):
         "opponents first, then teammates). Training only: policies never see these inputs",
     )
 
+    def with_eval_starts(self, starts: Literal["box", "track", "file"]) -> EnvCfg:
+        """These settings with evaluation races starting where ``starts`` says (``episode.eval_starts``)."""
+        return self.model_copy(update={"episode": self.episode.model_copy(update={"eval_starts": starts})})
+
     @model_validator(mode="after")
     def _forfeit_needs_outcome(self) -> EnvCfg:
         if self.reward.forfeit and self.reward.win == 0:

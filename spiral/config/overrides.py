@@ -3,6 +3,7 @@ validated, and the run name that keeps a variant's folders apart from the file's
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import re
 from collections.abc import Sequence
@@ -45,7 +46,7 @@ def apply_overrides(data: dict[str, Any], overrides: Sequence[str], *, source: s
         SpecError: naming ``source`` and the override when its path runs through a value that is not a table or
             names no entry of a list.
     """
-    data = yaml.safe_load(yaml.safe_dump(data))  # a deep copy of plain data
+    data = copy.deepcopy(data)
     for text in overrides:
         keys, value = parse_override(text)
         node: Any = data

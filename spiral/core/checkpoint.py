@@ -23,6 +23,7 @@ __all__ = [
     "FORMAT",
     "CheckpointError",
     "FrozenPolicy",
+    "copy_checkpoint",
     "list_checkpoints",
     "load_checkpoint",
     "load_policy",
@@ -59,6 +60,12 @@ def save_checkpoint(path: Path, state: dict[str, Any], meta: dict[str, Any]) -> 
     atomic_write_bytes(path, buf.getvalue())
     side = {"sha256": hashlib.sha256(buf.getvalue()).hexdigest(), "size": len(buf.getvalue()), **meta}
     atomic_write_bytes(path.with_suffix(".json"), json.dumps(side, indent=2, default=str).encode())
+
+
+def copy_checkpoint(src: Path, dst: Path) -> None:
+    """Copy checkpoint ``src`` and its ``.json`` sidecar to ``dst`` atomically, the sidecar last (as when saved)."""
+    atomic_write_bytes(dst, Path(src).read_bytes())
+    atomic_write_bytes(Path(dst).with_suffix(".json"), Path(src).with_suffix(".json").read_bytes())
 
 
 def load_checkpoint(path: Path, *, map_location: str = "cpu") -> dict[str, Any]:

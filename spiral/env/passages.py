@@ -148,7 +148,8 @@ class PassageStarts:
                                                      vel_noise=self.cfg.vel_noise)
         use = torch.rand(world_count, generator=generator, device=device) < self.share
         use &= ok & clear_of_gates(pos, self.track, self.radius).all(dim=1)
-        use &= ~pack | (closest_pair(pos) >= self.track.start.min_separation)
+        if self.cfg.pack > 0:
+            use &= ~pack | (closest_pair(pos) >= self.track.start.min_separation)
         w, v = use[:, None, None], use[:, None]
         return Starts(torch.where(w, pos, starts.pos), torch.where(w, vel, starts.vel), torch.where(v, yaw, starts.yaw),
                       torch.where(v, gate.to(starts.gate.dtype), starts.gate), starts.box & ~use)

@@ -144,7 +144,7 @@ class FlightOverride:
         if self.downwash is not None:
             sim = sim.model_copy(update={"downwash": self.downwash})
         if self.starts != "box":
-            env = env.model_copy(update={"episode": env.episode.model_copy(update={"eval_starts": self.starts})})
+            env = env.with_eval_starts(self.starts)
         return replace(layout, env=env, sim=sim)
 
     def to_json(self) -> dict[str, Any]:

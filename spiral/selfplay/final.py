@@ -15,13 +15,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from spiral.config.stage import FinalPickCfg, StageSpec
-from spiral.core.checkpoint import load_policy
+from spiral.core.checkpoint import copy_checkpoint, load_policy
 from spiral.core.files import atomic_write_bytes
-from spiral.core.scenario import SCENARIO_DRONES
 from spiral.env.race_env import RaceEnv
 from spiral.env.racing import run_races
 from spiral.env.setting import RaceSetting
-from spiral.selfplay.promotion import PROMOTED_DIR
+from spiral.selfplay.promotion import PROMOTED_DIR, self_match_env
 
 __all__ = ["FINAL_PICK_FILE", "Candidate", "pick_final", "rank_candidates"]
 
@@ -52,16 +51,9 @@ def _validation_envs(stage: StageSpec, setting: RaceSetting, cfg: FinalPickCfg, 
     """One self-match env per format (the stage's, then its mix's) and start, racing ``cfg.laps`` laps from
     ``cfg.races`` placements of ``cfg.seed``."""
     laps = RaceSetting(setting.track.with_laps(cfg.laps), setting.airframe, setting.sim)
-    envs = {}
-    for fmt in [stage.scenario, *sorted(stage.mix)]:
-        for starts in cfg.starts:
-            episode = stage.env.episode.model_copy(update={"eval_starts": starts})
-            drones = SCENARIO_DRONES[fmt]
-            envs[f"{starts}-{fmt}"] = RaceEnv(laps, stage.env.model_copy(update={"episode": episode}),
-                                              world_count=cfg.races, drones_per_world=drones,
-                                              learner_slots=list(range(drones)), device=device, seed=cfg.seed,
-                                              training=False)
-    return envs
+    return {f"{starts}-{fmt}": self_match_env(laps, stage.env.with_eval_starts(starts), fmt, races=cfg.races,
+                                              device=device, seed=cfg.seed)
+            for fmt in [stage.scenario, *sorted(stage.mix)] for starts in cfg.starts}
 
 
 def _candidates(run_dir: Path) -> list[tuple[Path, int]]:
@@ -86,9 +78,7 @@ def pick_final(stage: StageSpec, setting: RaceSetting, run_dir: Path, *, device:
         success = {key: float(run_races(env, policy).finished.float().mean()) for key, env in envs.items()}
         raced.append(Candidate(path, iteration, success))
     chosen = rank_candidates(raced)
-    best = Path(run_dir) / "best.pt"
-    atomic_write_bytes(best.with_suffix(".json"), chosen.path.with_suffix(".json").read_bytes())
-    atomic_write_bytes(best, chosen.path.read_bytes())
+    copy_checkpoint(chosen.path, Path(run_dir) / "best.pt")
     record = {"laps": cfg.laps, "races": cfg.races, "seed": cfg.seed, "chosen": chosen.iteration,
               "candidates": [{"iteration": c.iteration, "score": c.score, "success": c.success} for c in raced]}
     atomic_write_bytes(Path(run_dir) / FINAL_PICK_FILE, json.dumps(record, indent=2).encode())

@@ -9,7 +9,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from spiral.core.checkpoint import CheckpointError, FrozenPolicy, load_policy
+from spiral.core.checkpoint import CheckpointError, FrozenPolicy, copy_checkpoint, load_policy
 from spiral.core.files import atomic_write_bytes, file_sha256
 
 __all__ = ["INITIAL_RATING", "Pool", "PoolMember"]
@@ -72,8 +72,7 @@ class Pool:
         """Copy a checkpoint into the pool as its newest member and latest best."""
         member_id = f"{stage}-{iteration:05d}-{len(self.members):03d}"
         file = f"{member_id}.pt"
-        atomic_write_bytes(self.root / file, Path(checkpoint).read_bytes())
-        atomic_write_bytes((self.root / file).with_suffix(".json"), Path(checkpoint).with_suffix(".json").read_bytes())
+        copy_checkpoint(Path(checkpoint), self.root / file)
         member = PoolMember(member_id, file, stage, iteration, file_sha256(self.root / file), rating, evaluation,
                             time.strftime("%Y-%m-%dT%H:%M:%S%z"))
         self.members.append(member)

@@ -6,12 +6,12 @@ from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from spiral.config.env import EnvCfg
 from spiral.config.stage import PromotionCfg, StageSpec
-from spiral.core.checkpoint import FrozenPolicy, load_policy
-from spiral.core.files import atomic_write_bytes
+from spiral.core.checkpoint import FrozenPolicy, copy_checkpoint, load_policy
 from spiral.core.outcome import race_winner
 from spiral.core.policy import Policy
-from spiral.core.scenario import SCENARIO_DRONES
+from spiral.core.scenario import SCENARIO_DRONES, Scenario
 from spiral.core.seeds import stream_seed
 from spiral.env.race_env import RaceEnv
 from spiral.env.racing import run_races
@@ -22,7 +22,7 @@ from spiral.train.runner import StageTrainer
 from spiral.train.selection import paired_scores
 
 __all__ = ["PROMOTED_DIR", "HeadToHead", "PromotionSelector", "elo_update", "head_to_head", "keep_promoted",
-           "self_match_envs", "should_promote"]
+           "self_match_env", "self_match_envs", "should_promote"]
 
 PROMOTED_DIR = "promoted"
 """Folder beside a stage's ``best.pt`` with a copy of every policy the stage promoted."""
@@ -96,17 +96,19 @@ def self_match_envs(stage: StageSpec, setting: RaceSetting, *, device: str, seed
     runs = [(fmt, "box") for fmt in sorted(stage.mix)] if cfg.formats else []
     if cfg.track_starts:
         runs += [(fmt, "track") for fmt in [stage.scenario, *(sorted(stage.mix) if cfg.formats else [])]]
-    envs = {}
-    for i, (fmt, starts) in enumerate(runs):
-        env_cfg = stage.env
-        if starts == "track":
-            episode = env_cfg.episode.model_copy(update={"eval_starts": "track"})
-            env_cfg = env_cfg.model_copy(update={"episode": episode})
-        drones = SCENARIO_DRONES[fmt]
-        envs[fmt if starts == "box" else f"track-{fmt}"] = RaceEnv(
-            setting, env_cfg, world_count=cfg.races, drones_per_world=drones, learner_slots=list(range(drones)),
-            device=device, seed=stream_seed(seed, "formats", i), training=False)
-    return envs
+    return {fmt if starts == "box" else f"track-{fmt}": self_match_env(
+                setting, stage.env.with_eval_starts(starts), fmt, races=cfg.races, device=device,
+                seed=stream_seed(seed, "formats", i))
+            for i, (fmt, starts) in enumerate(runs)}
+
+
+def self_match_env(setting: RaceSetting, env_cfg: EnvCfg, fmt: Scenario, *, races: int, device: str,
+                   seed: int) -> RaceEnv:
+    """An evaluation env of ``races`` worlds of format ``fmt`` in which every drone is a learner drone (a
+    self-match of whatever policy races it)."""
+    drones = SCENARIO_DRONES[fmt]
+    return RaceEnv(setting, env_cfg, world_count=races, drones_per_world=drones, learner_slots=list(range(drones)),
+                   device=device, seed=seed, training=False)
 
 
 def keep_promoted(best: Path, iteration: int) -> Path:
@@ -115,8 +117,7 @@ def keep_promoted(best: Path, iteration: int) -> Path:
     folder = best.parent / PROMOTED_DIR
     folder.mkdir(exist_ok=True)
     copy = folder / f"best-{iteration:05d}.pt"
-    atomic_write_bytes(copy.with_suffix(".json"), best.with_suffix(".json").read_bytes())
-    atomic_write_bytes(copy, best.read_bytes())
+    copy_checkpoint(best, copy)
     return copy
 
 
