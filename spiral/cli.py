@@ -438,17 +438,18 @@ def report(
     device: DeviceOpt = "cpu",
 ) -> None:
     """Write results.md (the paper's tables, cross-play, lap-time reference), results.csv and figures."""
-    device = check_device(device)
-    from spiral.eval.report import ReportOptions, build_report, track_of_run
+    device, filter_row = check_device(device), _filter_row(separation)
+    from spiral.eval.report import ReportOptions, build_report
+    from spiral.pipeline.report_steps import read_run
 
-    spec = load_track(track) if track is not None else track_of_run(run_dir)
-    filter_row = _filter_row(separation)
     racing = RacingCfg(laps=racing_laps, planner_runs=planner_runs) if racing_laps else None
     options = ReportOptions(runs=runs, device=device, se_ibr=se_ibr, sides=sides,
                             holdout=(holdout_runs, holdout_seed) if holdout_runs else None,
                             separation=filter_row, robustness=robustness, racing=racing, jobs=jobs)
     options = replace(options, command=_report_command(run_dir, options, separation))
-    typer.echo(f"wrote {build_report(run_dir, spec, out or run_dir / 'report', options)}")
+    run = read_run(run_dir)  # what the run's steps declared in their manifests
+    spec = load_track(track) if track is not None else run.track
+    typer.echo(f"wrote {build_report(run, spec, out or run_dir / 'report', options)}")
 
 
 def _filter_row(separation: str) -> SeparationCfg | None:

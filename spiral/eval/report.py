@@ -1,11 +1,12 @@
 """``spiral report``: the paper's tables, cross-play, the lap-time reference and figures from a pipeline's run folder.
 
-Inputs are read from ``runs/<pipeline>/``: each ``train-<stage>/spec.json`` (scenario, self-play mode, airframe,
-simulator, track), ``train-<stage>/best.pt``, ``train-<stage>/train_log.jsonl`` and ``eval-<stage>/eval.json``.
-SPIRAL is a self-play (``pool``) stage, PPO without self-play a ``frozen`` stage, each evaluated in its own
-scenario by self-match. Evaluations the run folder lacks (a missing eval.json, cross-play, SE-IBR when asked for)
-are run here with the same races and seed and cached under ``<out>/evals/`` with the checksums of the checkpoints
-they used, so a second report reuses them. What can be neither found nor run is marked missing.
+Inputs are what the run's steps declared in their manifests (:class:`spiral.eval.runs.RunRecord`): each training
+step's spec (scenario, self-play mode, airframe, simulator, track), best policy and log, each stage evaluation, and
+the race caches of the report's own steps. SPIRAL is a self-play (``pool``) stage, PPO without self-play a
+``frozen`` stage, each evaluated in its own scenario by self-match. Evaluations the run lacks (a missing stage
+evaluation, cross-play, SE-IBR when asked for) are run here with the same races and seed and cached under
+``<out>/evals/`` with the checksums of the checkpoints they used, so a second report reuses them. What can be neither
+found nor run is marked missing.
 """
 
 from __future__ import annotations
@@ -33,18 +34,17 @@ from spiral.eval.runs import (
     EvalProtocol,
     Evaluations,
     RowResult,
+    RunRecord,
     StageRun,
     crosses_in_workers,
-    find_stages,
     one_torch_thread,
     read_train_log,
     run_protocol,
     run_setup,
-    track_of_run,
 )
 
-__all__ = ["APPROACHES", "PAPER", "SCENARIOS", "ReportOptions", "StageRun", "build_report", "find_stages",
-           "race_learned_policies", "race_planner_pairing", "race_planner_racing", "read_train_log", "track_of_run"]
+__all__ = ["APPROACHES", "PAPER", "SCENARIOS", "ReportOptions", "RunRecord", "StageRun", "build_report",
+           "race_learned_policies", "race_planner_pairing", "race_planner_racing", "read_train_log"]
 
 APPROACHES: dict[str, str] = {"spiral": "PPO Selfplay (SPIRAL)", "se-ibr": "SE-IBR (Baseline)",
                               "noselfplay": "PPO No Selfplay"}
@@ -110,13 +110,13 @@ class ReportOptions:
             raise UsageError("the racing section races the held-out placements: give holdout (runs, seed)")
 
 
-def build_report(run_root: Path, track: TrackSpec, out_dir: Path, options: ReportOptions = ReportOptions(), *,
+def build_report(run: RunRecord, track: TrackSpec, out_dir: Path, options: ReportOptions = ReportOptions(), *,
                  log: Callable[[str], None] = print) -> Path:
-    """Write ``results.md``, ``results.csv``, ``bound.json`` and the figures for ``run_root`` (a pipeline's run
-    folder, ``runs/<pipeline>``; ``track`` its track) into ``out_dir`` (created; the evaluations run here are cached
-    in ``out_dir/evals``), as ``options`` say; ``log`` takes progress messages. Returns the path of ``results.md``."""
-    run_root, out_dir, o = Path(run_root), Path(out_dir), options
-    ev = _protocol(run_root, track, out_dir, o, se_ibr=o.se_ibr, log=log)
+    """Write ``results.md``, ``results.csv``, ``bound.json`` and the figures for ``run`` (a pipeline's run, as its
+    steps declared it; ``track`` its track) into ``out_dir`` (created; the evaluations run here are cached in
+    ``out_dir/evals``), as ``options`` say; ``log`` takes progress messages. Returns the path of ``results.md``."""
+    out_dir, o = Path(out_dir), options
+    ev = _protocol(run, track, out_dir, o, se_ibr=o.se_ibr, log=log)
     stages, runs, seed, airframe = ev.stages, ev.protocol.runs, ev.protocol.seed, ev.protocol.layout.airframe
     table = {s: [ev.self_match(s, key) for key in APPROACHES] for s in SCENARIOS}
     held_ev = None if o.holdout is None else ev.held_out(*o.holdout)
@@ -129,19 +129,20 @@ def build_report(run_root: Path, track: TrackSpec, out_dir: Path, options: Repor
         race_se_ibr(rb, ev)
     if raced is not None and held_ev is not None and o.racing is not None and o.se_ibr:
         raced.add_planner_duels(race_planner_duels(held_ev, stages, o.racing), o.racing.planner_runs)
-    text = _markdown(run_root, track, stages, _Tables(table, matrices, held, filtered), bound,
+    text = _markdown(run.root, track, stages, _Tables(table, matrices, held, filtered), bound,
                      replace(o, runs=runs, seed=seed))
     text = _with_racing(_with_robustness(text, rb, o.sides), raced, o.sides)
     (out_dir / "results.md").write_text(text)
     return out_dir / "results.md"
 
 
-def race_learned_policies(run_root: Path, track: TrackSpec, out_dir: Path, options: ReportOptions = ReportOptions(),
+def race_learned_policies(run: RunRecord, track: TrackSpec, out_dir: Path, options: ReportOptions = ReportOptions(),
                           *, log: Callable[[str], None] = print) -> Path:
     """Race, on one torch thread, what :func:`build_report` races among the learned policies (cross-play, held-out,
-    filter, robustness and racing races), caching it under ``out_dir/evals``, where a later report of ``run_root``
-    finds it. A pipeline runs it as a step of its own, beside the planner's pairings. Returns that cache folder."""
-    ev = _protocol(Path(run_root), track, Path(out_dir), options, se_ibr=False, log=log)
+    filter, robustness and racing races), caching it under ``out_dir/evals``, where a later report of ``run`` finds
+    it once declared. A pipeline runs it as a step of its own, beside the planner's pairings. Returns that cache
+    folder."""
+    ev = _protocol(run, track, Path(out_dir), options, se_ibr=False, log=log)
     with one_torch_thread():
         table = {s: [ev.self_match(s, key) for key in APPROACHES if key in MODE_OF] for s in SCENARIOS}
         holdout = options.holdout
@@ -149,45 +150,44 @@ def race_learned_policies(run_root: Path, track: TrackSpec, out_dir: Path, optio
     return ev.cache
 
 
-def race_planner_pairing(run_root: Path, track: TrackSpec, out_dir: Path, scenario: str, key: str,
+def race_planner_pairing(run: RunRecord, track: TrackSpec, out_dir: Path, scenario: str, key: str,
                          options: ReportOptions = ReportOptions(), *,
                          log: Callable[[str], None] = print) -> dict[str, Any]:
     """Race, on one torch thread, learned approach ``key``'s head-to-head pairing with SE-IBR in ``scenario`` as
     :func:`build_report` races it, caching it under ``out_dir/evals``. A pipeline runs each pairing as a step of its
     own as soon as the stage it races has trained. Returns the approach's entry (with SE-IBR's under ``opponent``)."""
-    ev = _protocol(Path(run_root), track, Path(out_dir), replace(options, holdout=None, racing=None), se_ibr=True,
-                   log=log)
+    ev = _protocol(run, track, Path(out_dir), replace(options, holdout=None, racing=None), se_ibr=True, log=log)
     agent = ev.agent(scenario, key)
     if agent is None:
-        raise FileNotFoundError(f"{run_root}: no best.pt of a {MODE_OF[key]}-mode {scenario} stage")
+        raise FileNotFoundError(f"{run.root}: no best.pt of a {MODE_OF[key]}-mode {scenario} stage")
     with one_torch_thread():
         return ev.cross(scenario, (key, agent), ("se-ibr", SE_IBR))
 
 
-def race_planner_racing(run_root: Path, track: TrackSpec, out_dir: Path, options: ReportOptions, *,
+def race_planner_racing(run: RunRecord, track: TrackSpec, out_dir: Path, options: ReportOptions, *,
                         log: Callable[[str], None] = print) -> dict[str, Any]:
     """Race, on one torch thread, SPIRAL's duels against SE-IBR of the racing section (``options.racing``) as
     :func:`build_report` races them, caching them under ``out_dir/evals``. A pipeline runs them as a step of its own
     once SPIRAL's final stage has trained. Returns starts -> scenario -> SPIRAL's entry."""
     if options.racing is None or options.holdout is None:
         raise UsageError("race_planner_racing: options without a racing section")
-    ev = _protocol(Path(run_root), track, Path(out_dir), options, se_ibr=True, log=log)
+    ev = _protocol(run, track, Path(out_dir), options, se_ibr=True, log=log)
     with one_torch_thread():
         return race_planner_duels(ev.held_out(*options.holdout), ev.stages, options.racing)
 
 
-def _protocol(run_root: Path, track: TrackSpec, out_dir: Path, options: ReportOptions, *, se_ibr: bool,
+def _protocol(run: RunRecord, track: TrackSpec, out_dir: Path, options: ReportOptions, *, se_ibr: bool,
               log: Callable[[str], None]) -> Evaluations:
-    """The run folder's evaluations with the report's races, seed, airframe and simulator, cached in ``out_dir``."""
+    """The run's evaluations with the report's races, seed, airframe and simulator, cached in ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    stages = find_stages(run_root)
+    stages = run.stages
     runs, seed = run_protocol(stages, options.runs, options.seed)
     if options.holdout is not None and options.holdout[1] == seed:
         raise UsageError(f"holdout seed {seed} is the evaluation's own seed: held-out placements need another")
     stage_airframe, sim = run_setup(stages)
     layout = EvalLayout.default(airframe=options.airframe or stage_airframe, sim=sim)
     protocol = EvalProtocol(track, runs, seed, layout, sides=options.sides)
-    return Evaluations(run_root, out_dir, stages, protocol, device=options.device, se_ibr=se_ibr, log=log)
+    return Evaluations(run, out_dir, protocol, device=options.device, se_ibr=se_ibr, log=log)
 
 
 def _race_learned(ev: Evaluations, held_ev: Evaluations | None, table: dict, o: ReportOptions
@@ -295,7 +295,7 @@ def _write_figures(out_dir: Path, track: TrackSpec, stages: list[StageRun], tabl
                 points.append(TradeoffPoint(APPROACHES[r.key], scenario, m["lap_time_mean"], m["success_ratio"],
                                             lap_std=m["lap_time_std"] or 0.0, success_ci=tuple(m["success_ci95"])))
     plot_speed_vs_reliability(points, out_dir / "speed_vs_reliability.png", bound=bound.lap_time)
-    logs = {s.name: read_train_log(s.train_dir / "train_log.jsonl") for s in stages}
+    logs = {s.name: read_train_log(s.train_log) if s.train_log is not None else [] for s in stages}
     plot_learning_curves({k: v for k, v in logs.items() if v}, out_dir / "learning_curves.png")
     plot_track(track, out_dir / "track.png", path=bound.positions,
                path_label=f"point-mass bound ({bound.lap_time:.2f} s)")

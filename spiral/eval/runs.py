@@ -1,9 +1,12 @@
-"""A pipeline's run folder as the report reads it: its stages, and their evaluations found there or run and cached.
+"""A pipeline's run as the report reads it: its stages, and their evaluations found among the files its steps declared
+or run and cached.
 
-Inputs are read from ``runs/<pipeline>/``: each ``train-<stage>/spec.json`` (scenario, self-play mode, airframe,
-simulator, track), ``train-<stage>/best.pt``, ``train-<stage>/train_log.jsonl`` and ``eval-<stage>/eval.json``.
-Evaluations the run folder lacks are run with the same races and seed and cached under ``<out>/evals/`` with the
-checksums of the checkpoints they used, so a second report reuses them.
+The report reads only what the run's steps declared in their manifests (``runs/<pipeline>/<step>/manifest.json``):
+each ``train:<stage>`` step's ``spec`` (scenario, self-play mode, airframe, simulator, track), ``best`` and ``log``;
+each ``eval:<stage>`` step's ``eval``; and the race caches that the report's own steps (``eval:se-ibr``,
+``eval:se-ibr-vs-<stage>``, ``eval:report``, ...) declared. Evaluations it finds nowhere are run with the same races
+and seed and cached under ``<out>/evals/`` with the checksums of the checkpoints they used, so a second report reuses
+them.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ import copy
 import dataclasses
 import json
 import multiprocessing
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -30,17 +33,16 @@ __all__ = [
     "EvalProtocol",
     "Evaluations",
     "RowResult",
+    "RunRecord",
     "StageRun",
     "approach_stage",
     "crosses_in_workers",
     "final_stage",
-    "find_stages",
     "load_json",
     "one_torch_thread",
     "read_train_log",
     "run_protocol",
     "run_setup",
-    "track_of_run",
 ]
 
 MODE_OF = {"spiral": "pool", "noselfplay": "frozen"}
@@ -49,20 +51,18 @@ MODE_OF = {"spiral": "pool", "noselfplay": "frozen"}
 
 @dataclass
 class StageRun:
-    """One training stage found in a run folder."""
+    """One training stage of a run, as its steps declared it."""
 
     name: str
     scenario: str
     mode: str
     """Self-play mode: ``pool`` (SPIRAL) or ``frozen`` (PPO without self-play)."""
-    train_dir: Path
-    eval_path: Path
+    best: Path
+    """The stage's best policy."""
+    eval_path: Path | None
+    """Its ``eval:<stage>`` step's evaluation (None: no such step ran)."""
     spec: dict[str, Any]
-
-    @property
-    def best(self) -> Path:
-        """The stage's best policy."""
-        return self.train_dir / "best.pt"
+    train_log: Path | None = None
 
 
 @dataclass
@@ -109,23 +109,44 @@ def one_torch_thread() -> Iterator[None]:
         torch.set_num_threads(threads)
 
 
-def find_stages(run_root: Path) -> list[StageRun]:
-    """Stages with a ``train-<stage>/spec.json`` under ``run_root``, in name order."""
-    out = []
-    for spec_path in sorted(Path(run_root).glob("train-*/spec.json")):
-        spec = json.loads(spec_path.read_text())
-        stage = spec["stage"]
-        out.append(StageRun(stage["name"], stage["scenario"], stage["selfplay"]["mode"], spec_path.parent,
-                            Path(run_root) / f"eval-{stage['name']}" / "eval.json", spec))
-    return out
+@dataclass(frozen=True)
+class RunRecord:
+    """What a report reads of a pipeline's run: its stages and the evaluation files its steps declared."""
 
+    root: Path
+    """The run folder (``runs/<pipeline>``): named in messages and in results.md."""
+    stages: list[StageRun]
+    """In name order."""
+    evaluations: list[Path] = dataclasses.field(default_factory=list)
+    """Evaluation JSONs declared by the run's evaluation steps (``eval:*``): where the report looks for what it
+    races before racing it."""
 
-def track_of_run(run_root: Path) -> TrackSpec:
-    """The track recorded in the run folder's stage specs."""
-    stages = find_stages(run_root)
-    if not stages:
-        raise FileNotFoundError(f"{run_root}: no train-<stage>/spec.json (is this runs/<pipeline>?)")
-    return TrackSpec.model_validate(stages[0].spec["track"])
+    @classmethod
+    def from_manifests(cls, root: Path, manifests: Mapping[str, Mapping[str, Any]]) -> RunRecord:
+        """The run that ``manifests`` (step name -> manifest, as a step's context holds its inputs') declare."""
+        def outputs(step: str) -> dict[str, Path]:
+            return {key: Path(out["path"]) for key, out in manifests.get(step, {}).get("outputs", {}).items()}
+
+        stages = []
+        for step in sorted(name for name in manifests if name.startswith("train:")):
+            declared = outputs(step)
+            if "spec" not in declared or "best" not in declared:
+                raise FileNotFoundError(f"{root}: step {step} declares no spec and best (run by an older spiral: "
+                                        "run the pipeline again)")
+            spec = json.loads(declared["spec"].read_text())
+            stage = spec["stage"]
+            stages.append(StageRun(stage["name"], stage["scenario"], stage["selfplay"]["mode"], declared["best"],
+                                   outputs(f"eval:{stage['name']}").get("eval"), spec, declared.get("log")))
+        evaluations = [path for step in sorted(manifests) if step.startswith("eval:")
+                       for path in outputs(step).values() if path.suffix == ".json"]
+        return cls(Path(root), stages, evaluations)
+
+    @property
+    def track(self) -> TrackSpec:
+        """The track recorded in the stages' specs."""
+        if not self.stages:
+            raise FileNotFoundError(f"{self.root}: no stage to read the track of")
+        return TrackSpec.model_validate(self.stages[0].spec["track"])
 
 
 def read_train_log(path: Path) -> list[dict[str, Any]]:
@@ -164,9 +185,9 @@ class Evaluations:
     """Finds evaluation results in the run folder, or runs them as ``protocol`` says and caches them under
     ``<out>/evals``."""
 
-    def __init__(self, run_root: Path, out_dir: Path, stages: list[StageRun], protocol: EvalProtocol, *, device: str,
-                 se_ibr: bool, log: Callable[[str], None]) -> None:
-        self.run_root, self.cache, self.stages, self.protocol = run_root, out_dir / "evals", stages, protocol
+    def __init__(self, run: RunRecord, out_dir: Path, protocol: EvalProtocol, *, device: str, se_ibr: bool,
+                 log: Callable[[str], None]) -> None:
+        self.run, self.cache, self.stages, self.protocol = run, out_dir / "evals", run.stages, protocol
         self.device, self.se_ibr, self.log = device, se_ibr, log
         self.prefix = ""
         """Start of the cached files' names (the held-out and racing variants have their own)."""
@@ -214,9 +235,9 @@ class Evaluations:
         else:
             stage = self.stage_for(scenario, key)
             if stage is None:
-                res.note = f"no {MODE_OF[key]}-mode {scenario} stage in {self.run_root}"
+                res.note = f"no {MODE_OF[key]}-mode {scenario} stage in {self.run.root}"
                 return res
-            data = load_json(stage.eval_path)
+            data = None if stage.eval_path is None else load_json(stage.eval_path)
             if data is not None and (data["runs"], data["seed"]) == self._placements() and data["methods"]:
                 res.metrics, res.source = next(iter(data["methods"].values())), str(stage.eval_path)
                 return res
@@ -250,7 +271,7 @@ class Evaluations:
         return data["methods"]
 
     def _find_se_ibr(self, scenario: str) -> tuple[dict[str, Any], str] | None:
-        paths = [self.cache / f"self-{scenario}-se-ibr.json", *sorted(self.run_root.glob("*/eval*.json"))]
+        paths = [self.cache / f"self-{scenario}-se-ibr.json", *self.run.evaluations]
         for path in paths:
             data = load_json(path)
             if data is None or data.get("scenario") != scenario or "against" in data:
@@ -275,10 +296,10 @@ class Evaluations:
         return json.loads(json.dumps(inputs))  # compare as read back: tuples become lists
 
     def _cached(self, tag: str, inputs: dict[str, Any]) -> tuple[dict[str, Any], Path] | None:
-        """The evaluation ``tag`` raced with ``inputs``: from this cache, else from another step's cache in the run
-        folder (``runs/<pipeline>/<step>/evals/``, where a pipeline races the report's evaluations ahead of it)."""
+        """The evaluation ``tag`` raced with ``inputs``: from this cache, else from the caches the run's steps
+        declared (where a pipeline races the report's evaluations ahead of it)."""
         name = f"{self.prefix}{tag}.json"
-        for path in [self.cache / name, *sorted(self.run_root.glob(f"*/evals/{name}"))]:
+        for path in [self.cache / name, *(p for p in self.run.evaluations if p.name == name)]:
             cached = load_json(path)
             if cached is not None and cached.get("inputs") == inputs:
                 return cached, path
@@ -369,7 +390,7 @@ def _checksum(path: Path) -> str:
 def run_protocol(stages: list[StageRun], runs: int | None, seed: int | None) -> tuple[int, int]:
     """Races and seed: as given, else those of the pipeline's stage evaluations, else 50 and 0."""
     for stage in stages:
-        data = load_json(stage.eval_path)
+        data = None if stage.eval_path is None else load_json(stage.eval_path)
         if data is not None:
             return runs or data["runs"], data["seed"] if seed is None else seed
     return runs or 50, 0 if seed is None else seed

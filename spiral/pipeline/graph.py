@@ -21,6 +21,7 @@ from spiral.eval.evaluate import RaceSet, evaluate_methods
 from spiral.pipeline.report_steps import PLANNER_STEP, report_steps
 from spiral.pipeline.step import Step, StepContext
 from spiral.selfplay.curriculum import StageSources, run_stage
+from spiral.train.progress import TRAIN_LOG
 
 __all__ = ["PLANNER_STEP", "PipelinePlan", "select_steps"]
 
@@ -97,7 +98,9 @@ class PipelinePlan:
             info = {"iterations": result.iterations, "wall_time_s": result.wall_time_s, "env_steps": result.env_steps,
                     "best": {"success": result.best.success, "lap_time": result.best.lap_time,
                              "iteration": result.best.iteration}}
-            outputs = {"best": result.best_path, "last": result.last_path}
+            outputs = {"best": result.best_path, "last": result.last_path, "spec": ctx.step_dir / "spec.json"}
+            if (ctx.step_dir / TRAIN_LOG).is_file():
+                outputs["log"] = ctx.step_dir / TRAIN_LOG
             if (pool_dir / "pool.json").is_file():  # a self-play stage's pool, declared for the steps that read it
                 outputs["pool"] = pool_dir / "pool.json"
             return outputs, info

@@ -3,9 +3,9 @@
 Each races as soon as what it needs exists, so that ``spiral run --jobs N`` runs them beside the training steps that
 are still going: the planner's self-matches (``eval:se-ibr``) need no trained policy, each of its head-to-head
 pairings with a learned approach (``eval:se-ibr-vs-<stage>``) needs that stage's best policy, and the races among
-learned policies (``eval:report``) need every stage. They race on one torch thread each and cache their results under
-``runs/<pipeline>/<step>/evals/``, where the ``report`` step finds them: what it writes is the same as if it had raced
-everything itself.
+learned policies (``eval:report``) need every stage. They race on one torch thread each, cache their results under
+``runs/<pipeline>/<step>/evals/`` and declare them as outputs; the ``report`` step reads what its input steps declared
+(:class:`spiral.eval.runs.RunRecord`): what it writes is the same as if it had raced everything itself.
 """
 
 from __future__ import annotations
@@ -28,10 +28,11 @@ from spiral.eval.report import (
     race_planner_pairing,
     race_planner_racing,
 )
-from spiral.eval.runs import MODE_OF, approach_stage, final_stage, one_torch_thread
+from spiral.eval.runs import MODE_OF, RunRecord, approach_stage, final_stage, one_torch_thread
+from spiral.pipeline.manifest import MANIFEST, read_manifest
 from spiral.pipeline.step import Step, StepContext
 
-__all__ = ["LEARNED_STEP", "PLANNER_RACING_STEP", "PLANNER_STEP", "report_steps"]
+__all__ = ["LEARNED_STEP", "PLANNER_RACING_STEP", "PLANNER_STEP", "read_run", "report_steps"]
 
 PLANNER_STEP = "eval:se-ibr"
 """The step that races SE-IBR's self-matches (with ``report.se_ibr``)."""
@@ -78,6 +79,24 @@ def report_steps(plan: PlanView, steps: list[Step]) -> list[Step]:
     return out
 
 
+def read_run(root: Path) -> RunRecord:
+    """The run in folder ``root`` (``runs/<pipeline>``) as its steps' manifests declare it (``spiral report``);
+    declared paths are read as written, relative to the folder the pipeline ran in."""
+    manifests = {}
+    for path in sorted(Path(root).glob(f"*/{MANIFEST}")):
+        data = read_manifest(path.parent)
+        if data is not None and "step" in data:
+            manifests[data["step"]] = data
+    run = RunRecord.from_manifests(root, manifests)
+    if not run.stages:
+        raise FileNotFoundError(f"{root}: no training step's manifest (is this runs/<pipeline>?)")
+    for stage in run.stages:
+        if not stage.best.is_file():
+            raise FileNotFoundError(f"{root}: stage {stage.name}'s best policy {stage.best} is missing (run spiral "
+                                    "report from the folder the pipeline ran in)")
+    return run
+
+
 def _planner_section(plan: PlanView) -> dict[str, Any]:
     return {"scenarios": list(SCENARIOS), **plan.spec.evaluation.model_dump(include={"runs", "seed"}),
             "track": plan.track, "sim": plan.spec.sim,
@@ -120,10 +139,10 @@ def _pairing_steps(plan: PlanView) -> list[Step]:
 
 def _pairing_fn(plan: PlanView, name: str, scenario: str, key: str):
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
-        entry = race_planner_pairing(plan.run_root, plan.track, ctx.step_dir, scenario, key,
+        entry = race_planner_pairing(_run(plan, ctx), plan.track, ctx.step_dir, scenario, key,
                                      _report_options(plan), log=ctx.log)
         ctx.log(f"{name}: win rate {entry['win_rate']:.2f}, success {entry['success_ratio']:.2f} against SE-IBR")
-        return {}, {"win_rate": entry["win_rate"], "success_ratio": entry["success_ratio"]}
+        return _caches(ctx), {"win_rate": entry["win_rate"], "success_ratio": entry["success_ratio"]}
     return run
 
 
@@ -138,10 +157,10 @@ def _planner_racing_steps(plan: PlanView) -> list[Step]:
     section = {"racing": racing, **ev.model_dump(include={"holdout_seed", "sides"})}
 
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
-        duels = race_planner_racing(plan.run_root, plan.track, ctx.step_dir, _report_options(plan), log=ctx.log)
+        duels = race_planner_racing(_run(plan, ctx), plan.track, ctx.step_dir, _report_options(plan), log=ctx.log)
         info = {f"{starts}-{s}": entry["win_rate"] for starts, by in duels.items() for s, entry in by.items()}
         ctx.log(f"{PLANNER_RACING_STEP}: SPIRAL's win rate against SE-IBR {info}")
-        return {}, info
+        return _caches(ctx), info
     return [Step(PLANNER_RACING_STEP, run, [f"train:{final}"], section)]
 
 
@@ -155,17 +174,27 @@ def _report_options(plan: PlanView) -> ReportOptions:
                          command=f"spiral run {plan.source}", jobs=REPORT_JOBS)
 
 
+def _run(plan: PlanView, ctx: StepContext) -> RunRecord:
+    """The run as the step's input steps declared it."""
+    return RunRecord.from_manifests(plan.run_root, ctx.inputs)
+
+
+def _caches(ctx: StepContext) -> dict[str, Path]:
+    """The race caches a step wrote (``<step>/evals/*.json``), declared as its outputs by file name."""
+    return {path.name: path for path in sorted((ctx.step_dir / "evals").glob("*.json"))}
+
+
 def _learned_fn(plan: PlanView):
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
-        race_learned_policies(plan.run_root, plan.track, ctx.step_dir, _report_options(plan), log=ctx.log)
-        return {}, {}
+        race_learned_policies(_run(plan, ctx), plan.track, ctx.step_dir, _report_options(plan), log=ctx.log)
+        return _caches(ctx), {}
     return run
 
 
 def _report_fn(plan: PlanView):
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
         with one_torch_thread():  # all is raced by the steps before; anything left races as they race it
-            results = build_report(plan.run_root, plan.track, ctx.step_dir, _report_options(plan), log=ctx.log)
+            results = build_report(_run(plan, ctx), plan.track, ctx.step_dir, _report_options(plan), log=ctx.log)
         ctx.log(f"report: {results}")
         return {"results": results, "csv": results.with_name("results.csv")}, {}
     return run

@@ -12,7 +12,7 @@ from pathlib import Path
 from rich.progress import BarColumn, Progress, TaskID, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from torch.utils.tensorboard import SummaryWriter
 
-__all__ = ["TrainLog", "status_line"]
+__all__ = ["TRAIN_LOG", "TrainLog", "status_line"]
 
 
 def status_line(row: dict[str, float]) -> str:
@@ -22,6 +22,10 @@ def status_line(row: dict[str, float]) -> str:
     if "eval/success" in row:
         text += f" | eval {row['eval/success']:.2f} @ {row['eval/lap_time']:.2f}s"
     return text
+
+
+TRAIN_LOG = "train_log.jsonl"
+"""A stage's JSON-lines training log in its run folder."""
 
 
 class TrainLog:
@@ -40,7 +44,7 @@ class TrainLog:
     @property
     def path(self) -> Path:
         """The JSON-lines log, one row per iteration."""
-        return self.run_dir / "train_log.jsonl"
+        return self.run_dir / TRAIN_LOG
 
     def truncate(self, start: int) -> None:
         """Drop rows of iterations that will be trained again after a resume."""

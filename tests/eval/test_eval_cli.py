@@ -43,10 +43,10 @@ def test_race_command_renders_a_planner_race(sprint_yaml, tmp_path):
 
 
 def test_report_without_stages_fails_with_an_error_line(tmp_path):
-    """Exit 1 with `Error:` when RUN_DIR holds no stage specs."""
+    """Exit 1 with `Error:` when RUN_DIR holds no training step's manifest."""
     result = runner.invoke(app, ["report", str(tmp_path)])
     assert result.exit_code == 1
-    assert "Error:" in result.output and "no train-<stage>/spec.json" in result.output
+    assert "Error:" in result.output and "no training step's manifest" in result.output
 
 
 @pytest.mark.parametrize(("args", "named"), [(["--separation-team", "c"], "--separation-team"),

@@ -14,16 +14,18 @@ import torch
 
 from spiral.config import AIRFRAMES, SeparationCfg, SimCfg, TrackSpec
 from spiral.config.pipeline import RacingCfg
+from spiral.core.files import file_sha256
 from spiral.eval.evaluate import EvalLayout
 from spiral.eval.report import (
     ReportOptions,
     _flight_stack,
     build_report,
-    find_stages,
     race_learned_policies,
     race_planner_pairing,
 )
-from spiral.eval.runs import EvalProtocol, Evaluations, crosses_in_workers, run_setup
+from spiral.eval.runs import EvalProtocol, Evaluations, RunRecord, crosses_in_workers, run_setup
+from spiral.pipeline.manifest import MANIFEST
+from spiral.pipeline.report_steps import read_run
 from tests.eval.conftest import tiny_stage
 
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -36,8 +38,21 @@ FAKE_EVAL = {"checkpoint": "best.pt", "drones": 4, "success_ratio": 0.75, "succe
 STAGES = (("1v1", "1v1", "pool"), ("2v2-noselfplay", "2v2", "frozen"))
 
 
-def fake_run(root: Path, track: TrackSpec, checkpoint: Path, stages=STAGES) -> None:
-    """A run folder with a self-play 1v1 stage (evaluated) and a frozen 2v2 stage (trained, not evaluated)."""
+def declare(step_dir: Path, step: str, outputs: dict[str, Path]) -> None:
+    """A manifest for ``step`` in ``step_dir`` declaring ``outputs``, as a pipeline's step writes it."""
+    step_dir.mkdir(parents=True, exist_ok=True)
+    declared = {key: {"path": str(path), "sha256": file_sha256(path)} for key, path in outputs.items()}
+    (step_dir / MANIFEST).write_text(json.dumps({"step": step, "outputs": declared}))
+
+
+def declare_caches(step_dir: Path, step: str) -> None:
+    """Declare the race caches a report step wrote (``<step_dir>/evals/*.json``)."""
+    declare(step_dir, step, {path.name: path for path in sorted((step_dir / "evals").glob("*.json"))})
+
+
+def fake_run(root: Path, track: TrackSpec, checkpoint: Path, stages=STAGES) -> RunRecord:
+    """A run folder with a self-play 1v1 stage (evaluated) and a frozen 2v2 stage (trained, not evaluated), its
+    steps' outputs declared in their manifests."""
     for name, scenario, mode in stages:
         train = root / f"train-{name}"
         train.mkdir(parents=True)
@@ -49,17 +64,21 @@ def fake_run(root: Path, track: TrackSpec, checkpoint: Path, stages=STAGES) -> N
         rows = [{"iteration": i, "reward_per_step": 0.01 * i, "success": i / 10,
                  "lap_time": float("nan") if i < 3 else 12.0 - 0.2 * i} for i in range(10)]
         (train / "train_log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows) + '{"iteration": 1')
+        declare(train, f"train:{name}", {"best": train / "best.pt", "spec": train / "spec.json",
+                                         "log": train / "train_log.jsonl"})
     (root / "eval-1v1").mkdir()
     (root / "eval-1v1" / "eval.json").write_text(json.dumps(
         {"track": track.name, "scenario": "1v1", "runs": 2, "seed": 0, "methods": {"spiral": FAKE_EVAL}}))
+    declare(root / "eval-1v1", "eval:1v1", {"eval": root / "eval-1v1" / "eval.json"})
+    return read_run(root)
 
 
 def test_report_builds_tables_figures_and_csv_from_a_tiny_run(sprint, tiny_checkpoint, tmp_path):
     """Fill found cells, run the missing evaluation, mark absent approaches, and reuse cached runs next time."""
     root, out = tmp_path / "runs" / "tiny", tmp_path / "report"
-    fake_run(root, sprint, tiny_checkpoint)
+    run = fake_run(root, sprint, tiny_checkpoint)
     logs: list[str] = []
-    md_path = build_report(root, sprint, out, ReportOptions(bound_steps=8), log=logs.append)
+    md_path = build_report(run, sprint, out, ReportOptions(bound_steps=8), log=logs.append)
     md = md_path.read_text()
     bound = json.loads((out / "bound.json").read_text())["lap_time"]
 
@@ -97,7 +116,7 @@ def test_report_builds_tables_figures_and_csv_from_a_tiny_run(sprint, tiny_check
         assert (out / name).read_bytes()[:8] == PNG
 
     again: list[str] = []
-    second = build_report(root, sprint, out, ReportOptions(bound_steps=8), log=again.append).read_text()
+    second = build_report(run, sprint, out, ReportOptions(bound_steps=8), log=again.append).read_text()
     assert second.split("\n")[3:] == md.split("\n")[3:]  # line 3 names the git commit, which others may move
     assert again == []
 
@@ -109,7 +128,7 @@ def test_report_states_the_separation_filter_the_stages_flew_with(sprint, tiny_c
     spec = json.loads(spec_path.read_text())
     spec["stage"]["env"]["action"]["separation"] = {"distance": 0.25, "horizon_s": 0.4, "gain": 1.5}
     spec_path.write_text(json.dumps(spec))
-    stages = find_stages(root)
+    stages = read_run(root).stages
     assert _flight_stack(stages) == (
         "Drones flew, by stage: 1v1: a separation filter (position targets shifted away from drones predicted within "
         "0.25 m in the next 0.4 s, by up to 1.5 m; docs/training.md); 2v2-noselfplay: the paper's flight stack (no "
@@ -120,9 +139,9 @@ def test_report_states_the_separation_filter_the_stages_flew_with(sprint, tiny_c
 def test_report_races_the_learned_policies_again_from_held_out_placements(sprint, tiny_checkpoint, tmp_path):
     """Race self-matches and SPIRAL against no-self-play from other placements, cached apart from the protocol's."""
     root, out = tmp_path / "runs" / "tiny", tmp_path / "report"
-    fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("1v1-noselfplay", "1v1", "frozen")))
+    run = fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("1v1-noselfplay", "1v1", "frozen")))
     logs: list[str] = []
-    md = build_report(root, sprint, out,
+    md = build_report(run, sprint, out,
                       ReportOptions(bound_steps=8, cross_play=False, holdout=(3, 7)), log=logs.append).read_text()
 
     assert "report: running holdout-self-1v1-spiral (3 races, seed 7)" in logs  # not the eval.json of seed 0
@@ -141,15 +160,15 @@ def test_report_races_the_learned_policies_again_from_held_out_placements(sprint
     assert "(seed 7)" in section and "protocol's placements (seed 0)" in section
 
     with pytest.raises(ValueError, match="holdout seed 0"):
-        build_report(root, sprint, out, ReportOptions(bound_steps=8, cross_play=False, holdout=(3, 0)))
+        build_report(run, sprint, out, ReportOptions(bound_steps=8, cross_play=False, holdout=(3, 0)))
 
 
 def test_report_races_each_pairing_once_when_both_sides_are_raced(sprint, tiny_checkpoint, tmp_path):
     """From both sides, B's row against A is A's row against B read from the other team; team-A-only races both."""
     root = tmp_path / "runs" / "tiny"
-    fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("1v1-noselfplay", "1v1", "frozen")))
+    run = fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("1v1-noselfplay", "1v1", "frozen")))
     logs: list[str] = []
-    md = build_report(root, sprint, tmp_path / "both", ReportOptions(bound_steps=8), log=logs.append).read_text()
+    md = build_report(run, sprint, tmp_path / "both", ReportOptions(bound_steps=8), log=logs.append).read_text()
     crosses = sorted(line.split("running ")[1].split(" (")[0] for line in logs if "cross-1v1" in line)
     assert crosses == ["cross-1v1-noselfplay-vs-noselfplay", "cross-1v1-spiral-vs-noselfplay",
                        "cross-1v1-spiral-vs-spiral"]
@@ -159,7 +178,7 @@ def test_report_races_each_pairing_once_when_both_sides_are_raced(sprint, tiny_c
     assert duel["sides"] == "both" and duel["races"] == 4
     duel["methods"]["spiral"].update(win_rate=0.75, loss_rate=0.25, draws=0.0)  # the hovering policies never finish
     cached.write_text(json.dumps(duel))
-    md = build_report(root, sprint, tmp_path / "both", ReportOptions(bound_steps=8), log=logs.append).read_text()
+    md = build_report(run, sprint, tmp_path / "both", ReportOptions(bound_steps=8), log=logs.append).read_text()
     rows = md[md.index("### 1v1"):].splitlines()
     spiral_row = next(r for r in rows if r.startswith("| PPO Selfplay (SPIRAL) |"))
     other_row = next(r for r in rows if r.startswith("| PPO No Selfplay |"))
@@ -167,12 +186,12 @@ def test_report_races_each_pairing_once_when_both_sides_are_raced(sprint, tiny_c
     assert other_row.split(" | ")[1] == "0.25 (draws 0.00)"
 
     logs.clear()
-    md = build_report(root, sprint, tmp_path / "a",
+    md = build_report(run, sprint, tmp_path / "a",
                       ReportOptions(bound_steps=8, sides="a"), log=logs.append).read_text()
     assert sum("cross-1v1" in line for line in logs) == 4
     assert "the row method flies team A's start slots in all 2 races" in md
     with pytest.raises(ValueError, match="sides"):
-        build_report(root, sprint, tmp_path / "a", ReportOptions(bound_steps=8, sides="swap"))
+        build_report(run, sprint, tmp_path / "a", ReportOptions(bound_steps=8, sides="swap"))
 
 
 def test_report_races_the_filter_rows_final_policies_strangers_and_downwash(sprint, tiny_checkpoint, tmp_path):
@@ -180,10 +199,10 @@ def test_report_races_the_filter_rows_final_policies_strangers_and_downwash(spri
     of the two methods is raced once and read from both teams; mixed teams split each team between the methods;
     downwash is switched on for every drone. All from the held-out placements, cached with what changed."""
     root, out = tmp_path / "runs" / "tiny", tmp_path / "report"
-    fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("1v1-noselfplay", "1v1", "frozen"),
+    run = fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("1v1-noselfplay", "1v1", "frozen"),
                                                     ("2v2", "2v2", "pool")))
     separation = SeparationCfg(distance=0.25, horizon_s=0.4, gain=1.5)
-    md = build_report(root, sprint, out,
+    md = build_report(run, sprint, out,
                       ReportOptions(bound_steps=8, cross_play=False, holdout=(2, 5), separation=separation),
                       log=lambda _: None).read_text()
     evals = out / "evals"
@@ -234,10 +253,10 @@ def test_racing_section_races_final_policies_over_laps_from_box_and_track_ahead_
     section's laps from the held-out placements, once from the box and once from track starts (cached apart), and
     leads the report; without held-out placements it is refused."""
     root, out = tmp_path / "runs" / "tiny", tmp_path / "report"
-    fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("1v1-noselfplay", "1v1", "frozen"),
+    run = fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("1v1-noselfplay", "1v1", "frozen"),
                                                     ("2v2", "2v2", "pool")))
     racing = RacingCfg(laps=2)
-    md = build_report(root, sprint, out,
+    md = build_report(run, sprint, out,
                       ReportOptions(bound_steps=8, cross_play=False, robustness=False, holdout=(2, 5), racing=racing),
                       log=lambda _: None).read_text()
     evals = out / "evals"
@@ -260,16 +279,16 @@ def test_racing_section_races_final_policies_over_laps_from_box_and_track_ahead_
     assert "against SE-IBR" not in section
 
     with pytest.raises(ValueError, match="held-out placements"):
-        build_report(root, sprint, out, ReportOptions(bound_steps=8, cross_play=False, racing=racing))
+        build_report(run, sprint, out, ReportOptions(bound_steps=8, cross_play=False, racing=racing))
 
 
 def test_racing_section_races_spirals_duels_against_se_ibr_with_the_planner(sprint, tiny_checkpoint, tmp_path):
     """With the planner, SPIRAL's final policy duels SE-IBR over the section's laps from the first ``planner_runs``
     held-out placements, both sides, and the duel is a row of the section."""
     root, out = tmp_path / "runs" / "tiny", tmp_path / "report"
-    fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("2v2", "2v2", "pool")))
+    run = fake_run(root, sprint, tiny_checkpoint, stages=(*STAGES, ("2v2", "2v2", "pool")))
     racing = RacingCfg(laps=2, starts=["box"], planner_runs=1)
-    md = build_report(root, sprint, out,
+    md = build_report(run, sprint, out,
                       ReportOptions(bound_steps=8, cross_play=False, robustness=False, holdout=(2, 5), racing=racing,
                                     se_ibr=True),
                       log=lambda _: None).read_text()
@@ -284,9 +303,9 @@ def test_racing_section_races_spirals_duels_against_se_ibr_with_the_planner(spri
 def test_report_races_se_ibr_in_both_tables_and_prints_its_planning_cost(sprint, tiny_checkpoint, tmp_path):
     """With ``se_ibr`` the planner is a row of both tables, paired with every learned method, with its cost per plan."""
     root = tmp_path / "runs" / "tiny"
-    fake_run(root, sprint, tiny_checkpoint)
+    run = fake_run(root, sprint, tiny_checkpoint)
     logs: list[str] = []
-    md = build_report(root, sprint, tmp_path / "out",
+    md = build_report(run, sprint, tmp_path / "out",
                       ReportOptions(bound_steps=8, se_ibr=True, robustness=False, jobs=2), log=logs.append).read_text()
     for scenario in ("1v1", "2v2"):
         table = md[md.index(f"({scenario}) "):md.index("## ", md.index(f"({scenario}) "))]
@@ -311,23 +330,27 @@ def test_a_report_finds_what_steps_raced_ahead_in_the_run_folder_and_writes_the_
     options = ReportOptions(bound_steps=8, holdout=(2, 5), separation=SeparationCfg(distance=0.25, horizon_s=0.4,
                                                                                       gain=1.5))
     reference_root, root = tmp_path / "alone" / "tiny", tmp_path / "runs" / "tiny"
-    for folder in (reference_root, root):
-        fake_run(folder, sprint, tiny_checkpoint, stages=stages)
-    reference = build_report(reference_root, sprint, reference_root / "report", replace(options, se_ibr=True, jobs=2),
+    reference_run, run = (fake_run(folder, sprint, tiny_checkpoint, stages=stages) for folder in (reference_root, root))
+    reference = build_report(reference_run, sprint, reference_root / "report", replace(options, se_ibr=True, jobs=2),
                              log=lambda _: None).read_text()
+    planner = root / "eval-se-ibr"
+    planner.mkdir()
     for scenario in ("1v1", "2v2"):  # the planner's self-matches, as the pipeline's eval:se-ibr step writes them
-        (root / "eval-se-ibr").mkdir(exist_ok=True)
         shutil.copyfile(reference_root / "report" / "evals" / f"self-{scenario}-se-ibr.json",
-                        root / "eval-se-ibr" / f"eval-{scenario}.json")
-    race_learned_policies(root, sprint, root / "eval-report", ReportOptions(holdout=(2, 5),
-                                                                          separation=options.separation),
+                        planner / f"eval-{scenario}.json")
+    declare(planner, "eval:se-ibr", {f"eval_{s}": planner / f"eval-{s}.json" for s in ("1v1", "2v2")})
+    race_learned_policies(run, sprint, root / "eval-report", ReportOptions(holdout=(2, 5),
+                                                                         separation=options.separation),
                           log=lambda _: None)
+    declare_caches(root / "eval-report", "eval:report")
     for name, scenario, mode in stages:
         key = "spiral" if mode == "pool" else "noselfplay"
-        entry = race_planner_pairing(root, sprint, root / f"eval-se-ibr-vs-{name}", scenario, key, log=lambda _: None)
+        entry = race_planner_pairing(run, sprint, root / f"eval-se-ibr-vs-{name}", scenario, key, log=lambda _: None)
         assert {"win_rate", "opponent"} <= set(entry)
+        declare_caches(root / f"eval-se-ibr-vs-{name}", f"eval:se-ibr-vs-{name}")
     logs: list[str] = []
-    md = build_report(root, sprint, root / "report", replace(options, se_ibr=True, jobs=2), log=logs.append).read_text()
+    md = build_report(read_run(root), sprint, root / "report", replace(options, se_ibr=True, jobs=2),
+                      log=logs.append).read_text()
     assert not [line for line in logs if line.startswith("report: running")]
     # the same report but for its list of sources: each number now read from the folder it was raced in
     head, sources = md.split("## Sources")
@@ -335,24 +358,27 @@ def test_a_report_finds_what_steps_raced_ahead_in_the_run_folder_and_writes_the_
     found = [Path(line.strip("- `")) for line in sources.strip().splitlines()]
     assert {path.parent.parent.name for path in found if path.parent.name == "evals"} == {"eval-report"}
     assert all(path.is_file() and root in path.parents for path in found)
+    # a step's caches are read only when its manifest declares them
+    (root / "eval-report" / MANIFEST).unlink()
+    assert not [path for path in read_run(root).evaluations if "eval-report" in path.parts]
     with pytest.raises(FileNotFoundError, match=r"no best\.pt of a pool-mode 1v1 stage"):
-        race_planner_pairing(tmp_path / "alone", sprint, tmp_path / "x", "1v1", "spiral", log=lambda _: None)
+        race_planner_pairing(RunRecord(tmp_path / "alone", []), sprint, tmp_path / "x", "1v1", "spiral",
+                             log=lambda _: None)
 
 
-def _evaluations(root: Path, track: TrackSpec, out: Path, logs: list[str]) -> Evaluations:
-    stages = find_stages(root)
-    airframe, sim = run_setup(stages)
+def _evaluations(run: RunRecord, track: TrackSpec, out: Path, logs: list[str]) -> Evaluations:
+    airframe, sim = run_setup(run.stages)
     protocol = EvalProtocol(track, 2, 0, EvalLayout.default(airframe=airframe, sim=sim))
-    return Evaluations(root, out, stages, protocol, device="cpu", se_ibr=False, log=logs.append)
+    return Evaluations(run, out, protocol, device="cpu", se_ibr=False, log=logs.append)
 
 
 def test_pairings_race_in_workers_while_the_body_of_the_with_runs(sprint, tiny_checkpoint, tmp_path):
     """The workers' pairings are cached when the ``with`` ends, and the body ran (on one torch thread) before any of
     them was done, so the report's own races overlap the planner's."""
     root = tmp_path / "runs" / "tiny"
-    fake_run(root, sprint, tiny_checkpoint)
+    run = fake_run(root, sprint, tiny_checkpoint)
     logs: list[str] = []
-    ev = _evaluations(root, sprint, tmp_path / "out", logs)
+    ev = _evaluations(run, sprint, tmp_path / "out", logs)
     ckpt = ev.agent("1v1", "spiral")
     pairings = [("1v1", ("spiral", ckpt), ("noselfplay", ckpt)), ("2v2", ("spiral", ckpt), ("noselfplay", ckpt))]
     threads = torch.get_num_threads()
@@ -371,8 +397,8 @@ def test_pairings_race_in_workers_while_the_body_of_the_with_runs(sprint, tiny_c
 
 def test_a_pairing_that_fails_in_a_worker_fails_the_with(sprint, tiny_checkpoint, tmp_path):
     root = tmp_path / "runs" / "tiny"
-    fake_run(root, sprint, tiny_checkpoint)
-    ev = _evaluations(root, sprint, tmp_path / "out", [])
+    run = fake_run(root, sprint, tiny_checkpoint)
+    ev = _evaluations(run, sprint, tmp_path / "out", [])
     missing = str(tmp_path / "absent.pt")
     pairings = [("1v1", ("spiral", missing), ("noselfplay", missing))] * 2
     with pytest.raises(Exception, match=r"absent\.pt"), crosses_in_workers(ev, pairings, jobs=2):

@@ -297,7 +297,16 @@ def test_the_planners_races_are_steps_that_wait_only_for_what_they_race_and_the_
     assert json.loads(cached.read_text())["inputs"]["runs"] == 1
     racing = tmp_path / "runs" / "smoke" / "eval-se-ibr-racing" / "evals"
     assert json.loads((racing / "racing-2laps-box-cross-1v1-spiral-vs-se-ibr.json").read_text())["laps"] == 2
-    assert "## Racing: 2-lap races" in (tmp_path / "runs" / "smoke" / "report" / "results.md").read_text()
+    results = tmp_path / "runs" / "smoke" / "report" / "results.md"
+    assert "## Racing: 2-lap races" in results.read_text()
+    # the report reads only what its input steps declared: with every other file gone it races nothing again
+    # and writes the same results
+    written = results.read_text()
+    _keep_only_declared(tmp_path / "runs" / "smoke", keep={"report"})
+    logs.clear()
+    assert runner.run(only="report", force=["report"]) == ["report"]
+    assert not [line for line in logs if line.startswith("report: running")]
+    assert results.read_text().split("\n")[3:] == written.split("\n")[3:]  # line 3 names the git commit
     data["report"] = {"se_ibr": False}
     path.write_text(yaml.safe_dump(data))
     assert not [name for name in (s.name for s in runner_for(path, tmp_path).steps) if name.startswith("eval:se-ibr")]
@@ -322,3 +331,17 @@ def test_overrides_run_in_folders_of_their_own_with_their_fingerprints_recorded_
     assert manifest["info"]["iterations"] == 1
     assert manifest["info"]["overrides"] == ["seed=1", "stages.solo.iterations=1"]
     assert not plain.plan.run_root.exists()
+
+
+def _keep_only_declared(run_root: Path, *, keep: set[str]) -> None:
+    """Delete every file of the run folder's steps but their manifests and the outputs these declare (the steps named
+    in ``keep`` stay whole)."""
+    declared = set()
+    for manifest in run_root.glob("*/manifest.json"):
+        declared |= {Path(out["path"]).resolve() for out in json.loads(manifest.read_text())["outputs"].values()}
+    for step_dir in (d for d in run_root.iterdir() if d.is_dir() and d.name not in keep):
+        for path in [p for p in step_dir.rglob("*") if p.is_file()]:
+            checkpoint_sidecar = path.suffix == ".json" and path.with_suffix(".pt").resolve() in declared
+            if path.name not in ("manifest.json", "fingerprint") and path.resolve() not in declared \
+                    and not checkpoint_sidecar:
+                path.unlink()
