@@ -38,8 +38,10 @@ def write_pipeline(tmp_path: Path, *, iterations: int = 2, lr: float = 1e-3, sta
     return path
 
 
+@pytest.mark.bitwise
 def test_smoke_pipeline_twice_skips_every_step_the_second_time(tmp_path):
-    """Run smoke.yaml end to end, then again: the second run runs nothing and publishes the final policies."""
+    """Run smoke.yaml end to end, then again: the second run runs nothing and publishes the final policies. With
+    every file no manifest declares deleted, every step runs again to the same training outputs."""
     logs: list[str] = []
     first = runner_for(ROOT / "pipelines" / "smoke.yaml", tmp_path, logs).run()
     assert first == [s.name for s in runner_for(ROOT / "pipelines" / "smoke.yaml", tmp_path).steps]
@@ -56,6 +58,15 @@ def test_smoke_pipeline_twice_skips_every_step_the_second_time(tmp_path):
     members = {name: [m["id"] for m in json.loads(Path(outputs[name]["pool"]["path"]).read_text())["members"]]
                for name in ("train-1v1", "train-2v2")}
     assert members["train-2v2"][:len(members["train-1v1"])] == members["train-1v1"]  # read from the declared pool
+
+    # every step reads only what its input steps declared: with every other file gone (a declared pool's members,
+    # pinned by their checksums in it, count as declared), each runs again and the stages train the same policies
+    _keep_only_declared(tmp_path / "runs" / "smoke", keep=set())
+    assert runner_for(ROOT / "pipelines" / "smoke.yaml", tmp_path).run(force=first) == first
+    again = {d.name: json.loads((d / "manifest.json").read_text())["outputs"]
+             for d in (tmp_path / "runs" / "smoke").glob("train-*")}
+    assert {(name, key): again[name][key] for name in outputs for key in ("best", "last")} == {
+        (name, key): outputs[name][key] for name in outputs for key in ("best", "last")}
 
 
 def test_no_self_play_2v2_stage_waits_for_the_stage_its_frozen_opponent_comes_from(tmp_path):
@@ -339,6 +350,8 @@ def _keep_only_declared(run_root: Path, *, keep: set[str]) -> None:
     declared = set()
     for manifest in run_root.glob("*/manifest.json"):
         declared |= {Path(out["path"]).resolve() for out in json.loads(manifest.read_text())["outputs"].values()}
+    for pool in [path for path in declared if path.name == "pool.json"]:
+        declared |= {pool.parent / m["file"] for m in json.loads(pool.read_text())["members"]}
     for step_dir in (d for d in run_root.iterdir() if d.is_dir() and d.name not in keep):
         for path in [p for p in step_dir.rglob("*") if p.is_file()]:
             checkpoint_sidecar = path.suffix == ".json" and path.with_suffix(".pt").resolve() in declared
