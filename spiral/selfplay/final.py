@@ -83,5 +83,6 @@ def pick_final(stage: StageSpec, setting: RaceSetting, run_dir: Path, *, device:
               "candidates": [{"iteration": c.iteration, "score": c.score, "success": c.success} for c in raced]}
     atomic_write_bytes(Path(run_dir) / FINAL_PICK_FILE, json.dumps(record, indent=2).encode())
     log(f"final pick: the policy promoted at iteration {chosen.iteration} (mean success {chosen.score:.3f} over "
-        f"{len(envs)} validation races of {cfg.laps} laps; {len(raced)} candidates)")
+        f"{len(envs)} self-matches of {cfg.races} races of {cfg.laps} laps on validation placements; {len(raced)} "
+        "candidates)")
     return chosen
