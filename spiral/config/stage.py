@@ -44,8 +44,10 @@ class FinalPickCfg(StrictModel):
 class SelectionCfg(StrictModel):
     """Periodic evaluation during training that keeps the best checkpoint (success first, then lap time)."""
 
-    interval: PosInt = Field(default=25, description="Iterations between evaluations")
-    races: PosInt = Field(default=64, description="Seeded races from the start box per evaluation")
+    interval: PosInt = Field(default=25, description="Iterations between evaluations (solo stages; a multi-drone "
+                             "stage evaluates at each promotion)")
+    races: PosInt = Field(default=64, description="Seeded races from the start box per evaluation (solo stages; a "
+                          "multi-drone stage races promotion.races)")
     average: float = Field(
         default=0.0, ge=0, lt=1,
         description="Decay d of the moving average of the policy's weights (θ̄ ← d·θ̄ + (1 − d)·θ after every PPO "
@@ -68,8 +70,10 @@ class PromotionCfg(StrictModel):
     """When the learner replaces the current best: head-to-head races against it every ``interval`` iterations."""
 
     interval: PosInt = Field(default=25, description="Iterations between head-to-head evaluations")
-    races: PosInt = Field(default=64, description="Seeded races per evaluation (M)")
-    min_races: PosInt = Field(default=64, description="Fewest races a promotion may rest on")
+    races: PosInt = Field(default=64, description="Seeded races per evaluation (M): the head to head's, the "
+                          "self-match's and each of `formats` and `track_starts`")
+    min_races: PosInt | None = Field(default=None, description="Fewest races a promotion may rest on (at most "
+                                     "`races`); null: `races`")
     min_win_rate: float = Field(default=0.55, ge=0, le=1, description="Win rate needed over the current best")
     max_success_drop: float = Field(default=0.02, ge=0, le=1, description="Largest success-ratio drop allowed")
     self_match: bool = Field(
@@ -232,11 +236,28 @@ class StageSpec(StrictModel):
         return self
 
     @model_validator(mode="after")
-    def _tolerance_where_self_match_selects(self) -> StageSpec:
-        if self.scenario != "solo" and self.selection.success_tolerance > 0:
+    def _promotion_counts_in_multi_drone_stages(self) -> StageSpec:
+        if self.scenario == "solo":
+            return self
+        if self.selection.success_tolerance > 0:
             raise ValueError("selection.success_tolerance: a multi-drone stage keeps its best by promotion "
                              "(selfplay.promotion), not by its self-match")
+        owned = {"interval": "selfplay.promotion.interval", "races": "selfplay.promotion.races"}
+        defaults = SelectionCfg()
+        for name in (n for n in owned if getattr(self.selection, n) != getattr(defaults, n)):
+            raise ValueError(f"selection.{name}: a multi-drone stage evaluates at each promotion, its self-match "
+                             f"with the head to head; set {owned[name]}")
+        promotion = self.selfplay.promotion
+        if promotion.min_races is not None and promotion.min_races > promotion.races:
+            raise ValueError(f"selfplay.promotion.min_races: {promotion.min_races} is more than the {promotion.races} "
+                             "races of a promotion's head to head (promotion.races): no learner would be promoted")
         return self
+
+    @property
+    def eval_races(self) -> int:
+        """Worlds of the stage's self-match evaluation: ``selection.races`` in a solo stage, ``promotion.races`` in a
+        multi-drone stage (where it is raced at each promotion)."""
+        return self.selection.races if self.scenario == "solo" else self.selfplay.promotion.races
 
     @model_validator(mode="after")
     def _mix_of_other_formats(self) -> StageSpec:

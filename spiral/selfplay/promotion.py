@@ -77,7 +77,7 @@ def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[floa
     """
     if any(own < best - cfg.max_success_drop for own, best in (formats or {}).values()):
         return False
-    enough = result.races >= cfg.min_races
+    enough = result.races >= (cfg.races if cfg.min_races is None else cfg.min_races)
     as_safe = result.a_success >= result.b_success - cfg.max_success_drop
     faster = enough and as_safe and result.win_rate >= cfg.min_win_rate
     if not cfg.self_match or self_match is None:

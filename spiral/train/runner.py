@@ -94,7 +94,7 @@ class StageTrainer:
         self.env: RaceEnv | MixedRaceEnv = training_env(setting, stage, device=device, seed=self.dist.seed(seed))
         opponents = self._set_opponents(start.opponents)
         d = stage.drones_per_world
-        self.eval_env = RaceEnv(setting, stage.env, world_count=stage.selection.races, drones_per_world=d,
+        self.eval_env = RaceEnv(setting, stage.env, world_count=stage.eval_races, drones_per_world=d,
                                 learner_slots=list(range(d)), device=device, seed=stream_seed(seed, "selection"),
                                 training=False)
         self.vec_env = RaceVecEnv(self.env)

@@ -233,11 +233,26 @@ def test_the_shipped_pipeline_races_se_ibr_in_its_tables():
     assert spec.report.enabled and spec.report.se_ibr and spec.report.cross_play
 
 
-def test_a_multi_drone_stage_refuses_a_success_tolerance_it_would_not_use(tmp_path):
-    """Multi-drone stages keep their best by promotion; the self-match tolerance is refused there, by field."""
+@pytest.mark.parametrize(("options", "field"), [
+    ({"selection": {"success_tolerance": 0.05}}, r"selection\.success_tolerance"),
+    ({"selection": {"interval": 5}}, r"selection\.interval.*selfplay\.promotion\.interval"),
+    ({"selection": {"races": 8}}, r"selection\.races.*selfplay\.promotion\.races"),
+    ({"selfplay": {"promotion": {"races": 16, "min_races": 32}}}, r"promotion\.min_races: 32 is more than the 16"),
+])
+def test_a_multi_drone_stage_refuses_selection_options_its_promotion_owns(tmp_path, options, field):
+    """Multi-drone stages keep their best by promotion, which owns the interval and the race count of their
+    evaluations: the solo stages' selection options are refused there, by field, and so is a least race count no
+    head to head can reach."""
     path = tmp_path / "p.yaml"
-    stage = {"name": "duel", "scenario": "1v1", "iterations": 1, "selection": {"success_tolerance": 0.05}}
+    stage = {"name": "duel", "scenario": "1v1", "iterations": 1, **options}
     path.write_text(json.dumps({"kind": "pipeline", "name": "p", "track": str(ROOT / "tracks" / "oval4.yaml"),
                                 "stages": [stage]}))
-    with pytest.raises(SpecError, match=r"stages\.0.*selection\.success_tolerance"):
+    with pytest.raises(SpecError, match=rf"stages\.0.*{field}"):
         load_pipeline(path)
+
+
+def test_a_stages_self_match_races_as_many_worlds_as_its_evaluations_owner_says():
+    """Solo: ``selection.races``; multi-drone: ``selfplay.promotion.races``, as its head to head."""
+    solo = StageSpec(name="s", iterations=1, selection={"races": 8})
+    duel = StageSpec(name="d", scenario="1v1", iterations=1, selfplay={"promotion": {"races": 16}})
+    assert (solo.eval_races, duel.eval_races) == (8, 16)

@@ -31,7 +31,8 @@ def tiny_stage(scenario: str = "solo", *, name: str = "tiny", mode: str = "pool"
         "name": name, "scenario": scenario, "worlds": 4, "iterations": 1,
         "env": {"obs": obs or {"history_len": 1, "gate_normals": True, "pid_integral": True}},
         "ppo": {"num_steps_per_env": 8, "actor_hidden_dims": [16, 16], "critic_hidden_dims": [16, 16]},
-        "selection": {"interval": 1, "races": 2}, **({"selfplay": {"mode": mode}} if scenario != "solo" else {})})
+        **({"selfplay": {"mode": mode, "promotion": {"interval": 1, "races": 2}}} if scenario != "solo" else
+           {"selection": {"interval": 1, "races": 2}})})
 
 
 @pytest.fixture(scope="session")

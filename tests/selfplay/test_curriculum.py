@@ -16,7 +16,7 @@ from spiral.core.checkpoint import CheckpointError
 from spiral.env import RaceSetting
 from spiral.selfplay import Pool, PoolOpponents, StageSources, run_stage
 from spiral.train import load_policy
-from tests.selfplay.helpers import CF2X, COMMON, PERMISSIVE
+from tests.selfplay.helpers import CF2X, COMMON, PERMISSIVE, SOLO
 
 
 def test_frozen_opponents_refuse_mirror_self_play():
@@ -36,7 +36,7 @@ def test_only_frozen_opponents_name_the_stage_they_come_from():
 
 def test_short_1v1_stage_promotes_into_the_pool_and_resumes(line2, tmp_path):
     """Promote at least once with a permissive rule, add members to the pool, and resume the stage."""
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **SOLO})
     run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, tmp_path / "solo",
               sources=StageSources(pool_dir=tmp_path / "pool"), progress=False)
     duel = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 2, "selfplay": PERMISSIVE,
@@ -63,7 +63,7 @@ def test_frozen_opponents_run_the_opponent_checkpoint_not_the_initial_policy(lin
     """PPO without self-play races the stage it names (the solo best), not the policy the stage starts from."""
     from spiral.selfplay import curriculum
 
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **SOLO})
     for name, seed in (("a", 1), ("b", 2)):
         run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, tmp_path / name,
                   sources=StageSources(pool_dir=tmp_path / "p"), progress=False, seed=seed)
@@ -86,7 +86,7 @@ def test_frozen_opponents_run_the_opponent_checkpoint_not_the_initial_policy(lin
     torch.testing.assert_close(opponent(obs), b(obs))  # the same checkpoint on the same rows
     assert not torch.allclose(opponent(obs), a(obs))
     assert not (tmp_path / "nsp-pool").exists()
-    other = StageSpec.model_validate({**COMMON, "name": "solo", "iterations": 1,
+    other = StageSpec.model_validate({**SOLO, "name": "solo", "iterations": 1,
                                       "env": {"obs": {**COMMON["env"]["obs"], "history_len": 2}}})
     run_stage(RaceSetting(line2, CF2X, SimCfg()), other, tmp_path / "c", sources=StageSources(pool_dir=tmp_path / "p"),
               progress=False)
@@ -106,7 +106,7 @@ def test_init_snapshots_start_a_new_pool_with_the_init_stages_earlier_checkpoint
     """``selfplay.init_snapshots``: the periodic checkpoints saved before the initial policy's iteration join a new
     pool oldest first, then the initial policy as its latest best; a carried-over pool is left as it is, and an init
     policy without earlier checkpoints beside it is an error naming the folder."""
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 4, **COMMON})
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 4, **SOLO})
     run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, tmp_path / "solo",
               sources=StageSources(pool_dir=tmp_path / "unused"), progress=False)
     init = tmp_path / "solo" / "best.pt"
@@ -151,7 +151,7 @@ def test_a_stage_with_blind_opponents_hides_what_its_layout_shows_of_other_drone
         built.append(PoolOpponents(*args, **kwargs))
         return built[-1]
 
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **SOLO})
     run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, tmp_path / "solo",
               sources=StageSources(pool_dir=tmp_path / "pool"), progress=False)
     monkeypatch.setattr(curriculum, "PoolOpponents", recording)

@@ -12,7 +12,7 @@ from spiral.config import PipelineSpec, SimCfg, StageSpec
 from spiral.env.setting import RaceSetting
 from spiral.selfplay import StageSources, run_stage
 from spiral.selfplay.final import FINAL_PICK_FILE, Candidate, rank_candidates
-from tests.selfplay.helpers import CF2X, COMMON, PERMISSIVE
+from tests.selfplay.helpers import CF2X, COMMON, PERMISSIVE, SOLO
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -31,11 +31,11 @@ def test_a_stage_with_a_final_pick_keeps_every_promoted_policy_and_publishes_the
     pick races the latest two in 1v1 and solo self-matches from the box and from track starts over two laps, writes
     the one with the highest mean success (ties: the later) as `best.pt` and records both."""
     setting = RaceSetting(line2, CF2X, SimCfg())
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **SOLO})
     run_stage(setting, solo, tmp_path / "solo", sources=StageSources(pool_dir=tmp_path / "pool"), progress=False)
     duel = StageSpec.model_validate({
         "name": "1v1", "scenario": "1v1", "iterations": 3, "mix": {"solo": 0.25}, "selfplay": PERMISSIVE,
-        **COMMON, "selection": {**COMMON["selection"], "final": {"laps": 2, "races": 4, "seed": 5, "candidates": 2}}})
+        **COMMON, "selection": {"final": {"laps": 2, "races": 4, "seed": 5, "candidates": 2}}})
     run_dir = tmp_path / "duel"
     result = run_stage(setting, duel, run_dir, sources=StageSources(
         pool_dir=tmp_path / "pool-duel", init_checkpoint=tmp_path / "solo" / "best.pt"), progress=False)

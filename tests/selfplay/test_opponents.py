@@ -14,7 +14,7 @@ from spiral.core.checkpoint import FrozenPolicy
 from spiral.env import RaceSetting
 from spiral.selfplay import Matchmaker, OpponentDraws, PoolOpponents, StageSources, run_stage
 from spiral.train import StageStart, StageTrainer, load_policy
-from tests.selfplay.helpers import CF2X, COMMON
+from tests.selfplay.helpers import CF2X, COMMON, SOLO
 
 
 def test_opponent_offsets_apply_to_both_branches_and_must_lie_in_the_action_range():
@@ -51,7 +51,7 @@ def test_opponent_pace_lies_in_zero_to_one_and_needs_relative_targets():
 def solo_policy(line2, tmp_path_factory) -> FrozenPolicy:
     """The best of a one-iteration solo stage on line2: the frozen pool member the opponent tests race."""
     root = tmp_path_factory.mktemp("solo")
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **SOLO})
     run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, root / "a", sources=StageSources(pool_dir=root / "p"),
               progress=False)
     return load_policy(root / "a" / "best.pt")
@@ -59,7 +59,7 @@ def solo_policy(line2, tmp_path_factory) -> FrozenPolicy:
 
 def test_batched_opponents_match_one_by_one_inference(line2, tmp_path):
     """Give the same actions when worlds sharing a member are batched as when each row is run alone."""
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **SOLO})
     run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, tmp_path / "a", sources=StageSources(pool_dir=tmp_path / "p"),
               progress=False, seed=1)
     run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, tmp_path / "b", sources=StageSources(pool_dir=tmp_path / "p"),
@@ -128,7 +128,7 @@ def load_policy_copy(policy: FrozenPolicy, *, scale: float) -> FrozenPolicy:
 @pytest.mark.parametrize("mirror_actions", ["mean", "sampled"])
 def test_mirror_copies_fly_the_learners_mean_or_sampled_action(line2, tmp_path, mirror_actions):
     """Mirror opponents run the live actor: its mean action, or a draw with the learner's own action noise."""
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **SOLO})
     run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, tmp_path / "a", sources=StageSources(pool_dir=tmp_path / "p"),
               progress=False)
     duel = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 1, **COMMON,

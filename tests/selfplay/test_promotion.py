@@ -11,7 +11,7 @@ from spiral.config import PromotionCfg, SimCfg, StageSpec
 from spiral.env import RaceSetting
 from spiral.selfplay import HeadToHead, StageSources, elo_update, run_stage, should_promote
 from spiral.selfplay.promotion import self_match_envs
-from tests.selfplay.helpers import CF2X, COMMON, PERMISSIVE
+from tests.selfplay.helpers import CF2X, COMMON, PERMISSIVE, SOLO
 
 
 def test_promotion_rule_on_scripted_results():
@@ -72,7 +72,7 @@ def test_elo_update_is_zero_sum_and_follows_the_expected_score():
 def test_promotion_with_formats_races_the_learner_and_the_best_in_each_other_format_of_the_mix(line2, tmp_path):
     """With `promotion.formats` a 1v1 stage mixing in solo worlds logs, at each promotion check, the solo success of
     learner and best (four one-drone races each: a multiple of 1/4), and nothing of it without the option."""
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **COMMON})
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **SOLO})
     run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, tmp_path / "solo",
               sources=StageSources(pool_dir=tmp_path / "pool"), progress=False)
     logged = {}

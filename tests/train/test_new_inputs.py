@@ -16,14 +16,14 @@ from spiral.train.inputs import calibrate_inputs
 
 CF2X = AIRFRAMES["cf2x"]
 COMMON = {"worlds": 8, "env": {"obs": {"history_len": 1, "gate_normals": True, "pid_integral": True}},
-          "ppo": {"num_steps_per_env": 8, "actor_hidden_dims": [16, 16], "critic_hidden_dims": [16, 16]},
-          "selection": {"interval": 1, "races": 2}}
+          "ppo": {"num_steps_per_env": 8, "actor_hidden_dims": [16, 16], "critic_hidden_dims": [16, 16]}}
 
 
 @pytest.fixture(scope="module")
 def solo_best(line2, tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("solo")
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 2, **COMMON})
+    solo = StageSpec.model_validate({"name": "solo", "iterations": 2, "selection": {"interval": 1, "races": 2},
+                                     **COMMON})
     run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, run_dir, sources=StageSources(pool_dir=run_dir / "pool"),
               progress=False)
     return run_dir / "best.pt"

@@ -86,7 +86,7 @@ def test_a_profiled_self_play_stage_races_a_copy_of_the_pool_and_times_the_oppon
     before = {p.name: p.read_bytes() for p in (tmp_path / "pool").iterdir()}
     duel = StageSpec.model_validate({
         "name": "1v1", "scenario": "1v1", "worlds": 8, "iterations": 4, "env": {"obs": {"history_len": 1}},
-        "mix": {"2v2": 0.5}, "ppo": TINY_PPO, "selection": {"races": 2}, "selfplay": {"p_self": 0.5}})
+        "mix": {"2v2": 0.5}, "ppo": TINY_PPO, "selfplay": {"p_self": 0.5, "promotion": {"races": 2}}})
     (tmp_path / "scratch").mkdir()
     opponents = published_opponents(duel, init, tmp_path / "scratch", pool_dir=tmp_path / "pool").worlds
     r = profile_iteration(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), duel, iterations=1,
