@@ -102,6 +102,13 @@ class PipelineSpec(StrictModel):
     report: ReportCfg = Field(default_factory=ReportCfg)
 
     @model_validator(mode="after")
+    def _stages_drive_the_pid(self) -> PipelineSpec:
+        if self.sim.control_mode != "pid":
+            raise ValueError("sim.control_mode: a pipeline's policies command positions through the PID ('pid'); "
+                             "motor speeds ('rpm') are the simulator's alone")
+        return self
+
+    @model_validator(mode="after")
     def _stage_references(self) -> PipelineSpec:
         names = [s.name for s in self.stages]
         for i, stage in enumerate(self.stages):

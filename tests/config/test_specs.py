@@ -256,3 +256,12 @@ def test_a_stages_self_match_races_as_many_worlds_as_its_evaluations_owner_says(
     solo = StageSpec(name="s", iterations=1, selection={"races": 8})
     duel = StageSpec(name="d", scenario="1v1", iterations=1, selfplay={"promotion": {"races": 16}})
     assert (solo.eval_races, duel.eval_races) == (8, 16)
+
+
+def test_a_pipeline_refuses_motor_speed_commands_its_policies_cannot_give(tmp_path):
+    """The env drives the PID; a pipeline with ``sim.control_mode: rpm`` is refused when loaded, by field."""
+    path = tmp_path / "p.yaml"
+    path.write_text(json.dumps({"kind": "pipeline", "name": "p", "track": str(ROOT / "tracks" / "oval4.yaml"),
+                                "sim": {"control_mode": "rpm"}, "stages": [{"name": "solo", "iterations": 1}]}))
+    with pytest.raises(SpecError, match=r"sim\.control_mode"):
+        load_pipeline(path)
