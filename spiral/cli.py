@@ -65,12 +65,6 @@ def _options(debug: Annotated[bool, typer.Option(
         os.environ[DEBUG_ENV] = "1"
 
 
-def _use_sim_threads(count: int) -> None:
-    from spiral.sim import World
-
-    World.cpu_threads = count
-
-
 def _expected_errors() -> tuple[type[Exception], ...]:
     """Errors a user can fix: a spec, an option, a path, a checkpoint, a pipeline's state. Anything else is a bug."""
     from spiral.core.checkpoint import CheckpointError
@@ -237,15 +231,18 @@ def train(
     """Train one stage of a pipeline (its inputs must be complete); resumes from its newest checkpoint."""
     from spiral.pipeline import PipelineRunner
 
-    _use_sim_threads(sim_threads)
     if distributed:
         from spiral.pipeline.distributed import train_stage_distributed
+
+        if sim_threads > 1:
+            raise UsageError("--sim-threads: a distributed stage steps each process's worlds on one thread")
 
         train_stage_distributed(pipeline, stage, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device,
                                 overrides=overrides or ())
         return
     runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device,
                             overrides=overrides or ())
+    runner.plan.sim_threads = sim_threads
     runner.run(only=f"train:{stage}")
 
 
@@ -520,10 +517,11 @@ def bench_train(
     """End-to-end PPO throughput for the compact and the paper's observation layout."""
     device = check_device(device)
     from spiral.config import AIRFRAMES, SimCfg
+    from spiral.env.setting import RaceSetting
     from spiral.train.bench import run_train_bench
 
-    _use_sim_threads(sim_threads)
-    result = run_train_bench(load_track(track), AIRFRAMES["cf2x"], SimCfg(), worlds=worlds, iterations=iterations,
+    setting = RaceSetting(load_track(track), AIRFRAMES["cf2x"], SimCfg(), sim_threads=sim_threads)
+    result = run_train_bench(setting, worlds=worlds, iterations=iterations,
                              device=device)
     for r in result["results"]:
         typer.echo(f"{r['layout']:<8} {r['obs_dim']:>4} inputs: {r['env_steps_per_s']:>8.0f} env-steps/s, "
@@ -557,7 +555,6 @@ def bench_ppo(
     from spiral.pipeline.graph import PipelinePlan
     from spiral.train.profile import profile_iteration
 
-    _use_sim_threads(sim_threads)
     spec, track = load_pipeline(pipeline)
     plan = PipelinePlan(spec, track, pipeline, Path("runs"), checkpoints_dir)
     index = _stage_index(spec, pipeline, stage)
@@ -566,8 +563,8 @@ def bench_ppo(
     with tempfile.TemporaryDirectory() as scratch:
         start = None if inputs is None else _stage_start(spec_stage, *inputs, Path(scratch), device=device,
                                                          seed=spec.seed)
-        r = profile_iteration(RaceSetting(track, plan.airframe, spec.sim), spec_stage, iterations=iterations,
-                              device=device, seed=spec.seed, start=start)
+        setting = RaceSetting(track, plan.airframe, spec.sim, sim_threads)
+        r = profile_iteration(setting, spec_stage, iterations=iterations, device=device, seed=spec.seed, start=start)
     typer.echo(_profile_text(r))
     _write_json(json_out, r)
 

@@ -19,3 +19,6 @@ class RaceSetting:
     track: TrackSpec
     airframe: AirframeCfg
     sim: SimCfg
+    sim_threads: int = 1
+    """CPU threads that step the simulator, each a share of the worlds: how the races are computed, not what they
+    are (worlds never interact, so the result is the same for any count; :class:`~spiral.sim.World`)."""

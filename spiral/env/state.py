@@ -44,7 +44,7 @@ class RaceState:
             raise UsageError("RaceEnv drives the PID: sim.control_mode must be 'pid'")
         self.track = setting.track.with_laps(cfg.episode.laps or setting.track.laps)
         self.world = World(setting.track, setting.airframe, setting.sim, world_count=world_count,
-                           drones_per_world=drones_per_world, device=device)
+                           drones_per_world=drones_per_world, device=device, cpu_threads=setting.sim_threads)
         self.device = torch.device(device)
         self.cfg, self.training, self.world_count, self.drones_per_world = cfg, training, world_count, drones_per_world
         self.drone_count = world_count * drones_per_world

@@ -34,6 +34,9 @@ class PipelinePlan:
     source: Path
     runs_dir: Path
     checkpoints_dir: Path
+    sim_threads: int = 1
+    """CPU threads that step each training step's simulator (``spiral train --sim-threads``; the same results for
+    any count)."""
 
     @property
     def run_root(self) -> Path:
@@ -92,7 +95,8 @@ class PipelinePlan:
             if inherited is not None and not pool_dir.exists():  # the pool carries over from stage to stage
                 shutil.copytree(Path(inherited["path"]).parent, pool_dir)
             sources = StageSources(pool_dir=pool_dir, init_checkpoint=init, opponent_checkpoint=frozen)
-            result = run_stage(RaceSetting(self.track, self.airframe, self.spec.sim), stage, ctx.step_dir,
+            setting = RaceSetting(self.track, self.airframe, self.spec.sim, self.sim_threads)
+            result = run_stage(setting, stage, ctx.step_dir,
                                sources=sources, device=self.spec.device, seed=section["seed"], log=ctx.log,
                                progress=ctx.progress)
             info = {"iterations": result.iterations, "wall_time_s": result.wall_time_s, "env_steps": result.env_steps,

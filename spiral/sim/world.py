@@ -89,6 +89,10 @@ class World:
     Drone ``i`` belongs to world ``i // drones_per_world``. Write commands into :attr:`cmd` (target position and
     yaw in ``pid`` mode, four motor speeds in ``rpm`` mode), then call :meth:`step` for one control step of
     ``sim.substeps`` physics steps. Per-step events are in :attr:`race` (``step_passes``, ``step_collision``).
+
+    ``cpu_threads`` CPU threads step the replayed launches, each on a contiguous share of the worlds (worlds never
+    interact, so the result is the same for any count). A Warp CPU launch runs on one core; with 2 threads a process
+    steps on two, which pays when the simulator has the cores to itself (docs/physics.md). CUDA ignores it.
     """
 
     def __init__(
@@ -100,11 +104,11 @@ class World:
         world_count: int,
         drones_per_world: int,
         device: str = "cpu",
-        cpu_threads: int | None = None,
+        cpu_threads: int = 1,
     ) -> None:
         if world_count < 1 or drones_per_world < 1:
             raise ValueError("world_count and drones_per_world must be positive")
-        if cpu_threads is not None and cpu_threads < 1:
+        if cpu_threads < 1:
             raise ValueError(f"cpu_threads must be positive, got {cpu_threads}")
         self.track_spec, self.airframe, self.sim = track, airframe, sim
         self.world_count, self.drones_per_world = world_count, drones_per_world
@@ -131,9 +135,9 @@ class World:
         """Roll, pitch, yaw [rad] after the last step."""
         self._reset_mask = wp.zeros(self.world_count, dtype=wp.int32, device=self.device)
 
-    def _plan_threads(self, cpu_threads: int | None) -> None:
+    def _plan_threads(self, cpu_threads: int) -> None:
         """Split the worlds into one shard per CPU thread (one shard on a GPU, where a graph replays the step)."""
-        threads = 1 if self.use_graph else min(cpu_threads or World.cpu_threads, self.world_count)
+        threads = 1 if self.use_graph else min(cpu_threads, self.world_count)
         self._shards = _world_ranges(self.world_count, threads)
         self._pool = ThreadPoolExecutor(threads - 1, thread_name_prefix="spiral-sim") if threads > 1 else None
         self._launches: list[list] | None = None
@@ -165,12 +169,6 @@ class World:
     replay_launches = True
     """On the CPU, pack the kernels' arguments once and replay the launches (Python's share of a launch is most of
     its cost at small world counts); False launches each kernel afresh, the plain path tests compare it with."""
-
-    cpu_threads = 1
-    """Default number of CPU threads that step a world's replayed launches, each on a contiguous share of the worlds
-    (worlds never interact, so the result is the same for any count). A Warp CPU launch runs on one core; with 2
-    threads a process steps on two, which pays when the simulator has the cores to itself (docs/physics.md). CUDA
-    ignores it."""
 
     def _replay(self) -> None:
         if self._pool is None:

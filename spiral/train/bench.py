@@ -9,10 +9,7 @@ from typing import Any
 
 import torch
 
-from spiral.config.airframe import AirframeCfg
-from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
-from spiral.config.track import TrackSpec
 from spiral.env.setting import RaceSetting
 from spiral.train.runner import StageTrainer
 
@@ -25,8 +22,8 @@ LAYOUTS: dict[str, dict[str, Any]] = {
 """Observation layouts compared: the pipelines' compact one and the paper's K = 50 history."""
 
 
-def run_train_bench(track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, *, worlds: int = 1024,
-                    iterations: int = 10, warmup: int = 2, device: str = "cpu", seed: int = 0) -> dict[str, Any]:
+def run_train_bench(setting: RaceSetting, *, worlds: int = 1024, iterations: int = 10, warmup: int = 2,
+                    device: str = "cpu", seed: int = 0) -> dict[str, Any]:
     """Time ``iterations`` PPO iterations of a solo stage (after ``warmup``) for each observation layout."""
     rows = []
     for name, obs in LAYOUTS.items():
@@ -34,7 +31,7 @@ def run_train_bench(track: TrackSpec, airframe: AirframeCfg, sim: SimCfg, *, wor
             "name": f"bench-{name}", "worlds": worlds, "iterations": warmup + iterations,
             "env": {"obs": obs}, "ppo": {"save_interval": 10_000}, "selection": {"interval": 10_000}})
         with tempfile.TemporaryDirectory() as tmp:
-            trainer = StageTrainer(RaceSetting(track, airframe, sim), stage, Path(tmp), device=device, seed=seed,
+            trainer = StageTrainer(setting, stage, Path(tmp), device=device, seed=seed,
                                    progress=False)
             t0 = time.perf_counter()
             history = trainer.train(lambda trainer, it: {}).history[warmup:]

@@ -139,11 +139,11 @@ def kernels(gate_track: TrackSpec, cf2x: AirframeCfg) -> type[Kernels]:
 
 @pytest.fixture
 def make_world(kernels: type[Kernels], gate_track: TrackSpec, cf2x: AirframeCfg) -> Callable[..., World]:
-    """Factory: ``make_world(track=gate_track, airframe=cf2x, world_count=1, drones=1, cpu_threads=None,
+    """Factory: ``make_world(track=gate_track, airframe=cf2x, world_count=1, drones=1, cpu_threads=1,
     **SimCfg fields)``."""
 
     def make(track: TrackSpec | None = None, airframe: AirframeCfg | None = None, *, world_count: int = 1,
-             drones: int = 1, cpu_threads: int | None = None, **sim: Any) -> World:
+             drones: int = 1, cpu_threads: int = 1, **sim: Any) -> World:
         return World(track or gate_track, airframe or cf2x, SimCfg(**sim), world_count=world_count,
                      drones_per_world=drones, cpu_threads=cpu_threads)
 

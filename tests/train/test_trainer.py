@@ -97,16 +97,16 @@ def test_same_seed_gives_the_same_training_on_cpu(oval2, tmp_path):
 
 
 @pytest.mark.bitwise
-def test_simulator_threads_leave_the_training_unchanged(oval2, tmp_path, monkeypatch):
+def test_simulator_threads_leave_the_training_unchanged(oval2, tmp_path):
     """Step the worlds on two threads (rollouts and selection evaluations) and get the weights and the log of one
     thread, bit for bit."""
-    from spiral.sim import World
-
     runs = {}
     for threads in (1, 2):
-        monkeypatch.setattr(World, "cpu_threads", threads)
         out = tmp_path / str(threads)
-        StageTrainer(RaceSetting(oval2, CF2X, SimCfg()), tiny_stage(4), out, seed=5, progress=False).train()
+        setting = RaceSetting(oval2, CF2X, SimCfg(), sim_threads=threads)
+        trainer = StageTrainer(setting, tiny_stage(4), out, seed=5, progress=False)
+        assert len(trainer.env.world._shards) == threads
+        trainer.train()
         runs[threads] = (load_checkpoint(out / "ckpt" / "model_3.pt")["actor_state_dict"],
                          [json.dumps({k: v for k, v in json.loads(x).items() if not k.endswith("_s") and k != "fps"})
                           for x in (out / "train_log.jsonl").read_text().splitlines()])  # as text: NaN == NaN
