@@ -20,10 +20,11 @@ CIRCUIT6 = ROOT / "tracks" / "circuit6.yaml"
 
 
 @pytest.mark.parametrize(("scenario", "races", "min_success", "lap_range"), [
-    # docs/results.md: solo 1.000 over 1024 held-out races, laps 3.9-4.0 s
+    # docs/results.md: solo 1.000 over 1024 held-out races, laps 4.0 s
     ("solo", 32, 0.95, (3.7, 4.3)),
-    # docs/results.md: 2v2 0.984 of the drones over 1024 held-out races, laps 4.2-4.3 s
-    ("2v2", 24, 0.90, (3.9, 4.7)),
+    # docs/results.md: 2v2 0.895 of the drones over 1024 held-out races (0.770 of the races all home), laps 4.2 s:
+    # 24 races give about ±0.06 (one standard deviation, the race as the unit)
+    ("2v2", 24, 0.72, (3.9, 4.7)),
 ])
 def test_the_shipped_final_policy_flies_its_documented_success_and_lap_time(scenario, races, min_success, lap_range):
     """Race ``spiral.pt`` from held-out placements and find its success and mean lap time within the documented
