@@ -135,3 +135,28 @@ def test_packs_in_a_training_env_start_behind_one_gate_no_closer_than_the_start_
     assert env.vel.view(64, 2, 3)[~off_box].norm(dim=-1).lt(1e-6).all()
     assert (gate[off_box, 0] == gate[off_box, 1]).all()
     assert (closest_pair(pos[off_box]) >= oval2.start.min_separation).all()
+
+
+def test_the_curriculum_shares_of_passage_track_and_box_starts_at_three_points_of_a_stage(oval2):
+    """full.yaml's schedule (passage share 0.5 → 0.2, track starts 0.3 of the rest) on a training env whose buffer
+    holds clear states past both gates: at the stage's start, middle and end, the 1v1 worlds start from passages, the
+    track and the box in shares 50 / 15 / 35, 35 / 19.5 / 45.5 and 20 / 24 / 56 % (within a few points for 4096
+    worlds)."""
+    cfg = EnvCfg(obs=ObsCfg(history_len=1), episode={"track_start_prob": 0.3, "passage_starts": {
+        "share_start": 0.5, "share_end": 0.2, "pos_noise": 0.0, "vel_noise": 0.0}})
+    env = RaceEnv(RaceSetting(oval2, CF2X, SimCfg()), cfg, world_count=4096, drones_per_world=2,
+                  learner_slots=[0, 1], seed=0)
+    centers = torch.tensor(oval2.gate_centers(), dtype=torch.float32)
+    rot = torch.tensor(oval2.gate_rotations(), dtype=torch.float32)
+    for g in range(len(oval2.gates)):  # states 0.3 m past each gate's centre at 2 m/s: clear, and told apart by speed
+        env.passages.buffer.record(torch.full((8,), g), (centers[g] + 0.3 * rot[g][:, 0]).expand(8, 3),
+                                   2.0 * rot[g][:, 0].expand(8, 3), torch.zeros(8))
+    for fraction, passages, box in [(0.0, 0.5, 0.35), (0.5, 0.35, 0.455), (1.0, 0.2, 0.56)]:
+        env.set_training_progress(fraction)
+        env.reset()
+        from_passage = (env.vel.norm(dim=-1) - 2.0).abs().lt(1e-4).view(4096, 2).all(dim=1)
+        from_box = env.contested  # per world
+        assert not (from_passage & from_box).any()
+        assert from_passage.float().mean().item() == pytest.approx(passages, abs=0.03)
+        assert from_box.float().mean().item() == pytest.approx(box, abs=0.03)
+        assert (~from_passage & ~from_box).float().mean().item() == pytest.approx(1 - passages - box, abs=0.03)
