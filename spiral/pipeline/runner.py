@@ -3,6 +3,7 @@ training, one run at a time."""
 
 from __future__ import annotations
 
+import json
 import shlex
 import shutil
 import time
@@ -18,7 +19,15 @@ from spiral.core.errors import UsageError
 from spiral.core.files import atomic_write_bytes
 from spiral.pipeline.graph import PipelinePlan, select_steps
 from spiral.pipeline.lock import PipelineLock
-from spiral.pipeline.manifest import Fingerprint, StepState, fingerprint, read_manifest, step_state, write_manifest
+from spiral.pipeline.manifest import (
+    MANIFEST,
+    Fingerprint,
+    StepState,
+    fingerprint,
+    read_manifest,
+    step_state,
+    write_manifest,
+)
 from spiral.pipeline.parallel import run_parallel
 from spiral.pipeline.step import PipelineError, Step, StepContext
 
@@ -68,6 +77,8 @@ class PipelineRunner:
         fps, out, stale_inputs = self._fingerprints(), [], set()
         for step in self.steps:
             state = self._state(step, fps[step.name])
+            if state.status == "missing" and (found := self._reusable(step, fps[step.name])) is not None:
+                state = StepState("missing", f"{found} has it: spiral run reuses it")
             if state.status == "complete" and stale_inputs & set(step.inputs):
                 state = StepState("stale", "an input step is not complete")
             if state.status != "complete":
@@ -92,6 +103,9 @@ class PipelineRunner:
             raise UsageError(f"unknown step(s) {', '.join(sorted(unknown))}")
         fps, todo = self._fingerprints(), {}
         with PipelineLock(self.plan.run_root / ".lock", log=self.log):
+            for step in self.steps:  # also the inputs of a step run alone (--only)
+                if step.name not in forced:
+                    self._reuse(step, fps[step.name])
             for step in self.steps:
                 if step.name not in selected:
                     continue
@@ -135,6 +149,30 @@ class PipelineRunner:
                                                               else {}), **info}
         write_manifest(step_dir, step.name, fp, outputs, info)
         self.log(f"step '{step.name}' done in {info['wall_time_s']:.1f} s")
+
+    def _reusable(self, step: Step, fp: Fingerprint) -> Path | None:
+        """The folder of the same step, finished with this fingerprint and its outputs intact, in another run under
+        the runs folder (another variant or seed of a pipeline shares the steps its overrides leave alone)."""
+        if self._dir(step).exists():
+            return None
+        for other in sorted(self.plan.runs_dir.glob(f"*/{step.dirname}")):
+            manifest = read_manifest(other)
+            if other.parent != self.plan.run_root and manifest is not None and manifest.get("fingerprint") == fp.full \
+                    and step_state(other, fp).status == "complete":
+                return other
+        return None
+
+    def _reuse(self, step: Step, fp: Fingerprint) -> None:
+        """Make a missing step complete with the manifest of a run that has it (:meth:`_reusable`): its outputs stay
+        where that run wrote them, checked by their checksums like this run's own."""
+        found = self._reusable(step, fp)
+        if found is None:
+            return
+        manifest = read_manifest(found) or {}
+        manifest["info"] = {**manifest.get("info", {}), "reused_from": str(found)}
+        self._dir(step).mkdir(parents=True)
+        atomic_write_bytes(self._dir(step) / MANIFEST, json.dumps(manifest, indent=2).encode())
+        self.log(f"step '{step.name}' reused from {found} (the same fingerprint)")
 
     def _started_as(self, step_dir: Path, fp: Fingerprint) -> bool:
         """Whether the interrupted step started with this fingerprint (its spec one, with accepted code changes)."""

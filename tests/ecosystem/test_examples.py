@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import re
 import runpy
 import sys
@@ -42,63 +41,6 @@ def test_gym_loop_steps_the_vector_and_the_single_env(script_env, capsys):
     assert "vector env: 8 drones, observation (78,)" in out and "autoreset SameStep" in out
     assert re.search(r"200 steps: \d+ episodes ended", out)
     assert re.search(r"single env: episode of \d+ steps", out)
-
-
-def test_stage_variant_trains_an_overridden_stage_and_evaluates_it(script_env, monkeypatch, capsys):
-    """Override the smoke pipeline's 1v1 stage (mirror self-play only), train it from a solo policy, evaluate."""
-    from spiral.config import load_pipeline, resolve_airframe
-    from spiral.env import RaceSetting
-    from spiral.selfplay import StageSources, run_stage
-
-    pipeline = EXAMPLES.parent / "pipelines" / "smoke.yaml"
-    spec, track = load_pipeline(pipeline)
-    run_stage(RaceSetting(track, resolve_airframe(spec.airframe), spec.sim), spec.stages[0], script_env / "solo",
-              sources=StageSources(pool_dir=script_env / "unused"), progress=False)
-    out = script_env / "variant"
-    monkeypatch.setattr(sys, "argv", ["stage_variant.py", str(pipeline), "1v1", str(script_env / "solo" / "best.pt"),
-                                      str(out), "--set", "selfplay.p_self=1.0", "--set", "iterations=1"])
-    runpy.run_path(str(EXAMPLES / "stage_variant.py"), run_name="__main__")
-    summary = json.loads((out / "summary.json").read_text())
-    assert summary["overrides"] == ["selfplay.p_self=1.0", "iterations=1"]
-    assert 0.0 <= summary["success_ratio"] <= 1.0
-    assert set(summary["crashes"]) == {"ground", "bounds", "gate", "drone", "timeout"} and (out / "best.pt").exists()
-    assert len((out / "train_log.jsonl").read_text().splitlines()) == 1  # the iterations override took effect
-    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == summary
-
-    # --pool-from: the first variant's pool joins a second variant's opponents beside its own line
-    from spiral.core.files import file_sha256
-    from spiral.selfplay.pool import Pool
-
-    foreign = Pool(out / "pool").members
-    second = script_env / "variant-2"
-    argv = ["stage_variant.py", str(pipeline), "1v1", str(script_env / "solo" / "best.pt"), str(second),
-            "--pool-from", str(out / "pool"), "--set", "iterations=1"]
-    monkeypatch.setattr(sys, "argv", argv)
-    runpy.run_path(str(EXAMPLES / "stage_variant.py"), run_name="__main__")
-    pool = Pool(second / "pool")
-    (init,) = [m for m in pool.members if m.stage == "init"]
-    assert init.sha256 == foreign[0].sha256  # both variants start from the same solo best
-    assert not pool.member(pool.latest_best).stage.endswith("-from1")  # the learner's own line stays the latest
-    copied = [m for m in pool.members if m.stage.endswith("-from1")]
-    assert [(m.stage, m.iteration, m.sha256) for m in copied] == [(m.stage + "-from1", m.iteration, m.sha256)
-                                                                   for m in foreign]
-    monkeypatch.setattr(sys, "argv", argv)  # a rerun into the same folder copies nothing twice
-    runpy.run_path(str(EXAMPLES / "stage_variant.py"), run_name="__main__")
-    assert len(Pool(second / "pool").members) == len(pool.members)
-
-    # --first-opponent: a checkpoint goes in front of the pool copied beside the init policy (the member p_first draws)
-    first = script_env / "variant-3"
-    init_pool, solo_sha = Pool(out / "pool"), file_sha256(script_env / "solo" / "best.pt")
-    argv = ["stage_variant.py", str(pipeline), "1v1", str(out / "best.pt"), str(first),
-            "--first-opponent", str(script_env / "solo" / "best.pt"), "--set", "iterations=1"]
-    for _ in range(2):  # the rerun into the same folder adds nothing
-        monkeypatch.setattr(sys, "argv", argv)
-        runpy.run_path(str(EXAMPLES / "stage_variant.py"), run_name="__main__")
-        pool = Pool(first / "pool")
-        assert pool.members[0].stage == "first" and pool.members[0].sha256 == solo_sha
-        assert [m.sha256 for m in pool.members[1:1 + len(init_pool.members)]] == [m.sha256 for m in init_pool.members]
-        assert [m.stage for m in pool.members].count("first") == 1
-        assert pool.member(pool.latest_best).stage != "first"
 
 
 def test_separation_probe_races_a_policy_with_each_filter_setting(script_env, policy_checkpoint, monkeypatch, capsys):

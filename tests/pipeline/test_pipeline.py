@@ -344,6 +344,32 @@ def test_overrides_run_in_folders_of_their_own_with_their_fingerprints_recorded_
     assert not plain.plan.run_root.exists()
 
 
+def test_a_variant_reuses_the_finished_steps_another_run_has_with_the_same_fingerprint(tmp_path):
+    """A variant that changes only the 1v1 stage runs in its own folder and reuses the plain run's solo steps (their
+    manifests point at the plain run's files, checked by their checksums); they count as complete from then on, and
+    one whose files are gone is stale."""
+    from spiral.pipeline.manifest import read_manifest
+
+    path = write_pipeline(tmp_path, iterations=2, stages=2)
+    runner_for(path, tmp_path).run()
+    logs: list[str] = []
+    variant = PipelineRunner(path, runs_dir=tmp_path / "runs", checkpoints_dir=tmp_path / "ckpt", progress=False,
+                             log=logs.append, overrides=["stages.1v1.iterations=1"])
+    assert {s.name: s.reason for s in variant.status()}["train:solo"].endswith("spiral run reuses it")
+    ran = variant.run()
+    assert "train:1v1" in ran and not {"train:solo", "eval:solo"} & set(ran)
+    assert f"step 'train:solo' reused from {tmp_path / 'runs' / 'smoke' / 'train-solo'} (the same fingerprint)" in logs
+    solo = read_manifest(variant.plan.run_root / "train-solo")
+    assert Path(solo["outputs"]["best"]["path"]).parent == tmp_path / "runs" / "smoke" / "train-solo"
+    assert read_manifest(variant.plan.run_root / "train-1v1")["info"]["iterations"] == 1
+    assert variant.run() == []
+    seed = PipelineRunner(path, runs_dir=tmp_path / "runs", checkpoints_dir=tmp_path / "ckpt", progress=False,
+                          log=logs.append, overrides=["stages.1v1.seed=3"])
+    assert seed.run(only="train:1v1") == ["train:1v1"]  # one stage alone: its input reused from the plain run
+    (tmp_path / "runs" / "smoke" / "train-solo" / "best.pt").unlink()
+    assert {s.name: s.status for s in variant.status()}["train:solo"] == "stale"
+
+
 def _keep_only_declared(run_root: Path, *, keep: set[str]) -> None:
     """Delete every file of the run folder's steps but their manifests and the outputs these declare (the steps named
     in ``keep`` stay whole)."""
