@@ -201,11 +201,11 @@ def status(pipeline: Path, json_out: JsonOut = None, runs_dir: RunsDir = Path("r
            checkpoints_dir: CkptDir = Path("checkpoints"),
            accept_code_changes: Annotated[bool, typer.Option(
                "--accept-code-changes", help="Count steps that ran with other spiral source code as complete")] = False,
-           overrides: Overrides = None) -> None:
-    """Show each step as complete, stale (why), partial (last checkpoint) or missing."""
+           overrides: Overrides = None, device: Device = None) -> None:
+    """Show each step as complete, stale (why), partial (last checkpoint) or missing (as for a run on --device)."""
     from spiral.pipeline import PipelineRunner
 
-    runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir,
+    runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device,
                             accept_code_changes=accept_code_changes, overrides=overrides or ())
     steps = runner.status()
     width = max((len(s.name) for s in steps), default=0)

@@ -5,13 +5,14 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from spiral.config.airframe import AirframeSel
 from spiral.config.base import PosInt, StrictModel
 from spiral.config.env import SeparationCfg
 from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
+from spiral.core.device import canonical_device
 
 __all__ = ["PIPELINE_VERSION", "EvaluationCfg", "PipelineSpec", "RacingCfg", "ReportCfg"]
 
@@ -100,6 +101,11 @@ class PipelineSpec(StrictModel):
     stages: list[StageSpec] = Field(min_length=1, description="Training stages in curriculum order")
     evaluation: EvaluationCfg = Field(default_factory=EvaluationCfg)
     report: ReportCfg = Field(default_factory=ReportCfg)
+
+    @field_validator("device")
+    @classmethod
+    def _canonical_device(cls, device: str) -> str:
+        return canonical_device(device)  # cuda is cuda:0: one name, one fingerprint
 
     @model_validator(mode="after")
     def _stages_drive_the_pid(self) -> PipelineSpec:

@@ -6,7 +6,20 @@ import re
 
 from spiral.core.errors import UsageError
 
-__all__ = ["check_device"]
+__all__ = ["canonical_device", "check_device"]
+
+
+def canonical_device(device: str) -> str:
+    """``device``'s canonical name, ``cpu`` or ``cuda:N`` (``cuda`` is ``cuda:0``), whether or not this machine has
+    it: the name a run's fingerprints and manifests record.
+
+    Raises:
+        UsageError: a malformed name.
+    """
+    match = re.fullmatch(r"cpu|cuda(?::(\d+))?", device)
+    if match is None:
+        raise UsageError(f"device {device!r}: expected cpu, cuda or cuda:N")
+    return "cpu" if device == "cpu" else f"cuda:{int(match.group(1) or 0)}"
 
 
 def check_device(device: str) -> str:
@@ -22,9 +35,7 @@ def check_device(device: str) -> str:
         ValueError: one line naming the device and what is wrong: a malformed name, no CUDA on this machine, or an
             index past its GPUs.
     """
-    match = re.fullmatch(r"cpu|cuda(?::(\d+))?", device)
-    if match is None:
-        raise UsageError(f"device {device!r}: expected cpu, cuda or cuda:N")
+    device = canonical_device(device)
     if device == "cpu":
         return "cpu"
     import torch
@@ -33,7 +44,7 @@ def check_device(device: str) -> str:
     if count == 0:
         why = "this torch build has no CUDA support" if torch.version.cuda is None else "no CUDA driver or GPU found"
         raise UsageError(f"device {device}: CUDA is not available on this machine ({why}); use --device cpu")
-    index = int(match.group(1) or 0)
+    index = int(device.split(":")[1])
     if index >= count:
         raise UsageError(f"device {device}: this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")
-    return f"cuda:{index}"
+    return device

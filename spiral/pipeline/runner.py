@@ -14,7 +14,7 @@ from typing import Any
 
 from spiral.config.load import load_pipeline
 from spiral.core.checkpoint import list_checkpoints
-from spiral.core.device import check_device
+from spiral.core.device import canonical_device, check_device
 from spiral.core.errors import UsageError
 from spiral.core.files import atomic_write_bytes
 from spiral.pipeline.graph import PipelinePlan, select_steps
@@ -55,8 +55,8 @@ class PipelineRunner:
         spec, track = load_pipeline(path, overrides)
         self.overrides = tuple(overrides)
         """``path.to.field=value`` settings over the file's (``spiral run --set``); the run is named for them."""
-        if device is not None:  # asked for now: checked now (a file's device is checked when steps run)
-            spec = spec.model_copy(update={"device": check_device(device)})
+        if device is not None:  # its name now; whether this machine has it when steps run (spiral status needs none)
+            spec = spec.model_copy(update={"device": canonical_device(device)})
         self.path, self.log, self.progress = Path(path), log, progress
         self.accept_code_changes = accept_code_changes
         """Treat steps that ran with other spiral source (same spec and inputs) as complete."""
@@ -114,6 +114,8 @@ class PipelineRunner:
                 if state.status == "complete" and not must and not (start and step.name == start):
                     self.log(f"step '{step.name}' unchanged, skipping")
                     continue
+                if step.name not in forced:
+                    self._refuse_a_device_change(step)
                 todo[step.name] = (step, state)  # running upstream steps leaves a step's own folder as it is
             if jobs > 1 and len(todo) > 1:
                 return run_parallel(self, [step for step, _ in todo.values()], forced, jobs)
@@ -145,10 +147,19 @@ class PipelineRunner:
             raise PipelineError(self._resume_hint(step, "interrupted")) from None
         except Exception as exc:
             raise PipelineError(self._resume_hint(step, f"failed: {type(exc).__name__}: {exc}")) from exc
-        info = {"wall_time_s": time.perf_counter() - t0, **({"overrides": list(self.overrides)} if self.overrides
-                                                              else {}), **info}
+        info = {"wall_time_s": time.perf_counter() - t0, "device": self.plan.spec.device,
+                **({"overrides": list(self.overrides)} if self.overrides else {}), **info}
         write_manifest(step_dir, step.name, fp, outputs, info)
         self.log(f"step '{step.name}' done in {info['wall_time_s']:.1f} s")
+
+    def _refuse_a_device_change(self, step: Step) -> None:
+        """A step that finished on another device is not trained again (nor its folder removed) unless forced."""
+        manifest = read_manifest(self._dir(step))
+        ran_on = (manifest or {}).get("info", {}).get("device")
+        if step.resumable and ran_on is not None and ran_on != self.plan.spec.device:
+            raise UsageError(f"step '{step.name}' finished on {ran_on} ({self._dir(step)}); this run asks for "
+                             f"{self.plan.spec.device}: keep it with --device {ran_on}, or train it again with "
+                             f"--force {step.name}")
 
     def _reusable(self, step: Step, fp: Fingerprint) -> Path | None:
         """The folder of the same step, finished with this fingerprint and its outputs intact, in another run under

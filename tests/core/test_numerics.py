@@ -114,7 +114,7 @@ def test_a_cuda_device_without_cuda_fails_with_one_line_that_says_so(tmp_path):
     assert result.output.startswith("Error: device cuda:0: CUDA is not available") and result.output.count("\n") == 1
     result = runner.invoke(app, ["run", str(ROOT / "pipelines" / "smoke.yaml"), "--device", "cuda",
                                  "--runs-dir", str(tmp_path)])
-    assert result.exit_code == 1 and "Error: device cuda: CUDA is not available" in result.output
+    assert result.exit_code == 1 and "Error: device cuda:0: CUDA is not available" in result.output
     assert not any(tmp_path.iterdir())
 
 

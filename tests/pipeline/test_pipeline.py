@@ -370,6 +370,33 @@ def test_a_variant_reuses_the_finished_steps_another_run_has_with_the_same_finge
     assert {s.name: s.status for s in variant.status()}["train:solo"] == "stale"
 
 
+def test_a_step_trained_on_another_device_is_kept_and_the_run_refused_unless_forced(tmp_path):
+    """A training step that finished on cuda:0 (its manifest as a GPU run writes it) is complete for `spiral status
+    --device cuda`, and a CPU run refuses with one line naming the step, its device and the two ways on, leaving its
+    folder as it was; forced, it trains again on the CPU."""
+    from spiral.core.errors import UsageError
+    from spiral.pipeline.manifest import read_manifest
+
+    path = write_pipeline(tmp_path, iterations=1)
+    runner_for(path, tmp_path).run()
+    step_dir = tmp_path / "runs" / "smoke" / "train-solo"
+    gpu = PipelineRunner(path, runs_dir=tmp_path / "runs", checkpoints_dir=tmp_path / "ckpt", progress=False,
+                         log=lambda _: None, device="cuda")
+    assert gpu.plan.spec.device == "cuda:0"  # one name, one fingerprint
+    fp = gpu._fingerprints()["train:solo"]
+    manifest = read_manifest(step_dir)
+    assert manifest["info"]["device"] == "cpu"
+    manifest.update(fingerprint=fp.full, spec_fingerprint=fp.spec, info={**manifest["info"], "device": "cuda:0"})
+    (step_dir / "manifest.json").write_text(json.dumps(manifest))
+    assert {s.name: s.status for s in gpu.status()}["train:solo"] == "complete"
+    before = sorted(p.name for p in step_dir.rglob("*"))
+    with pytest.raises(UsageError, match=r"step 'train:solo' finished on cuda:0 .*--device cuda:0.*--force train:solo"):
+        runner_for(path, tmp_path).run()
+    assert sorted(p.name for p in step_dir.rglob("*")) == before
+    assert "train:solo" in runner_for(path, tmp_path).run(force=["train:solo"])
+    assert read_manifest(step_dir)["info"]["device"] == "cpu"
+
+
 def _keep_only_declared(run_root: Path, *, keep: set[str]) -> None:
     """Delete every file of the run folder's steps but their manifests and the outputs these declare (the steps named
     in ``keep`` stay whole)."""
