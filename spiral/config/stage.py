@@ -243,8 +243,7 @@ class StageSpec(StrictModel):
             raise ValueError("selection.success_tolerance: a multi-drone stage keeps its best by promotion "
                              "(selfplay.promotion), not by its self-match")
         owned = {"interval": "selfplay.promotion.interval", "races": "selfplay.promotion.races"}
-        defaults = SelectionCfg()
-        for name in (n for n in owned if getattr(self.selection, n) != getattr(defaults, n)):
+        for name in (n for n in owned if getattr(self.selection, n) != SelectionCfg.model_fields[n].default):
             raise ValueError(f"selection.{name}: a multi-drone stage evaluates at each promotion, its self-match "
                              f"with the head to head; set {owned[name]}")
         promotion = self.selfplay.promotion

@@ -88,7 +88,8 @@ class PipelinePlan:
         def run(ctx: StepContext) -> tuple[dict[str, Path], dict[str, Any]]:
             section = self._train_section(stage)
             resolved = {key: v.model_dump() if isinstance(v, BaseModel) else v for key, v in section.items()}
-            atomic_write_bytes(ctx.step_dir / "spec.json", json.dumps(resolved, indent=2).encode())
+            spec_path = ctx.step_dir / "spec.json"
+            atomic_write_bytes(spec_path, json.dumps(resolved, indent=2).encode())
             init, frozen = (Path(ctx.inputs[s]["outputs"]["best"]["path"]) if s else None for s in (previous, opponent))
             pool_dir = ctx.step_dir / "pool"
             inherited = ctx.inputs[previous]["outputs"].get("pool") if previous else None
@@ -102,7 +103,7 @@ class PipelinePlan:
             info = {"iterations": result.iterations, "wall_time_s": result.wall_time_s, "env_steps": result.env_steps,
                     "best": {"success": result.best.success, "lap_time": result.best.lap_time,
                              "iteration": result.best.iteration}}
-            outputs = {"best": result.best_path, "last": result.last_path, "spec": ctx.step_dir / "spec.json"}
+            outputs = {"best": result.best_path, "last": result.last_path, "spec": spec_path}
             if (ctx.step_dir / TRAIN_LOG).is_file():
                 outputs["log"] = ctx.step_dir / TRAIN_LOG
             if (pool_dir / "pool.json").is_file():  # a self-play stage's pool, declared for the steps that read it

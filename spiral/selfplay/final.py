@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from spiral.config.stage import FinalPickCfg, StageSpec
@@ -50,7 +50,7 @@ def rank_candidates(candidates: list[Candidate]) -> Candidate:
 def _validation_envs(stage: StageSpec, setting: RaceSetting, cfg: FinalPickCfg, *, device: str) -> dict[str, RaceEnv]:
     """One self-match env per format (the stage's, then its mix's) and start, racing ``cfg.laps`` laps from
     ``cfg.races`` placements of ``cfg.seed``."""
-    laps = RaceSetting(setting.track.with_laps(cfg.laps), setting.airframe, setting.sim)
+    laps = replace(setting, track=setting.track.with_laps(cfg.laps))  # the same setting (threads too), cfg.laps laps
     return {f"{starts}-{fmt}": self_match_env(laps, stage.env.with_eval_starts(starts), fmt, races=cfg.races,
                                               device=device, seed=cfg.seed)
             for fmt in [stage.scenario, *sorted(stage.mix)] for starts in cfg.starts}
