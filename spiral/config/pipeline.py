@@ -17,7 +17,7 @@ from spiral.core.device import canonical_device
 __all__ = ["PIPELINE_VERSION", "EvaluationCfg", "PipelineSpec", "RacingCfg", "ReportCfg"]
 
 PIPELINE_VERSION = 1
-"""Schema version of pipeline files; older versions are migrated on load, newer ones refused."""
+"""Schema version of pipeline files; a file of another version is refused."""
 
 
 class EvaluationCfg(StrictModel):

@@ -29,10 +29,16 @@ __all__ = [
     "load_policy",
     "newest_valid_checkpoint",
     "save_checkpoint",
+    "upgrade_meta",
 ]
 
-FORMAT = "spiral-checkpoint-1"
-"""Value of ``meta["format"]`` in every spiral checkpoint."""
+FORMAT = "spiral-checkpoint-2"
+"""Value of ``meta["format"]`` in every spiral checkpoint this version writes."""
+
+_FORMAT_1 = "spiral-checkpoint-1"
+_FORMAT_1_LAYOUT = {"teammates": False, "priority": False, "closest_approach": False, "approach_horizon_s": 0.5}
+"""Observation options that a format-1 checkpoint's ``obs_layout`` left out when they were off, with the values they
+then had; format 2 stores every option."""
 
 
 class CheckpointError(Exception):
@@ -90,9 +96,19 @@ def load_checkpoint(path: Path, *, map_location: str = "cpu") -> dict[str, Any]:
         data = torch.load(path, map_location=map_location, weights_only=False)
     except Exception as exc:  # torch raises many kinds for bad pickles
         raise CheckpointError(f"{path}: cannot be read by torch: {exc}") from exc
-    if not isinstance(data, dict) or data.get("spiral", {}).get("format") != FORMAT:
+    if not isinstance(data, dict) or data.get("spiral", {}).get("format") not in (FORMAT, _FORMAT_1):
         raise CheckpointError(f"{path}: not a spiral checkpoint")
+    data["spiral"] = upgrade_meta(data["spiral"])
     return data
+
+
+def upgrade_meta(meta: dict[str, Any]) -> dict[str, Any]:
+    """A checkpoint's spiral metadata in this version's format: a format-1 layout gains the options it left out."""
+    if meta.get("format") != _FORMAT_1:
+        return meta
+    layout = meta["obs_layout"]
+    return {**meta, "format": FORMAT, "obs_layout": {**layout, **{k: v for k, v in _FORMAT_1_LAYOUT.items()
+                                                                   if k not in layout}}}
 
 
 def list_checkpoints(ckpt_dir: Path) -> list[tuple[int, Path]]:

@@ -257,13 +257,7 @@ class ObservationBuilder:
 
     def layout(self) -> dict:
         """Description of the observation vector, stored in checkpoints to refuse mismatched policies."""
-        layout = {"obs_dim": self.obs_dim, **self.cfg.model_dump()}
-        for option in ("teammates", "priority", "closest_approach"):  # layouts stored before an option existed
-            if not layout[option]:                                      # stay equal
-                del layout[option]
-        if not self.cfg.closest_approach:
-            del layout["approach_horizon_s"]
-        return layout
+        return {"obs_dim": self.obs_dim, **self.cfg.model_dump()}
 
     def push(self, features: torch.Tensor, fresh: torch.Tensor) -> None:
         """Append this step's features; drones in ``fresh`` (bool, N) start a new history filled with them."""

@@ -33,27 +33,22 @@ def source_hash() -> str:
 
 @dataclass(frozen=True)
 class Fingerprint:
-    """A step's fingerprint: ``full`` sees the spiral source as well, ``spec`` only the spec and inputs.
-
-    ``legacy_spec`` is the spec fingerprint as run folders written before defaults were left out of the hash
-    recorded it (every field of the resolved spec, defaults included); a manifest carrying it still matches.
-    """
+    """A step's fingerprint: ``full`` sees the spiral source as well, ``spec`` only the spec and inputs."""
 
     full: str
     spec: str
-    legacy_spec: str = ""
 
     def spec_matches(self, recorded: object) -> bool:
-        """Whether a recorded spec fingerprint is this one's, in the current or the legacy hashing."""
-        return recorded == self.spec or (bool(self.legacy_spec) and recorded == self.legacy_spec)
+        """Whether a recorded spec fingerprint is this one's."""
+        return recorded == self.spec
 
 
-def _digest(blob: dict[str, Any], *, defaults: bool) -> str:
-    """SHA-256 of ``blob`` as sorted JSON; pydantic models in it are dumped with or without their default fields."""
+def _digest(blob: dict[str, Any]) -> str:
+    """SHA-256 of ``blob`` as sorted JSON; pydantic models in it are dumped without their default fields."""
 
     def encode(value: Any) -> Any:
         if isinstance(value, BaseModel):
-            return value.model_dump(exclude_defaults=not defaults)
+            return value.model_dump(exclude_defaults=True)
         return str(value)
 
     return hashlib.sha256(json.dumps(blob, sort_keys=True, default=encode).encode()).hexdigest()
@@ -69,10 +64,7 @@ def fingerprint(name: str, section: Any, inputs: list[Fingerprint], *, source: s
     """
     base = {"step": name, "spec": section, "version": spiral.__version__}
     full = {**base, "inputs": [i.full for i in inputs], "source": source or source_hash()}
-    return Fingerprint(full=_digest(full, defaults=False),
-                       spec=_digest({**base, "inputs": [i.spec for i in inputs]}, defaults=False),
-                       legacy_spec=_digest({**base, "inputs": [i.legacy_spec or i.spec for i in inputs]},
-                                           defaults=True))
+    return Fingerprint(full=_digest(full), spec=_digest({**base, "inputs": [i.spec for i in inputs]}))
 
 
 def write_manifest(step_dir: Path, name: str, fp: Fingerprint, outputs: dict[str, Path],

@@ -93,10 +93,11 @@ def test_teammate_flags_mark_the_nearest_drones_of_the_own_race_team(oval2):
     assert flags[2].tolist() == pytest.approx([0.0, 1.0])
 
 
-def test_teammate_flags_leave_layouts_without_them_unchanged(oval2):
-    """A layout without the option is the one stored before it existed; 1v1 has no team mate to flag."""
+def test_the_layout_records_every_option_and_1v1_has_no_team_mate_to_flag(oval2):
+    """The stored layout spells out every option, on or off (layouts are compared whole)."""
     env = make_env(oval2, worlds=1, drones=2, learners=(0,), obs=ObsCfg(history_len=1))
-    assert "teammates" not in env.obs_builder.layout()
+    assert env.obs_builder.layout() == {"obs_dim": env.obs_dim, **ObsCfg(history_len=1).model_dump()}
+    assert env.obs_builder.layout()["teammates"] is False
     env = make_env(oval2, worlds=1, drones=2, learners=(0,), obs=ObsCfg(history_len=1, teammates=True))
     assert env.obs_builder.layout()["teammates"] is True
     assert torch.all(term(env, "teammates") == 0)

@@ -131,27 +131,8 @@ def test_a_new_option_left_at_its_default_keeps_the_fingerprint_and_a_set_one_ch
 
     before, after = fp(Reward(progress=2.0)), fp(RewardWithNewTerm(progress=2.0))
     assert (before.full, before.spec) == (after.full, after.spec)
-    assert before.legacy_spec != after.legacy_spec  # the old hashing saw every default
     assert fp(RewardWithNewTerm(progress=2.0, proximity_leader=0.0)).spec != before.spec
     assert fp(RewardWithNewTerm(progress=1.0)).spec == fp(RewardWithNewTerm()).spec  # a default set explicitly
-
-
-def test_a_step_recorded_with_the_legacy_spec_fingerprint_is_kept_with_accepted_code_changes(tmp_path):
-    """Run folders written when defaults were hashed too keep their finished steps under --accept-code-changes."""
-    path = write_pipeline(tmp_path)
-    runner = runner_for(path, tmp_path)
-    assert len(runner.run()) == 3
-    for step in runner.steps:
-        manifest_path = runner._dir(step) / "manifest.json"
-        manifest = json.loads(manifest_path.read_text())
-        fp = runner._fingerprints()[step.name]
-        manifest.update(fingerprint="older source", spec_fingerprint=fp.legacy_spec)
-        manifest_path.write_text(json.dumps(manifest))
-    assert {s.reason for s in runner_for(path, tmp_path).status()} == {
-        "the spiral source changed since it ran (--accept-code-changes keeps it)"}
-    kept = PipelineRunner(path, runs_dir=tmp_path / "runs", checkpoints_dir=tmp_path / "ckpt", progress=False,
-                          log=lambda _: None, accept_code_changes=True)
-    assert {s.status for s in kept.status()} == {"complete"} and kept.run() == []
 
 
 def test_killed_training_step_resumes_and_ends_with_the_full_iteration_count(tmp_path):

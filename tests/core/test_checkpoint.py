@@ -1,0 +1,43 @@
+"""The checkpoint file: checksummed round trips, refused damage, and format-1 files read as today's format."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from spiral.config.env import ObsCfg
+from spiral.core.checkpoint import FORMAT, CheckpointError, load_checkpoint, save_checkpoint
+
+
+def _layout(cfg: ObsCfg) -> dict:
+    return {"obs_dim": 55, **cfg.model_dump()}
+
+
+def test_a_saved_checkpoint_loads_with_its_state_and_metadata(tmp_path):
+    layout = _layout(ObsCfg(history_len=1, teammates=True))
+    save_checkpoint(tmp_path / "a.pt", {"w": torch.arange(3.0)}, {"obs_layout": layout, "stage": "solo"})
+    data = load_checkpoint(tmp_path / "a.pt")
+    assert torch.equal(data["w"], torch.arange(3.0))
+    assert data["spiral"]["format"] == FORMAT
+    assert data["spiral"]["obs_layout"] == layout and data["spiral"]["stage"] == "solo"
+
+
+def test_a_damaged_checkpoint_is_refused_naming_the_file(tmp_path):
+    path = tmp_path / "a.pt"
+    save_checkpoint(path, {"w": torch.zeros(2)}, {"obs_layout": _layout(ObsCfg())})
+    path.write_bytes(path.read_bytes()[:-7])
+    with pytest.raises(CheckpointError, match=r"a\.pt: checksum mismatch"):
+        load_checkpoint(path)
+
+
+@pytest.mark.parametrize("cfg", [ObsCfg(history_len=1), ObsCfg(history_len=1, teammates=True, closest_approach=True)])
+def test_a_format_1_layout_gains_the_options_it_left_out_when_they_were_off(tmp_path, cfg):
+    """Format 1 dropped `teammates`, `priority` and `closest_approach` when off (and the horizon with the last): the
+    loaded layout equals the one this version writes for the same options."""
+    full = _layout(cfg)
+    dropped = [k for k in ("teammates", "priority", "closest_approach") if not full[k]]
+    dropped += ["approach_horizon_s"] if not full["closest_approach"] else []
+    old = {k: v for k, v in full.items() if k not in dropped}
+    save_checkpoint(tmp_path / "old.pt", {"w": torch.zeros(1)}, {"format": "spiral-checkpoint-1", "obs_layout": old})
+    meta = load_checkpoint(tmp_path / "old.pt")["spiral"]
+    assert meta["format"] == FORMAT and meta["obs_layout"] == full
