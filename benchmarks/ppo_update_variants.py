@@ -20,10 +20,11 @@ from collections import defaultdict
 from pathlib import Path
 
 import torch
+from rsl_rl.storage import RolloutStorage
 
 from spiral.config import load_pipeline, resolve_airframe
 from spiral.env.setting import RaceSetting
-from spiral.train.batches import use_gather_once
+from spiral.train.batches import GatherOnceStorage
 from spiral.train.runner import StageTrainer
 
 VARIANTS = [(precision, gather) for precision in ("float32", "bfloat16") for gather in ("rsl_rl", "gather_once")]
@@ -49,10 +50,8 @@ def time_variants(pipeline: Path, stage_name: str, *, repeats: int, worlds: int 
         for _ in range(repeats):
             for precision, gather in VARIANTS:
                 alg.use_mixed_precision = precision == "bfloat16"
-                if gather == "gather_once":
-                    use_gather_once(storage)
-                else:
-                    vars(storage).pop("mini_batch_generator", None)  # back to rsl-rl's own method
+                # the same rollout buffers, handed out by one generator or the other
+                storage.__class__ = GatherOnceStorage if gather == "gather_once" else RolloutStorage
                 obs = trainer.collect(obs)[0]
                 t0 = time.perf_counter()
                 alg.update()

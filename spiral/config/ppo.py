@@ -88,9 +88,10 @@ class PPOCfg(StrictModel):
         return cfg
 
     def _algorithm(self) -> dict:
-        """rsl-rl's PPO with these hyperparameters."""
+        """rsl-rl's PPO with these hyperparameters, its mini-batches gathered once per update
+        (:class:`spiral.train.batches.GatherOncePPO`)."""
         return {
-            "class_name": "rsl_rl.algorithms.PPO",
+            "class_name": "spiral.train.batches:GatherOncePPO",
             "num_learning_epochs": self.num_learning_epochs,
             "num_mini_batches": self.num_mini_batches,
             "clip_param": self.clip_param,

@@ -4,18 +4,21 @@ rsl-rl's ``RolloutStorage.mini_batch_generator`` draws one permutation per updat
 ``epochs × mini_batches`` mini-batches, gathers every field of the rollout by index. The permutation is the same in
 every epoch, so the same rows are gathered ``epochs`` times. :func:`gather_once` permutes the flattened rollout once
 and yields contiguous slices (views) of it: the same rows in the same order, i.e. the same update to the last bit,
-with one gather instead of ``epochs × mini_batches``.
+with one gather instead of ``epochs × mini_batches``. :class:`GatherOncePPO` is rsl-rl's PPO with a storage that
+hands out its mini-batches so; ``PPOCfg.to_rsl_rl`` names it as the algorithm's class.
 """
 
 from __future__ import annotations
 
-import types
 from collections.abc import Generator
 
 import torch
+from rsl_rl.algorithms import PPO
+from rsl_rl.env import VecEnv
 from rsl_rl.storage import RolloutStorage
+from tensordict import TensorDict
 
-__all__ = ["gather_once", "use_gather_once"]
+__all__ = ["GatherOncePPO", "GatherOnceStorage", "gather_once"]
 
 
 def gather_once(storage: RolloutStorage, num_mini_batches: int,
@@ -43,6 +46,19 @@ def gather_once(storage: RolloutStorage, num_mini_batches: int,
             )
 
 
-def use_gather_once(storage: RolloutStorage) -> None:
-    """Make ``storage`` hand out its mini-batches with :func:`gather_once`."""
-    storage.mini_batch_generator = types.MethodType(gather_once, storage)  # type: ignore[method-assign]
+class GatherOnceStorage(RolloutStorage):
+    """rsl-rl's rollout storage whose mini-batches come from :func:`gather_once`."""
+
+    def mini_batch_generator(self, num_mini_batches: int,
+                             num_epochs: int = 8) -> Generator[RolloutStorage.Batch, None, None]:
+        return gather_once(self, num_mini_batches, num_epochs)
+
+
+class GatherOncePPO(PPO):
+    """rsl-rl's PPO over a :class:`GatherOnceStorage`: the same updates, one gather of the rollout per update."""
+
+    @staticmethod
+    def construct_algorithm(obs: TensorDict, env: VecEnv, cfg: dict, device: str) -> PPO:
+        alg = PPO.construct_algorithm(obs, env, cfg, device)
+        alg.storage = GatherOnceStorage("rl", env.num_envs, cfg["num_steps_per_env"], obs, [env.num_actions], device)
+        return alg

@@ -33,7 +33,6 @@ from spiral.env.race_env import RaceEnv
 from spiral.env.setting import RaceSetting
 from spiral.env.vec_env import RaceVecEnv
 from spiral.train import distributed
-from spiral.train.batches import use_gather_once
 from spiral.train.inputs import take_up_new_inputs, widen_inputs
 from spiral.train.progress import TrainLog
 from spiral.train.resume import AVERAGE_KEY, StageCheckpoints, stage_meta
@@ -69,7 +68,7 @@ class StageStart:
     init_checkpoint: Path | None = None
     """The checkpoint of the policy the learner starts from (None: a fresh policy)."""
     opponents: dict[str, OpponentPolicy] = field(default_factory=dict)
-    """The opponents of each part of its worlds that has opponent slots, by part name (the stage's own format is
+    """The opponents of each part of its worlds that has opponent slots, by part name (the stage's own worlds are
     named for its scenario; :func:`spiral.selfplay.curriculum.published_opponents` builds a pipeline's); slots
     without one stay empty."""
 
@@ -100,7 +99,6 @@ class StageTrainer:
         self.vec_env = RaceVecEnv(self.env)
         with contextlib.redirect_stdout(io.StringIO()):  # rsl-rl prints the model architecture
             self.runner = distributed.GroupRunner(self.vec_env, stage.ppo.to_rsl_rl(), log_dir=None, device=device)
-        use_gather_once(self.runner.alg.storage)
         self._mirror_learner(opponents)
         self.start_iteration = 0
         self.best = EvalScore(-1.0, -math.inf)

@@ -40,3 +40,4 @@ def test_gather_once_yields_rsl_rls_mini_batches_row_for_row():
         assert all(torch.equal(p, q) for p, q in zip(a.old_distribution_params, b.old_distribution_params, strict=True))
     assert ours[0].actions.data_ptr() == ours[3].actions.data_ptr()  # epoch 2 reuses epoch 1's gathered rows
     assert ours[0].actions.shape == (8, 3)
+

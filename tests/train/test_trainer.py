@@ -171,3 +171,13 @@ def test_frozen_policy_acts_as_its_actor_modules_to_the_bit_after_a_reload_or_a_
     assert torch.equal(policy.actions(obs), other.actions(obs))
     policy.double()
     assert torch.equal(policy.actions(obs.double()), actor.mlp(actor.obs_normalizer(obs.double())))
+
+
+def test_the_stage_trainer_runs_ppo_over_the_storage_that_gathers_once(oval2, tmp_path):
+    """The algorithm named in the rsl-rl config is built with the storage that gathers its rollout once per update."""
+    from spiral.train.batches import GatherOncePPO, GatherOnceStorage
+
+    trainer = StageTrainer(RaceSetting(oval2, CF2X, SimCfg()), tiny_stage(1, worlds=4), tmp_path, seed=2,
+                           progress=False)
+    assert isinstance(trainer.runner.alg, GatherOncePPO)
+    assert isinstance(trainer.runner.alg.storage, GatherOnceStorage)
