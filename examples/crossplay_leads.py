@@ -20,7 +20,7 @@ import torch
 from spiral.config import load_track
 from spiral.core.scenario import TEAMS
 from spiral.env import RaceResults
-from spiral.eval.evaluate import RaceSet, race_agents
+from spiral.eval.evaluate import RaceSet, race_policies
 from spiral.sim import COLLISION_KINDS
 from spiral.train import load_policy
 
@@ -52,8 +52,8 @@ def main() -> None:
     parser.add_argument("--passage", type=int, default=3, help="gate passage at which the leader is read")
     args = parser.parse_args()
 
-    res, winner = race_agents(RaceSet(load_track(args.track), args.scenario, args.runs, args.seed),
-                              load_policy(args.a), load_policy(args.b))
+    res, winner = race_policies(RaceSet(load_track(args.track), args.scenario, args.runs, args.seed),
+                                load_policy(args.a), load_policy(args.b))
     if not 0 <= args.passage < res.split_time.shape[-1]:
         parser.error(f"--passage: the lap has gate passages 0..{res.split_time.shape[-1] - 1}")
     print("A: win {:.3f} loss {:.3f} draw {:.3f}".format(*((winner == k).float().mean().item() for k in (0, 1, -1))))

@@ -19,7 +19,7 @@ from pathlib import Path
 from spiral.config import SeparationCfg, load_track
 from spiral.core.checkpoint import FrozenPolicy, load_policy
 from spiral.core.scenario import TEAMS
-from spiral.eval.evaluate import RaceSet, race_agents
+from spiral.eval.evaluate import RaceSet, race_policies
 from spiral.eval.metrics import summarize_races
 
 
@@ -54,7 +54,7 @@ def main() -> None:
         for p in (policy, other):
             if p is not None:
                 with_filter(p, separation)
-        res, winners = race_agents(RaceSet(track, args.scenario, args.runs, args.seed), policy, other)
+        res, winners = race_policies(RaceSet(track, args.scenario, args.runs, args.seed), policy, other)
         if winners is None:
             s = summarize_races(res)
             lap = "–" if s["lap_time_mean"] is None else f"{s['lap_time_mean']:.3f} s"

@@ -247,10 +247,11 @@ def train(
 
 
 def _parse_method(text: str) -> tuple[str, str]:
-    name, sep, value = text.partition("=")
+    """``NAME=CHECKPOINT`` as a method's (name, checkpoint); a bare checkpoint (or ``se-ibr``) names itself."""
+    name, sep, checkpoint = text.partition("=")
     if not sep:
         return text, text
-    return name, value
+    return name, checkpoint
 
 
 @app.command("eval")
@@ -423,7 +424,7 @@ def report(
         "--separation", help="Also race the learned methods with this separation filter, DISTANCE,HORIZON_S,GAIN, as "
         "extra table rows ('none': no such rows)")] = "none",
     robustness: Annotated[bool, typer.Option(
-        "--robustness/--no-robustness", help="Final policies in every format, racing strangers, downwash")] = True,
+        "--robustness/--no-robustness", help="Final policies in every scenario, racing strangers, downwash")] = True,
     racing_laps: Annotated[int, typer.Option(
         "--racing-laps", min=0, help="Add a racing section of races of this many laps from the held-out placements, "
         "from the start box and track starts (needs --holdout-runs; 0: none)")] = 0,

@@ -27,8 +27,8 @@ LAYERS: list[set[str]] = [
 ]
 """Layers from the bottom up. A module imports its own package and packages of lower layers only, never a package
 of its own layer (``train`` and ``baselines`` know nothing of each other) or of a higher one, inside functions
-included. ``core`` holds the contracts every layer shares and sits below ``config``: config's specs read the race
-formats from ``core.scenario``. The gymnasium adapter (``adapters``) sits above ``baselines`` because it offers the
+included. ``core`` holds the contracts every layer shares and sits below ``config``: config's specs read the
+scenarios from ``core.scenario``. The gymnasium adapter (``adapters``) sits above ``baselines`` because it offers the
 SE-IBR planner as an opponent; ``spiral.env`` registers its gymnasium id by an entry-point string, which gymnasium
 imports only when an env is made. The one import that goes up: ``spiral/__init__.py`` applies
 ``spiral.core.numerics`` (which imports nothing of spiral's), because torch reads the CPU arithmetic's settings when

@@ -5,7 +5,7 @@ stepped together by one :class:`RaceEnv` (no Python loop, no subprocesses). ``gy
 returns :class:`RaceSingleEnv`, one learner drone, for tools that expect a plain ``gymnasium.Env``.
 
 Both take the fields of :class:`spiral.env.factory.RaceOptions` as keyword arguments: the track (a YAML path, a shipped
-track's name or a ``TrackSpec``), the race format, the opponents (none, a checkpoint path, ``"se-ibr"`` or any
+track's name or a ``TrackSpec``), the scenario, the opponents (none, a checkpoint path, ``"se-ibr"`` or any
 ``OpponentPolicy``), the environment, simulator and airframe settings, the device and the seed. ``import spiral.env``
 registers the id; this module sits above ``spiral.baselines`` because it offers the SE-IBR planner as an opponent.
 """

@@ -61,7 +61,7 @@ class RacingCfg(StrictModel):
         "sides (with report.se_ibr; the planner takes about 20 s of a CPU core per drone and 3-lap race); 0: none",
     )
     planner_formats: list[Literal["1v1", "2v2"]] = Field(
-        default=["1v1"], min_length=1, description="Formats of SPIRAL's duels against SE-IBR",
+        default=["1v1"], min_length=1, description="Scenarios of SPIRAL's duels against SE-IBR",
     )
 
 
@@ -79,7 +79,7 @@ class ReportCfg(StrictModel):
     )
     robustness: bool = Field(
         default=True,
-        description="Sections on each method's final policy in every format, racing strangers and downwash",
+        description="Sections on each method's final policy in every scenario, racing strangers and downwash",
     )
     racing: RacingCfg | None = Field(
         default=None, description="A racing section of races of several laps (needs evaluation.holdout_runs); null: "

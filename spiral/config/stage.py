@@ -20,7 +20,7 @@ class WorldPart:
     """A group of a stage's training worlds that race alike."""
 
     name: str
-    """The format, with ``-mirror`` for worlds whose drones are all learner drones."""
+    """The scenario, with ``-mirror`` for worlds whose drones are all learner drones."""
     scenario: str
     worlds: int
     learner_slots: list[int]
@@ -33,12 +33,12 @@ class FinalPickCfg(StrictModel):
     and the one racing best becomes the stage's best (not in the paper)."""
 
     laps: PosInt = Field(default=3, description="Laps of each race")
-    races: PosInt = Field(default=256, description="Races per format and start (validation placements)")
+    races: PosInt = Field(default=256, description="Races per scenario and start (validation placements)")
     seed: int = Field(default=2, description="Seed of the validation placements: none the pipeline reports on")
     starts: list[Literal["box", "track"]] = Field(default=["box", "track"], min_length=1,
                                                   description="Where the races start")
     candidates: PosInt = Field(default=4, description="How many of the latest promoted policies race (each costs "
-                               "a self-match per format and start)")
+                               "a self-match per scenario and start)")
 
 
 class SelectionCfg(StrictModel):
@@ -61,7 +61,7 @@ class SelectionCfg(StrictModel):
     final: FinalPickCfg | None = Field(
         default=None,
         description="Multi-drone stages: after training, the policy the stage promoted that races best in "
-        "self-matches of its format and each of its mix's, from `starts`, over `laps` laps, on validation "
+        "self-matches of its scenario and each of its mix's, from `starts`, over `laps` laps, on validation "
         "placements, becomes the stage's best (highest mean success; ties: the later); null: the last promoted",
     )
 
@@ -94,15 +94,15 @@ class PromotionCfg(StrictModel):
     elo_k: float = Field(default=16.0, gt=0, description="Elo K-factor applied per evaluation (match score)")
     formats: bool = Field(
         default=False,
-        description="Also race the learner and the best in a self-match of each other race format of the stage's "
+        description="Also race the learner and the best in a self-match of each other scenario of the stage's "
         "`mix` (`races` races each, the same placements for both): a learner whose success in one of them is more "
-        "than max_success_drop below the best's is not promoted, so that the stage's best races every format it "
+        "than max_success_drop below the best's is not promoted, so that the stage's best races every scenario it "
         "trains",
     )
     track_starts: bool = Field(
         default=False,
         description="Also race the learner and the best in self-matches from track starts (every drone at a random "
-        "point between two gates; the stage's format and, with `formats`, each other format of its `mix`; `races` "
+        "point between two gates; the stage's scenario and, with `formats`, each other scenario of its `mix`; `races` "
         "races each, the same placements for both): a learner more than max_success_drop below the best's in one of "
         "them is not promoted, so that the stage's best still races from anywhere on the track (not in the paper)",
     )
@@ -132,7 +132,7 @@ class SelfPlayCfg(StrictModel):
         description="What the learner's copies in mirror worlds fly: its mean action, an action drawn from its "
         "action distribution like the learner drones' own (opponents as noisy as the learner), or `learner`: every "
         "drone of a mirror world is a learner drone (sampled actions that PPO trains on, parameters shared), and "
-        "the share p_self of each format's worlds races that way",
+        "the share p_self of each scenario's worlds races that way",
     )
     opponent_offset: float = Field(
         default=0.0, ge=0, le=1,
@@ -187,13 +187,13 @@ class StageSpec(StrictModel):
     """One training stage."""
 
     name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$", description="Stage name")
-    scenario: Scenario = Field(default="solo", description="Race format")
+    scenario: Scenario = Field(default="solo", description="What the stage's races are: solo, 1v1 or 2v2")
     worlds: PosInt = Field(default=1024, description="Parallel worlds (races) in training")
     mix: dict[Scenario, float] = Field(
         default_factory=dict,
-        description="Shares of the worlds raced in other formats than `scenario`, e.g. {solo: 0.1, 1v1: 0.2}, so that "
-        "one policy keeps racing every format; opponents as in the stage's own worlds; evaluation, selection and "
-        "promotion race `scenario` only",
+        description="Shares of the worlds raced in other scenarios than `scenario`, e.g. {solo: 0.1, 1v1: 0.2}, so "
+        "that one policy keeps racing every scenario; opponents as in the stage's own worlds; evaluation, selection "
+        "and promotion race `scenario` only",
     )
     iterations: PosInt | None = Field(default=None, description="Budget in PPO iterations")
     env_steps: PosInt | None = Field(default=None, description="Budget in learner env steps (sets iterations)")
@@ -259,49 +259,49 @@ class StageSpec(StrictModel):
         return self.selection.races if self.scenario == "solo" else self.selfplay.promotion.races
 
     @model_validator(mode="after")
-    def _mix_of_other_formats(self) -> StageSpec:
+    def _mix_of_other_scenarios(self) -> StageSpec:
         if not self.mix:
             return self
         if self.scenario == "solo":
-            raise ValueError("mix: a solo stage has no opponents to race other formats with")
+            raise ValueError("mix: a solo stage has no opponents to race other scenarios with")
         if self.scenario in self.mix:
-            raise ValueError(f"mix.{self.scenario}: the stage's own format takes the worlds the others leave")
+            raise ValueError(f"mix.{self.scenario}: the stage's own scenario takes the worlds the others leave")
         bad = [k for k, share in self.mix.items() if not 0 < share < 1]
         if bad:
             raise ValueError(f"mix.{bad[0]}: a share must lie strictly between 0 and 1")
         if self.world_split()[self.scenario] < 1:
-            raise ValueError(f"mix: the shares leave no world for the stage's own format ({self.scenario})")
+            raise ValueError(f"mix: the shares leave no world for the stage's own scenario ({self.scenario})")
         if self.env.critic == "race":
             raise ValueError("env.critic: a race critic sees every other drone of a world, as many inputs as the "
-                             "format has drones, so it cannot serve the formats of a mixed stage (mix)")
+                             "scenario has drones, so it cannot serve the scenarios of a mixed stage (mix)")
         return self
 
     def world_split(self) -> dict[str, int]:
-        """Training worlds of each race format, the stage's own first; each mixed-in format gets at least one."""
-        other = {fmt: max(1, round(share * self.worlds)) for fmt, share in self.mix.items()}
+        """Training worlds of each scenario, the stage's own first; each mixed-in scenario gets at least one."""
+        other = {scenario: max(1, round(share * self.worlds)) for scenario, share in self.mix.items()}
         return {self.scenario: self.worlds - sum(other.values()), **other}
 
     @property
     def drones_per_world(self) -> int:
-        """Drones in each world of this stage's race format."""
+        """Drones in each world of this stage's scenario."""
         return SCENARIO_DRONES[self.scenario]
 
     def world_parts(self) -> list[WorldPart]:
-        """The training worlds by how they race: each format of :meth:`world_split`, its mirror share split off as
-        all-learner worlds when ``selfplay.mirror_actions`` is ``learner``; the stage's own format first."""
+        """The training worlds by how they race: each scenario of :meth:`world_split`, its mirror share split off as
+        all-learner worlds when ``selfplay.mirror_actions`` is ``learner``; the stage's own scenario first."""
         sp = self.selfplay
         parts = []
-        for fmt, worlds in self.world_split().items():
-            drones, slots = SCENARIO_DRONES[fmt], learner_slots(fmt)
+        for scenario, worlds in self.world_split().items():
+            drones, slots = SCENARIO_DRONES[scenario], learner_slots(scenario)
             mirror = round(sp.p_self * worlds) if sp.mirror_actions == "learner" and drones > 1 else 0
             if mirror < worlds:
-                parts.append(WorldPart(fmt, fmt, worlds - mirror, slots, opponents=drones > len(slots)))
+                parts.append(WorldPart(scenario, scenario, worlds - mirror, slots, opponents=drones > len(slots)))
             if mirror:
-                parts.append(WorldPart(f"{fmt}-mirror", fmt, mirror, list(range(drones)), opponents=False))
+                parts.append(WorldPart(f"{scenario}-mirror", scenario, mirror, list(range(drones)), opponents=False))
         return parts
 
     def learner_slots(self) -> list[int]:
-        """Drone slots driven by the learner (team A) in the stage's own format; the other slots are opponents."""
+        """Drone slots driven by the learner (team A) in the stage's own scenario; the other slots are opponents."""
         return learner_slots(self.scenario)
 
     def iteration_budget(self) -> int:

@@ -1,6 +1,6 @@
 """Contracts every layer of spiral shares, at the bottom of the import order (``core`` imports no other package).
 
-- :mod:`spiral.core.scenario`: the race formats: drones per world, the teams' slots, the slots a stage's learner
+- :mod:`spiral.core.scenario`: the scenarios: drones per world, the teams' slots, the slots a stage's learner
   drives.
 - :mod:`spiral.core.outcome`: who won a race, from the drones' finish times.
 - :mod:`spiral.core.policy`: what a policy and an opponent policy are (``typing.Protocol``\\ s).

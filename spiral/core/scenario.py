@@ -1,4 +1,5 @@
-"""Race formats: how many drones race, which slots form each team, and which slots a training stage's learner drives.
+"""Scenarios (what a race is: solo, 1v1 or 2v2): how many drones race, which slots form each team, and which slots
+a training stage's learner drives.
 
 Plain Python (no torch), so the specs in :mod:`spiral.config` can use it.
 """
@@ -10,10 +11,10 @@ from typing import Literal
 __all__ = ["SCENARIO_DRONES", "TEAMS", "Scenario", "learner_slots", "race_teams", "team_slots"]
 
 Scenario = Literal["solo", "1v1", "2v2"]
-"""A race format."""
+"""A scenario: what a race is."""
 
 SCENARIO_DRONES: dict[str, int] = {"solo": 1, "1v1": 2, "2v2": 4}
-"""Drones per world of each race format."""
+"""Drones per world of each scenario."""
 
 
 def race_teams(drones: int) -> list[int]:
@@ -29,7 +30,7 @@ def team_slots(drones: int) -> list[list[int]]:
 
 
 TEAMS: dict[str, list[list[int]]] = {scenario: team_slots(drones) for scenario, drones in SCENARIO_DRONES.items()}
-"""Drone slots of each team in each race format: ``{"solo": [[0]], "1v1": [[0], [1]], "2v2": [[0, 1], [2, 3]]}``."""
+"""Drone slots of each team in each scenario: ``{"solo": [[0]], "1v1": [[0], [1]], "2v2": [[0, 1], [2, 3]]}``."""
 
 
 def learner_slots(scenario: str) -> list[int]:

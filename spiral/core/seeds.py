@@ -21,14 +21,14 @@ SEED_OFFSETS: dict[Stream, int] = {
   stage adds ``r``: :mod:`spiral.train.distributed`);
 - ``selection``: the races that select the stage's best (:mod:`spiral.train.runner`);
 - ``promotion``: promotion's head-to-head races (:mod:`spiral.selfplay.promotion`);
-- ``formats``: promotion's other self-matches (the other formats of the stage's mix, then those from track starts:
+- ``formats``: promotion's other self-matches (the other scenarios of the stage's mix, then those from track starts:
   :func:`spiral.selfplay.promotion.self_match_envs`), the ``i``-th at offset + ``i``;
 - ``matchmaking``: the generator that draws each opponent slot's pool member (:mod:`spiral.selfplay.curriculum`).
 
 ``formats`` and ``matchmaking`` share a value but feed different generators (race placements, opponent draws)."""
 
 MIX_PART_STRIDE = 1_000
-"""Seed step between the parts of a mixed-format env: part ``k`` races with seed + ``k`` × stride."""
+"""Seed step between the parts of a mixed env: part ``k`` races with seed + ``k`` × stride."""
 
 
 def stream_seed(seed: int, stream: Stream, index: int = 0) -> int:

@@ -1,4 +1,4 @@
-"""A :class:`RaceEnv` from friendly arguments (a track's name, a race format, an opponent checkpoint), for the
+"""A :class:`RaceEnv` from friendly arguments (a track's name, a scenario, an opponent checkpoint), for the
 gymnasium and PettingZoo adapters and for scripts."""
 
 from __future__ import annotations
@@ -82,7 +82,7 @@ class RaceOptions:
     track: str | Path | TrackSpec = "oval4"
     """A ``TrackSpec``, a track YAML file, or the name of a shipped track."""
     scenario: Literal["solo", "1v1", "2v2"] = "solo"
-    """Race format: ``solo`` (1 drone), ``1v1`` (2) or ``2v2`` (4)."""
+    """Scenario: ``solo`` (1 drone), ``1v1`` (2) or ``2v2`` (4)."""
     opponent: Opponent = None
     """Who flies the opponent slots: ``None`` (absent), the name of a named opponent (any case), a checkpoint path
     (its frozen policy; its env settings are used when ``env_cfg`` is None) or a callable."""
@@ -93,7 +93,7 @@ class RaceOptions:
     airframe: str | AirframeCfg = "cf2x"
     """A built-in airframe's name or an ``AirframeCfg``."""
     learner_slots: Sequence[int] | None = None
-    """Slots the caller drives; the race format's learner team when None (slot 0, or 0 and 1 in 2v2)."""
+    """Slots the caller drives; the scenario's learner team when None (slot 0, or 0 and 1 in 2v2)."""
     device: str = "cpu"
     """``cpu`` or ``cuda:N``."""
     seed: int = 0

@@ -1,4 +1,4 @@
-"""Training worlds that race in different ways (other formats: ``StageSpec.mix``; all-learner mirror worlds)
+"""Training worlds that race in different ways (other scenarios: ``StageSpec.mix``; all-learner mirror worlds)
 stepped as one environment."""
 
 from __future__ import annotations
@@ -17,17 +17,17 @@ from spiral.env.stats import summarize_stats
 __all__ = ["MixedRaceEnv", "training_env"]
 
 class MixedRaceEnv:
-    """Named :class:`RaceEnv` parts (race formats, all-learner mirror worlds) stepped together; their learner rows
+    """Named :class:`RaceEnv` parts (scenarios, all-learner mirror worlds) stepped together; their learner rows
     are concatenated in part order.
 
     To PPO it is one env of ``num_envs = Σ part.num_envs`` learner drones. Each part keeps its own worlds, resets,
-    opponents and statistics; :meth:`pop_stats` adds the parts' sums and also reports each format's success ratio.
+    opponents and statistics; :meth:`pop_stats` adds the parts' sums and also reports each part's success ratio.
     """
 
     def __init__(self, parts: dict[str, RaceEnv]) -> None:
         if not parts:
             raise ValueError("MixedRaceEnv needs at least one part")
-        layouts = {fmt: env.obs_builder.layout() for fmt, env in parts.items()}
+        layouts = {name: env.obs_builder.layout() for name, env in parts.items()}
         if len({str(v) for v in layouts.values()}) > 1:
             raise ValueError(f"MixedRaceEnv: the parts' observation layouts differ: {layouts}")
         self.parts = parts
@@ -55,8 +55,8 @@ class MixedRaceEnv:
 
     def set_opponent_policies(self, policies: dict[str, OpponentPolicy | None]) -> None:
         """Drive each named part's opponent slots with its policy from the next reset on."""
-        for fmt, policy in policies.items():
-            self.parts[fmt].set_opponent_policy(policy)
+        for name, policy in policies.items():
+            self.parts[name].set_opponent_policy(policy)
 
     def set_training_progress(self, fraction: float) -> None:
         """Pass the stage's progress on to every part."""
@@ -90,11 +90,11 @@ class MixedRaceEnv:
 
     def pop_stats(self) -> dict[str, float]:
         """Means over every part's ended learner episodes, and ``success/<part>`` of each part."""
-        per_part = {fmt: env.take_stats() for fmt, env in self.parts.items()}
+        per_part = {name: env.take_stats() for name, env in self.parts.items()}
         total = {key: sum(s[key] for s in per_part.values()) for key in next(iter(per_part.values()))}
         out = summarize_stats(total)
-        for fmt, s in per_part.items():
-            out[f"success/{fmt}"] = s["successes"] / max(s["episodes"], 1.0)
+        for name, s in per_part.items():
+            out[f"success/{name}"] = s["successes"] / max(s["episodes"], 1.0)
         return out
 
 
@@ -110,7 +110,7 @@ def _merge_logs(logs: list[tuple[dict, torch.Tensor]]) -> dict:
 
 def training_env(setting: RaceSetting, stage: StageSpec, *, device: str, seed: int) -> RaceEnv | MixedRaceEnv:
     """The training env of ``stage``: one :class:`RaceEnv` when all its worlds race alike, else a
-    :class:`MixedRaceEnv` over :meth:`StageSpec.world_parts` (other formats of ``stage.mix``, all-learner mirror
+    :class:`MixedRaceEnv` over :meth:`StageSpec.world_parts` (other scenarios of ``stage.mix``, all-learner mirror
     worlds), the first part with the stage's seed."""
     parts = {
         part.name: RaceEnv(setting, stage.env, world_count=part.worlds,

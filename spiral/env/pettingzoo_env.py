@@ -32,7 +32,7 @@ class RaceParallelEnv(ParallelEnv):
 
     Args:
         track: A ``TrackSpec``, a track YAML file, or the name of a shipped track.
-        scenario: Race format.
+        scenario: ``solo``, ``1v1`` or ``2v2``.
         env_cfg, sim, airframe, device, seed: as in :class:`spiral.env.factory.RaceOptions`.
     """
 

@@ -27,7 +27,7 @@ class Slots:
     slot_team: torch.Tensor
     """Team of each slot by who drives it (D,): 0 learners, 1 opponents."""
     race_team: torch.Tensor
-    """Team of each slot in the race format, whoever drives it (D,): :func:`~spiral.core.scenario.race_teams`."""
+    """Team of each slot in the scenario, whoever drives it (D,): :func:`~spiral.core.scenario.race_teams`."""
     other_slots: torch.Tensor
     """(D, D − 1): the other slots of each slot's world as the race critic lists them, opponents first."""
 

@@ -170,7 +170,7 @@ class _Transcription:
     def solve(self, steps: np.ndarray) -> tuple[float, np.ndarray | None]:
         """Minimum lap time and solution vector for ``steps`` per segment (inf, None when not solved)."""
         n_nodes = int(steps.sum()) + 1
-        rows = _Rows()
+        rows = _ConstraintRows()
         self._equalities(rows, steps, n_nodes)
         n_eq = rows.count
         self._inequalities(rows, steps, n_nodes)
@@ -189,7 +189,7 @@ class _Transcription:
         x = np.asarray(sol.x)
         return (n_nodes - 1) * math.sqrt(max(x[-1], 0.0) * self.tau_ref), x
 
-    def _equalities(self, rows: _Rows, steps: np.ndarray, n_nodes: int) -> None:
+    def _equalities(self, rows: _ConstraintRows, steps: np.ndarray, n_nodes: int) -> None:
         c, qo = self.course, 3 * n_nodes
         for i in range(3):
             rows.add({i: 1.0}, c.start[i])
@@ -200,7 +200,7 @@ class _Transcription:
         for j, k in enumerate(np.cumsum(steps)):
             rows.add({3 * k + i: c.forward[j, i] for i in range(3)}, float(c.forward[j] @ c.centre[j]))
 
-    def _inequalities(self, rows: _Rows, steps: np.ndarray, n_nodes: int) -> None:
+    def _inequalities(self, rows: _ConstraintRows, steps: np.ndarray, n_nodes: int) -> None:
         c, qo = self.course, 3 * n_nodes
         for j, k in enumerate(np.cumsum(steps)):
             for axis in (c.axis_y[j], c.axis_z[j]):
@@ -213,7 +213,7 @@ class _Transcription:
                 rows.add({3 * k + i: 1.0}, c.hi[i])
                 rows.add({3 * k + i: -1.0}, -c.lo[i])
 
-    def _cones(self, rows: _Rows, n_nodes: int) -> list[Any]:
+    def _cones(self, rows: _ConstraintRows, n_nodes: int) -> list[Any]:
         """Per step: s = [bound; Δq + τ·g·ẑ] (thrust) and its tilt cone, or s = [τ·a; Δq] (ball)."""
         lim, qo, u, tr = self.limits, 3 * n_nodes, 6 * n_nodes, self.tau_ref
         g = lim.gravity if self.model == "thrust" else 0.0
@@ -223,7 +223,7 @@ class _Transcription:
         for k in range(n_nodes - 1):
             lo, hi = qo + 3 * k, qo + 3 * (k + 1)
 
-            def vector(rows: _Rows = rows, lo: int = lo, hi: int = hi) -> None:
+            def vector(rows: _ConstraintRows = rows, lo: int = lo, hi: int = hi) -> None:
                 for i in range(3):
                     rows.add({hi + i: -1.0, lo + i: 1.0, **({u: -g * tr} if i == 2 and g else {})}, 0.0)
 
@@ -237,7 +237,7 @@ class _Transcription:
         return cones
 
 
-class _Rows:
+class _ConstraintRows:
     """Constraint rows ``A x + s = b`` collected as triplets."""
 
     def __init__(self) -> None:

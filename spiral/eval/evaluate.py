@@ -1,9 +1,9 @@
 """Seeded evaluation races of learned policies and the SE-IBR planner: identical start placements for every method.
 
-A method is a learned checkpoint or the planner (``se-ibr``). Start placements depend only on the seed, the
-scenario and the race count, so every method (and every pairing in cross-play) races from the same ones. The env
-is built with a learned policy's layout (observations, action mapping, airframe, simulator); the planner flies
-through the same action interface, so when it races a learned policy it uses that policy's layout.
+A method is a learned checkpoint or the planner (checkpoint ``se-ibr``), under a name. Start placements depend only
+on the seed, the scenario and the race count, so every method (and every pairing in cross-play) races from the same
+ones. The env is built with a learned policy's layout (observations, action mapping, airframe, simulator); the
+planner flies through the same action interface, so when it races a learned policy it uses that policy's layout.
 """
 
 from __future__ import annotations
@@ -42,10 +42,10 @@ def check_sides(sides: str) -> None:
 
 
 SE_IBR = "se-ibr"
-"""Method value that selects the SE-IBR planner instead of a checkpoint."""
+"""A method's checkpoint that selects the SE-IBR planner instead of a checkpoint file."""
 
-Agent = FrozenPolicy | str
-"""A loaded method: a learned policy or :data:`SE_IBR`."""
+MethodPolicy = FrozenPolicy | str
+"""What a method races, loaded: a learned policy, or :data:`SE_IBR` for the planner (built for each race env)."""
 
 
 @dataclass(frozen=True)
@@ -62,9 +62,9 @@ __all__ = [
     "MIXED_SLOTS",
     "SE_IBR",
     "SIDES",
-    "Agent",
     "EvalLayout",
     "FlightOverride",
+    "MethodPolicy",
     "RaceSet",
     "SlotPolicy",
     "check_sides",
@@ -74,9 +74,9 @@ __all__ = [
     "evaluate_mixed_teams",
     "evaluate_policy",
     "format_eval",
-    "load_agent",
+    "load_method",
     "parse_separation",
-    "race_agents",
+    "race_policies",
     "setup_race",
 ]
 
@@ -177,9 +177,10 @@ def parse_separation(text: str) -> SeparationCfg | str | None:
     return SeparationCfg(distance=distance, horizon_s=horizon, gain=gain)
 
 
-def load_agent(spec: str | Path, *, device: str = "cpu") -> Agent:
-    """The planner for ``se-ibr`` (any case), else the policy of the checkpoint at ``spec``."""
-    return SE_IBR if str(spec).lower() == SE_IBR else load_policy(Path(spec), device=device)
+def load_method(checkpoint: str | Path, *, device: str = "cpu") -> MethodPolicy:
+    """What a method races, loaded: the planner for ``se-ibr`` (any case), else the policy of the checkpoint at
+    ``checkpoint``."""
+    return SE_IBR if str(checkpoint).lower() == SE_IBR else load_policy(Path(checkpoint), device=device)
 
 
 def eval_env_for(policy: FrozenPolicy, races: RaceSet, *, device: str = "cpu", team_a_only: bool = False) -> RaceEnv:
@@ -199,18 +200,18 @@ def _race_env(layout: EvalLayout, races: RaceSet, *, device: str, team_a_only: b
                    drones_per_world=drones, learner_slots=slots, device=device, seed=races.seed, training=False)
 
 
-def setup_race(races: RaceSet, agent: Agent, opponent: Agent | None = None, *, device: str = "cpu",
+def setup_race(races: RaceSet, policy: MethodPolicy, opponent: MethodPolicy | None = None, *, device: str = "cpu",
                layout: EvalLayout | None = None, flight: FlightOverride | None = None) -> tuple[RaceEnv, Policy]:
-    """A fresh race env and the policy of its learner slots: ``agent`` everywhere, or team A vs ``opponent``.
+    """A fresh race env and the policy of its learner slots: ``policy`` everywhere, or team A vs ``opponent``.
 
-    The env takes ``agent``'s layout if it is learned, else ``opponent``'s, else ``layout`` (defaults when None),
+    The env takes ``policy``'s layout if it is learned, else ``opponent``'s, else ``layout`` (defaults when None),
     changed by ``flight``.
     """
     if opponent is not None and races.scenario == "solo":
         raise UsageError("cross-play needs a 1v1 or 2v2 scenario")
-    if isinstance(agent, FrozenPolicy) and isinstance(opponent, FrozenPolicy):
-        _check_compatible(agent, opponent, same_inputs=False)
-    learned = [a for a in (agent, opponent) if isinstance(a, FrozenPolicy)]
+    if isinstance(policy, FrozenPolicy) and isinstance(opponent, FrozenPolicy):
+        _check_compatible(policy, opponent, same_inputs=False)
+    learned = [p for p in (policy, opponent) if isinstance(p, FrozenPolicy)]
     chosen = EvalLayout.of_policy(learned[0]) if learned else (layout or EvalLayout.default())
     if flight is not None:
         chosen = flight.apply(chosen)
@@ -219,8 +220,8 @@ def setup_race(races: RaceSet, agent: Agent, opponent: Agent | None = None, *, d
         opp: OpponentPolicy = opponent_policy(env) if isinstance(opponent, str) else opponent
         own = policy_obs(opponent) if isinstance(opponent, FrozenPolicy) else None
         env.set_opponent_policy(opp, obs=own)  # a policy with other inputs reads its own layout
-    policy: Policy = se_ibr_policy(env) if isinstance(agent, str) else agent
-    return env, policy
+    learner: Policy = se_ibr_policy(env) if isinstance(policy, str) else policy
+    return env, learner
 
 
 def _check_compatible(a: FrozenPolicy, b: FrozenPolicy, *, same_inputs: bool = True) -> None:
@@ -232,28 +233,28 @@ def _check_compatible(a: FrozenPolicy, b: FrozenPolicy, *, same_inputs: bool = T
         raise UsageError("cross-play needs policies with the same action mapping")
 
 
-def race_agents(races: RaceSet, agent: Agent, opponent: Agent | None = None, *, device: str = "cpu",
-                layout: EvalLayout | None = None, record: bool = False, flight: FlightOverride | None = None,
-                planners: list | None = None) -> tuple[RaceResults, torch.Tensor | None]:
-    """Race ``agent`` (self-match) or team ``agent`` against team ``opponent``; winners only in cross-play.
+def race_policies(races: RaceSet, policy: MethodPolicy, opponent: MethodPolicy | None = None, *, device: str = "cpu",
+                  layout: EvalLayout | None = None, record: bool = False, flight: FlightOverride | None = None,
+                  planners: list | None = None) -> tuple[RaceResults, torch.Tensor | None]:
+    """Race ``policy`` (self-match) or team ``policy`` against team ``opponent``; winners only in cross-play.
 
     ``planners``, when given, collects the planner policies that flew (for :func:`~spiral.baselines.planning_cost`).
     """
-    env, policy = setup_race(races, agent, opponent, device=device, layout=layout, flight=flight)
+    env, learner = setup_race(races, policy, opponent, device=device, layout=layout, flight=flight)
     teams = TEAMS[races.scenario]
-    res = run_races(env, policy, record=record, teams=teams)
+    res = run_races(env, learner, record=record, teams=teams)
     if planners is not None:
-        planners.extend(p for p in (policy, env.opponent_policy) if isinstance(p, PlannerPolicy))
+        planners.extend(p for p in (learner, env.opponent_policy) if isinstance(p, PlannerPolicy))
     return res, race_winner(res.finished, res.lap_time, teams) if opponent is not None else None
 
 
 def evaluate_policy(policy: FrozenPolicy, races: RaceSet, *, device: str = "cpu", record: bool = False) -> RaceResults:
     """Self-match races: every drone of every race runs ``policy``."""
-    return race_agents(races, policy, device=device, record=record)[0]
+    return race_policies(races, policy, device=device, record=record)[0]
 
 
-def cross_play(a: Agent, b: Agent, races: RaceSet, *, device: str = "cpu", layout: EvalLayout | None = None,
-               sides: str = "both", flight: FlightOverride | None = None,
+def cross_play(a: MethodPolicy, b: MethodPolicy, races: RaceSet, *, device: str = "cpu",
+               layout: EvalLayout | None = None, sides: str = "both", flight: FlightOverride | None = None,
                planners: list | None = None) -> tuple[RaceResults, torch.Tensor]:
     """Team ``a`` against team ``b``: per-drone results and each race's winner (0 = ``a``, 1 = ``b``, −1 = none).
 
@@ -263,12 +264,12 @@ def cross_play(a: Agent, b: Agent, races: RaceSet, *, device: str = "cpu", layou
     reordered so that ``a``'s are in team A's slots of the results as well.
     """
     check_sides(sides)
-    res, winners = race_agents(races, a, b, device=device, layout=layout, flight=flight, planners=planners)
+    res, winners = race_policies(races, a, b, device=device, layout=layout, flight=flight, planners=planners)
     assert winners is not None
     if sides == "a":
         return res, winners
-    swapped, won = race_agents(races, b, a, device=device, layout=layout,
-                               flight=flight.swapped() if flight is not None else None, planners=planners)
+    swapped, won = race_policies(races, b, a, device=device, layout=layout,
+                                 flight=flight.swapped() if flight is not None else None, planners=planners)
     assert won is not None
     team_a, team_b = TEAMS[races.scenario][0], TEAMS[races.scenario][-1]
     back = swapped.permuted([*team_b, *team_a])
@@ -278,12 +279,13 @@ def cross_play(a: Agent, b: Agent, races: RaceSet, *, device: str = "cpu", layou
 def evaluate_methods(races: RaceSet, methods: dict[str, str | Path], *, device: str = "cpu",
                      against: tuple[str, str | Path] | None = None, layout: EvalLayout | None = None,
                      sides: str = "both", flight: FlightOverride | None = None) -> dict[str, Any]:
-    """The evaluation JSON of ``spiral eval``: metrics of each named method in ``races``.
+    """The evaluation JSON of ``spiral eval``: metrics of each method in ``races``.
 
-    A method is a checkpoint path or ``se-ibr``. Without ``against`` every drone of a race runs the method
-    (self-match, as in the paper's tables). With ``against = (name, checkpoint or se-ibr)`` the method is team A
-    and ``name`` team B; ``win_rate``, ``loss_rate`` and ``draws`` are added, over ``races.runs`` races per side
-    (``sides``, see :func:`cross_play`; ``win_rate_by_side`` splits the win rate by where the method started).
+    ``methods`` maps each method's name to its checkpoint: a checkpoint path or ``se-ibr``. Without ``against``
+    every drone of a race runs the method (self-match, as in the paper's tables). With ``against = (name,
+    checkpoint)`` the method is team A and ``name`` team B; ``win_rate``, ``loss_rate`` and ``draws`` are added,
+    over ``races.runs`` races per side (``sides``, see :func:`cross_play`; ``win_rate_by_side`` splits the win rate
+    by where the method started).
     Planner-only races use the layout of the first learned method (else ``layout``, the defaults when None); the
     entry's ``layout`` says which. ``flight`` changes the flight stack of every drone (JSON ``flight``). Where the
     planner flew, ``planning`` is its cost (:func:`~spiral.baselines.planning_cost`: ms per plan per drone).
@@ -293,21 +295,21 @@ def evaluate_methods(races: RaceSet, methods: dict[str, str | Path], *, device: 
     if against is not None:
         out["against"] = {"name": against[0], "checkpoint": str(against[1])}
         out["sides"], out["races"] = sides, races.runs * (2 if sides == "both" else 1)
-    agents = {name: load_agent(path, device=device) for name, path in methods.items()}
-    opponent = load_agent(against[1], device=device) if against is not None else None
-    fallback = _fallback_layout([*agents.items(), *([(against[0], opponent)] if against is not None else [])],
+    policies = {name: load_method(checkpoint, device=device) for name, checkpoint in methods.items()}
+    opponent = load_method(against[1], device=device) if against is not None else None
+    fallback = _fallback_layout([*policies.items(), *([(against[0], opponent)] if against is not None else [])],
                                 layout)
-    for name, agent in agents.items():
+    for name, policy in policies.items():
         entry: dict[str, Any] = {"checkpoint": str(methods[name])}
         planners: list[PlannerPolicy] = []
         if opponent is None:
-            res, _ = race_agents(races, agent, device=device, layout=fallback, flight=flight, planners=planners)
+            res, _ = race_policies(races, policy, device=device, layout=fallback, flight=flight, planners=planners)
             entry.update(summarize_races(res))
         else:
-            res, winners = cross_play(agent, opponent, races, device=device, layout=fallback, sides=sides,
+            res, winners = cross_play(policy, opponent, races, device=device, layout=fallback, sides=sides,
                                       flight=flight, planners=planners)
             entry.update(_cross_play_metrics(res, winners, races))
-        if isinstance(agent, str) and (opponent is None or isinstance(opponent, str)):
+        if isinstance(policy, str) and (opponent is None or isinstance(opponent, str)):
             entry["layout"] = fallback.source
         if planners:
             entry["planning"] = planning_cost(*planners)
@@ -324,10 +326,10 @@ def _eval_json(races: RaceSet, flight: FlightOverride | None) -> dict[str, Any]:
     return out
 
 
-def _fallback_layout(agents: list[tuple[str, Agent | None]], layout: EvalLayout | None) -> EvalLayout:
-    """The layout of planner-only races: the first learned method's among ``agents`` (name, method), else
+def _fallback_layout(policies: list[tuple[str, MethodPolicy | None]], layout: EvalLayout | None) -> EvalLayout:
+    """The layout of planner-only races: the first learned method's among ``policies`` (method name, policy), else
     ``layout`` (the defaults when None)."""
-    learned = [(n, a) for n, a in agents if isinstance(a, FrozenPolicy)]
+    learned = [(n, p) for n, p in policies if isinstance(p, FrozenPolicy)]
     if learned:
         return EvalLayout.of_policy(learned[0][1], source=learned[0][0])
     return layout or EvalLayout.default()
@@ -373,10 +375,10 @@ def evaluate_mixed_teams(track: TrackSpec, methods: dict[str, str | Path], *, ru
     metrics of its drones (no win rate: the teams are alike)."""
     if len(methods) != 2:
         raise UsageError(f"mixed teams need exactly two methods, got {len(methods)}")
-    agents = {name: load_agent(path, device=device) for name, path in methods.items()}
-    if any(not isinstance(a, FrozenPolicy) for a in agents.values()):
+    policies = {name: load_method(checkpoint, device=device) for name, checkpoint in methods.items()}
+    if any(not isinstance(p, FrozenPolicy) for p in policies.values()):
         raise UsageError("mixed teams are raced by learned policies only")
-    a, b = agents.values()
+    a, b = policies.values()
     _check_compatible(a, b)  # type: ignore[arg-type]
     layout = EvalLayout.of_policy(a)  # type: ignore[arg-type]
     if flight is not None:
@@ -387,8 +389,8 @@ def evaluate_mixed_teams(track: TrackSpec, methods: dict[str, str | Path], *, ru
                            "methods": {}}
     if flight is not None and flight.to_json():
         out["flight"] = flight.to_json()
-    for (name, path), slots in zip(methods.items(), MIXED_SLOTS, strict=True):
-        out["methods"][name] = {"checkpoint": str(path), "slots": slots, **summarize_races(res, slots)}
+    for (name, checkpoint), slots in zip(methods.items(), MIXED_SLOTS, strict=True):
+        out["methods"][name] = {"checkpoint": str(checkpoint), "slots": slots, **summarize_races(res, slots)}
     return out
 
 

@@ -9,13 +9,13 @@ from typing import Any
 
 from spiral.config.pipeline import RacingCfg
 from spiral.eval.evaluate import SE_IBR, FlightOverride
-from spiral.eval.robustness import FORMATS, NAMES, final_stages
+from spiral.eval.robustness import ALL_SCENARIOS, SHORT_LABELS, final_stages
 from spiral.eval.runs import Evaluations, RowResult, StageRun
 
 __all__ = ["Racing", "race_planner_duels", "race_racing", "racing_markdown"]
 
 DUEL_SCENARIOS = ("1v1", "2v2")
-"""Formats of the duels (a team against a team)."""
+"""Scenarios of the duels (a team against a team)."""
 
 START_NAMES = {"box": "start box", "track": "track starts"}
 
@@ -28,11 +28,11 @@ class Racing:
     runs: int
     seed: int
     final_names: dict[str, str] = field(default_factory=dict)
-    """Approach -> the stage whose best is its final policy."""
+    """Method -> the stage whose best is its final policy."""
     self_matches: dict[str, dict[str, dict[str, RowResult]]] = field(default_factory=dict)
-    """Starts -> format -> approach -> self-match of its final policy."""
+    """Starts -> scenario -> method -> self-match of its final policy."""
     duels: dict[str, dict[str, dict[str, dict[str, Any]]]] = field(default_factory=dict)
-    """Starts -> scenario -> opponent approach -> SPIRAL's entry against it (the opponent's under ``opponent``)."""
+    """Starts -> scenario -> opponent method -> SPIRAL's entry against it (the opponent's under ``opponent``)."""
     planner_runs: int = 0
 
     def add_planner_duels(self, duels: dict[str, dict[str, dict[str, Any]]], runs: int) -> None:
@@ -51,13 +51,14 @@ def _variants(held: Evaluations, cfg: RacingCfg, runs: int | None = None) -> dic
 
 def race_racing(held: Evaluations, stages: list[StageRun], cfg: RacingCfg) -> Racing:
     """The section's races among learned policies, from ``held``'s placements: each final policy's self-matches in
-    every format and SPIRAL's duel with PPO without self-play, from every start of ``cfg``."""
+    every scenario and SPIRAL's duel with PPO without self-play, from every start of ``cfg``."""
     out = Racing(cfg.laps, held.protocol.runs, held.protocol.seed)
-    finals = {key: str(stage.best) for key, stage in final_stages(stages).items()}
-    out.final_names = {key: stage.name for key, stage in final_stages(stages).items()}
+    finals = {method: str(stage.best) for method, stage in final_stages(stages).items()}
+    out.final_names = {method: stage.name for method, stage in final_stages(stages).items()}
     for starts, ev in _variants(held, cfg).items():
-        out.self_matches[starts] = {fmt: {key: ev.flown(fmt, key, agent, FlightOverride(), "final")
-                                          for key, agent in finals.items()} for fmt in FORMATS}
+        out.self_matches[starts] = {
+            scenario: {method: ev.flown(scenario, method, checkpoint, FlightOverride(), "final")
+                       for method, checkpoint in finals.items()} for scenario in ALL_SCENARIOS}
         out.duels[starts] = {scenario: {} for scenario in DUEL_SCENARIOS}
         if "spiral" in finals and "noselfplay" in finals:
             for scenario in DUEL_SCENARIOS:
@@ -81,7 +82,7 @@ def race_planner_duels(held: Evaluations, stages: list[StageRun], cfg: RacingCfg
 
 def racing_markdown(r: Racing, sides: str) -> list[str]:
     """The section's markdown lines."""
-    finals = ", ".join(f"{NAMES[k]}: stage {n}" for k, n in r.final_names.items())
+    finals = ", ".join(f"{SHORT_LABELS[m]}: stage {n}" for m, n in r.final_names.items())
     lines = [f"## Racing: {r.laps}-lap races", "",
              f"Each method's final policy ({finals}) in races of {r.laps} laps from {r.runs} held-out placements "
              f"(seed {r.seed}), from the start box and from track starts (every drone at a random point between two "
@@ -91,14 +92,15 @@ def racing_markdown(r: Racing, sides: str) -> list[str]:
              "first through the first gate; contacts: drone–drone crashes per lap flown (docs/evaluation.md, "
              "\"Racing metrics\").", "",
              "### Self-matches", "",
-             "| Starts | Format | Method | Success | All home | Race [s] | First lap [s] | Flying lap [s] "
+             "| Starts | Scenario | Method | Success | All home | Race [s] | First lap [s] | Flying lap [s] "
              "| Overtakes / race | Lead changes / race | Won from behind | Contacts / lap "
              "| Crashes gate / drone / other |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for starts, by_format in r.self_matches.items():
-        for fmt, rows in by_format.items():
-            for key, row in rows.items():
-                lines.append(f"| {START_NAMES[starts]} | {fmt} | {NAMES[key]} | {_self_cells(row.metrics, fmt)} |")
+    for starts, by_scenario in r.self_matches.items():
+        for scenario, rows in by_scenario.items():
+            for method, row in rows.items():
+                lines.append(f"| {START_NAMES[starts]} | {scenario} | {SHORT_LABELS[method]} | "
+                             f"{_self_cells(row.metrics, scenario)} |")
     side = "each placement raced from both sides" if sides == "both" else "SPIRAL on team A"
     planner = f"; against SE-IBR from the first {r.planner_runs} of the placements" if r.planner_runs else ""
     lines += ["", "### Duels", "",
@@ -110,8 +112,8 @@ def racing_markdown(r: Racing, sides: str) -> list[str]:
               "other [s] |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for starts, by_scenario in r.duels.items():
         for scenario, by_opponent in by_scenario.items():
-            for key, entry in by_opponent.items():
-                lines.append(f"| {START_NAMES[starts]} | {scenario} | {NAMES[key]} | {_duel_cells(entry)} |")
+            for method, entry in by_opponent.items():
+                lines.append(f"| {START_NAMES[starts]} | {scenario} | {SHORT_LABELS[method]} | {_duel_cells(entry)} |")
     return [*lines, ""]
 
 
@@ -119,13 +121,13 @@ def _num(x: float | None, digits: int = 2) -> str:
     return "–" if x is None else f"{x:.{digits}f}"
 
 
-def _self_cells(m: dict[str, Any] | None, fmt: str) -> str:
+def _self_cells(m: dict[str, Any] | None, scenario: str) -> str:
     """A self-match's cells; the metrics between drones are left out of a solo race."""
     if m is None:
         return " | ".join(["missing"] + ["–"] * 9)
     lo, hi = m["success_ci95"]
     rc, crashes = dict(m.get("racing") or {}), m["crashes"]
-    if fmt == "solo":
+    if scenario == "solo":
         rc.update(overtakes_per_race=None, lead_changes_per_race=None, won_from_behind=None)
     other = sum(v for k, v in crashes.items() if k not in ("gate", "drone"))
     return (f"{m['success_ratio']:.3f} [{lo:.2f}, {hi:.2f}] | {_num(m.get('race_success_ratio'), 3)} | "

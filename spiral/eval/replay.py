@@ -28,7 +28,7 @@ from spiral.config.track import TrackSpec
 from spiral.core.errors import UsageError
 from spiral.core.scenario import TEAMS
 from spiral.env.race_env import RaceEnv
-from spiral.eval.evaluate import EvalLayout, RaceSet, load_agent, setup_race
+from spiral.eval.evaluate import EvalLayout, RaceSet, load_method, setup_race
 from spiral.eval.plots import _draw_view
 from spiral.sim import COLLISION_KINDS
 
@@ -109,15 +109,15 @@ def record_race(track: TrackSpec, scenario: str, method: tuple[str, str], agains
         airframe: Airframe when no learned policy is involved (default cf2x).
         sim: Simulator settings when no learned policy is involved.
     """
-    agent = load_agent(method[1], device=device)
-    opponent = load_agent(against[1], device=device) if against is not None else None
+    policy = load_method(method[1], device=device)
+    opponent = load_method(against[1], device=device) if against is not None else None
     layout = EvalLayout.default(airframe=airframe, sim=sim)
-    env, policy = setup_race(RaceSet(track, scenario, 1, seed), agent, opponent, device=device, layout=layout)
+    env, learner = setup_race(RaceSet(track, scenario, 1, seed), policy, opponent, device=device, layout=layout)
     obs = env.reset()
     snaps = [_snapshot(env)]
     for _ in range(env.max_episode_length):
         with torch.no_grad():
-            obs, _, _, _ = env.step(policy(obs))
+            obs, _, _, _ = env.step(learner(obs))
         snaps.append(_snapshot(env))
         if bool((env.finished | env.crashed | env.absent).all()):
             break

@@ -43,12 +43,12 @@ from spiral.eval.runs import (
     run_setup,
 )
 
-__all__ = ["APPROACHES", "PAPER", "SCENARIOS", "ReportOptions", "RunRecord", "StageRun", "build_report",
+__all__ = ["METHODS", "PAPER", "SCENARIOS", "ReportOptions", "RunRecord", "StageRun", "build_report",
            "race_learned_policies", "race_planner_pairing", "race_planner_racing", "read_train_log"]
 
-APPROACHES: dict[str, str] = {"spiral": "PPO Selfplay (SPIRAL)", "se-ibr": "SE-IBR (Baseline)",
-                              "noselfplay": "PPO No Selfplay"}
-"""Rows of the paper's tables, by key."""
+METHODS: dict[str, str] = {"spiral": "PPO Selfplay (SPIRAL)", "se-ibr": "SE-IBR (Baseline)",
+                           "noselfplay": "PPO No Selfplay"}
+"""The methods of the paper's tables, in row order: name -> label."""
 
 SCENARIOS = ("1v1", "2v2")
 
@@ -82,7 +82,7 @@ class ReportOptions:
     airframe: AirframeCfg | None = None
     """Airframe of the lap-time reference and of planner-only races; the pipeline's when None."""
     holdout: tuple[int, int] | None = None
-    """``(runs, seed)`` of a held-out check: the learned approaches' self-matches and their head-to-head raced again
+    """``(runs, seed)`` of a held-out check: the learned methods' self-matches and their head-to-head raced again
     from other placements (cached under ``evals/holdout-*``); None: no check."""
     sides: str = "both"
     """Head-to-head races: ``both`` races every placement from both sides, ``a`` with the row method on team A only
@@ -91,7 +91,7 @@ class ReportOptions:
     """A separation filter raced as an extra row under each table, with the same checkpoints (an opt-in deployment
     layer, not part of the methods); None: no such rows."""
     robustness: bool = True
-    """Add the sections of :mod:`spiral.eval.robustness` (final policy in every format, racing strangers, downwash),
+    """Add the sections of :mod:`spiral.eval.robustness` (final policy in every scenario, racing strangers, downwash),
     raced from the held-out placements when given, else the protocol's."""
     racing: RacingCfg | None = None
     """Add the racing section (:mod:`spiral.eval.racing_section`), raced from the held-out placements (needs
@@ -118,7 +118,7 @@ def build_report(run: RunRecord, track: TrackSpec, out_dir: Path, options: Repor
     out_dir, o = Path(out_dir), options
     ev = _protocol(run, track, out_dir, o, se_ibr=o.se_ibr, log=log)
     stages, runs, seed, airframe = ev.stages, ev.protocol.runs, ev.protocol.seed, ev.protocol.layout.airframe
-    table = {s: [ev.self_match(s, key) for key in APPROACHES] for s in SCENARIOS}
+    table = {s: [ev.self_match(s, method) for method in METHODS] for s in SCENARIOS}
     held_ev = None if o.holdout is None else ev.held_out(*o.holdout)
     planner_pairings = _se_ibr_pairings(table) if o.se_ibr and (o.cross_play or o.robustness) else []
     with crosses_in_workers(ev, planner_pairings, jobs=o.jobs):  # everything else meanwhile, in this process
@@ -144,24 +144,24 @@ def race_learned_policies(run: RunRecord, track: TrackSpec, out_dir: Path, optio
     folder."""
     ev = _protocol(run, track, Path(out_dir), options, se_ibr=False, log=log)
     with one_torch_thread():
-        table = {s: [ev.self_match(s, key) for key in APPROACHES if key in MODE_OF] for s in SCENARIOS}
+        table = {s: [ev.self_match(s, method) for method in METHODS if method in MODE_OF] for s in SCENARIOS}
         holdout = options.holdout
         _race_learned(ev, None if holdout is None else ev.held_out(*holdout), table, options)
     return ev.cache
 
 
-def race_planner_pairing(run: RunRecord, track: TrackSpec, out_dir: Path, scenario: str, key: str,
+def race_planner_pairing(run: RunRecord, track: TrackSpec, out_dir: Path, scenario: str, method: str,
                          options: ReportOptions = ReportOptions(), *,
                          log: Callable[[str], None] = print) -> dict[str, Any]:
-    """Race, on one torch thread, learned approach ``key``'s head-to-head pairing with SE-IBR in ``scenario`` as
+    """Race, on one torch thread, learned ``method``'s head-to-head pairing with SE-IBR in ``scenario`` as
     :func:`build_report` races it, caching it under ``out_dir/evals``. A pipeline runs each pairing as a step of its
-    own as soon as the stage it races has trained. Returns the approach's entry (with SE-IBR's under ``opponent``)."""
+    own as soon as the stage it races has trained. Returns the method's entry (with SE-IBR's under ``opponent``)."""
     ev = _protocol(run, track, Path(out_dir), replace(options, holdout=None, racing=None), se_ibr=True, log=log)
-    agent = ev.agent(scenario, key)
-    if agent is None:
-        raise FileNotFoundError(f"{run.root}: no best.pt of a {MODE_OF[key]}-mode {scenario} stage")
+    checkpoint = ev.checkpoint(scenario, method)
+    if checkpoint is None:
+        raise FileNotFoundError(f"{run.root}: no best.pt of a {MODE_OF[method]}-mode {scenario} stage")
     with one_torch_thread():
-        return ev.cross(scenario, (key, agent), ("se-ibr", SE_IBR))
+        return ev.cross(scenario, (method, checkpoint), ("se-ibr", SE_IBR))
 
 
 def race_planner_racing(run: RunRecord, track: TrackSpec, out_dir: Path, options: ReportOptions, *,
@@ -216,8 +216,8 @@ def _write_files(out_dir: Path, track: TrackSpec, airframe: AirframeCfg, stages:
 
 def _se_ibr_pairings(table: dict) -> list[tuple[str, tuple[str, str], tuple[str, str]]]:
     """Each learned method's head-to-head pairing with SE-IBR, in every scenario (minutes of planning each)."""
-    return [(s, (r.key, r.agent), ("se-ibr", SE_IBR)) for s in SCENARIOS for r in table[s]
-            if r.key in MODE_OF and r.agent is not None]
+    return [(s, (r.method, r.checkpoint), ("se-ibr", SE_IBR)) for s in SCENARIOS for r in table[s]
+            if r.method in MODE_OF and r.checkpoint is not None]
 
 
 def _write_bound(path: Path, track: TrackSpec, airframe: AirframeCfg, steps: int) -> LapBound:
@@ -243,12 +243,12 @@ def _with_racing(text: str, racing: Racing | None, sides: str) -> str:
 
 
 def _held_out(ev: Evaluations) -> dict[str, Any]:
-    """The learned approaches' self-matches in each scenario and SPIRAL's head-to-head against PPO without
+    """The learned methods' self-matches in each scenario and SPIRAL's head-to-head against PPO without
     self-play, raced with ``ev``'s races, seed and sides."""
     out: dict[str, Any] = {"runs": ev.protocol.runs, "seed": ev.protocol.seed}
     for scenario in SCENARIOS:
-        rows = {key: ev.self_match(scenario, key) for key in MODE_OF}
-        a, b = rows["spiral"].agent, rows["noselfplay"].agent
+        rows = {method: ev.self_match(scenario, method) for method in MODE_OF}
+        a, b = rows["spiral"].checkpoint, rows["noselfplay"].checkpoint
         duel = ev.cross(scenario, ("spiral", a), ("noselfplay", b)) if a is not None and b is not None else None
         out[scenario] = {"rows": rows, "duel": duel}
     return out
@@ -257,30 +257,31 @@ def _held_out(ev: Evaluations) -> dict[str, Any]:
 def _cross_matrix(ev: Evaluations, scenario: str, rows: list[RowResult], *, planner: bool = True) -> dict[str, Any]:
     """Win rate (and draws) of each row team against each column team; None where not run.
 
-    Pairings are raced with the learned approaches as the row team and SE-IBR as the column (from both sides, the
+    Pairings are raced with the learned methods as the row team and SE-IBR as the column (from both sides, the
     planner's row is their mirror), the same races as the robustness section's. ``planner`` False leaves SE-IBR
     out (the learned methods' pairings only)."""
-    agents = [(r.key, r.agent) for r in rows
-              if r.agent is not None and (r.key != "se-ibr" or (ev.se_ibr and planner))]
+    methods = [(r.method, r.checkpoint) for r in rows
+               if r.checkpoint is not None and (r.method != "se-ibr" or (ev.se_ibr and planner))]
     cells: dict[str, dict[str, Any]] = {}
-    for ka, a in sorted(agents, key=lambda item: item[1] == SE_IBR):
-        cells[ka] = {}
-        for kb, b in agents:
+    for row, a in sorted(methods, key=lambda item: item[1] == SE_IBR):
+        cells[row] = {}
+        for column, b in methods:
             if a == SE_IBR and b == SE_IBR:
-                cells[ka][kb] = None  # two planners: minutes of solving for a number nobody asked for
+                cells[row][column] = None  # two planners: minutes of solving for a number nobody asked for
                 continue
-            mirror = cells.get(kb, {}).get(ka)
+            mirror = cells.get(column, {}).get(row)
             if ev.protocol.sides == "both" and mirror is not None:  # the same races, seen from the other team
-                cells[ka][kb] = mirror if "error" in mirror else {
+                cells[row][column] = mirror if "error" in mirror else {
                     "win_rate": mirror["loss_rate"], "draws": mirror["draws"], "loss_rate": mirror["win_rate"]}
                 continue
             try:
-                entry = ev.cross(scenario, (ka, a), (kb, b))
+                entry = ev.cross(scenario, (row, a), (column, b))
             except ValueError as exc:  # e.g. policies with different observation layouts
-                cells[ka][kb] = {"error": str(exc)}
+                cells[row][column] = {"error": str(exc)}
                 continue
-            cells[ka][kb] = {"win_rate": entry["win_rate"], "draws": entry["draws"], "loss_rate": entry["loss_rate"]}
-    return {"keys": [k for k, _ in agents], "cells": {k: cells[k] for k, _ in agents}}
+            cells[row][column] = {"win_rate": entry["win_rate"], "draws": entry["draws"],
+                                  "loss_rate": entry["loss_rate"]}
+    return {"methods": [m for m, _ in methods], "cells": {m: cells[m] for m, _ in methods}}
 
 
 def _write_figures(out_dir: Path, track: TrackSpec, stages: list[StageRun], table: dict[str, list[RowResult]],
@@ -288,11 +289,11 @@ def _write_figures(out_dir: Path, track: TrackSpec, stages: list[StageRun], tabl
     points = []
     for scenario, rows in table.items():
         for r in rows:
-            paper = PAPER[scenario][r.key]
-            points.append(TradeoffPoint(APPROACHES[r.key], scenario, paper[0], paper[1], paper=True))
+            paper = PAPER[scenario][r.method]
+            points.append(TradeoffPoint(METHODS[r.method], scenario, paper[0], paper[1], paper=True))
             m = r.metrics
             if m is not None and m["lap_time_mean"] is not None:
-                points.append(TradeoffPoint(APPROACHES[r.key], scenario, m["lap_time_mean"], m["success_ratio"],
+                points.append(TradeoffPoint(METHODS[r.method], scenario, m["lap_time_mean"], m["success_ratio"],
                                             lap_std=m["lap_time_std"] or 0.0, success_ci=tuple(m["success_ci95"])))
     plot_speed_vs_reliability(points, out_dir / "speed_vs_reliability.png", bound=bound.lap_time)
     logs = {s.name: read_train_log(s.train_log) if s.train_log is not None else [] for s in stages}
@@ -301,7 +302,7 @@ def _write_figures(out_dir: Path, track: TrackSpec, stages: list[StageRun], tabl
                path_label=f"point-mass bound ({bound.lap_time:.2f} s)")
 
 
-_CSV_FIELDS = ("scenario", "approach", "lap_time_mean", "lap_time_std", "success_ratio", "success_ci95_lo",
+_CSV_FIELDS = ("scenario", "method", "lap_time_mean", "lap_time_std", "success_ratio", "success_ci95_lo",
                "success_ci95_hi", "drones", "mean_speed", "lap_over_bound", "paper_lap_time", "paper_success_ratio",
                "source", "note")
 
@@ -316,11 +317,12 @@ def _write_csv(path: Path, table: dict[str, list[RowResult]], bound: LapBound) -
                 lap = m.get("lap_time_mean")
                 ci = m.get("success_ci95", [None, None])
                 writer.writerow({
-                    "scenario": scenario, "approach": APPROACHES[r.key], "lap_time_mean": lap,
+                    "scenario": scenario, "method": METHODS[r.method], "lap_time_mean": lap,
                     "lap_time_std": m.get("lap_time_std"), "success_ratio": m.get("success_ratio"),
                     "success_ci95_lo": ci[0], "success_ci95_hi": ci[1], "drones": m.get("drones"),
                     "mean_speed": m.get("mean_speed"), "lap_over_bound": lap / bound.lap_time if lap else None,
-                    "paper_lap_time": PAPER[scenario][r.key][0], "paper_success_ratio": PAPER[scenario][r.key][1],
+                    "paper_lap_time": PAPER[scenario][r.method][0],
+                    "paper_success_ratio": PAPER[scenario][r.method][1],
                     "source": r.source, "note": r.note,
                 })
 
@@ -364,7 +366,7 @@ def _markdown(run_root: Path, track: TrackSpec, stages: list[StageRun], tables: 
     if tables.held is not None:
         lines += _held_out_section(tables.held, o.seed, o.sides)
     lines += [*_bound_section(bound), *_FIGURES]
-    notes = [f"- {APPROACHES[r.key]}, {scenario}: {r.note}" for scenario in SCENARIOS for r in tables.table[scenario]
+    notes = [f"- {METHODS[r.method]}, {scenario}: {r.note}" for scenario in SCENARIOS for r in tables.table[scenario]
              if r.note]
     if notes:
         lines += ["## Missing", "", *notes, ""]
@@ -397,16 +399,16 @@ def _scenario_section(scenario: str, tables: _Tables, bound: LapBound, separatio
     """One scenario's table: the paper's rows beside ours, the rows raced with the separation filter and the
     planner's cost."""
     lines = [f"## {_TITLES[scenario]}", "",
-             "| Approach | Lap Time (s) | Success Ratio | Races all home | Lap / bound | Paper: Lap Time (s) "
+             "| Method | Lap Time (s) | Success Ratio | Races all home | Lap / bound | Paper: Lap Time (s) "
              "| Paper: Success Ratio |",
              "|---|---|---|---|---|---|---|"]
     for r in tables.table[scenario]:
-        paper = PAPER[scenario][r.key]
+        paper = PAPER[scenario][r.method]
         lap, success, races, ratio = _cells(r, bound)
-        lines.append(f"| {APPROACHES[r.key]} | {lap} | {success} | {races} | {ratio} | {paper[2]} | {paper[3]} |")
+        lines.append(f"| {METHODS[r.method]} | {lap} | {success} | {races} | {ratio} | {paper[2]} | {paper[3]} |")
     for r in (tables.filtered or {}).get(scenario, []):
         lap, success, races, ratio = _cells(r, bound)
-        lines.append(f"| {APPROACHES[r.key]} {FILTER_ROW} | {lap} | {success} | {races} | {ratio} | – | – |")
+        lines.append(f"| {METHODS[r.method]} {FILTER_ROW} | {lap} | {success} | {races} | {ratio} | – | – |")
     if tables.filtered and separation is not None:
         lines += ["", f"{FILTER_ROW}: the same checkpoints with a separation filter between policy and PID on "
                   f"every drone (targets shifted away from drones predicted within {separation.distance} m in "
@@ -436,7 +438,7 @@ _FIGURES = ["## Figures", "", "![Speed vs. reliability](speed_vs_reliability.png
 
 def _planning_note(rows: list[RowResult]) -> list[str]:
     """The planner's cost in this table's self-match, when its evaluation recorded one."""
-    cost = next((r.metrics.get("planning") for r in rows if r.key == "se-ibr" and r.metrics), None)
+    cost = next((r.metrics.get("planning") for r in rows if r.method == "se-ibr" and r.metrics), None)
     if not cost or cost.get("plan_ms_median") is None:
         return []
     return ["", f"SE-IBR planning cost: {cost['plan_ms_median']:.1f} ms median, {cost['plan_ms_p95']:.1f} ms p95 per "
@@ -493,8 +495,8 @@ def _held_out_section(held: dict[str, Any], seed: int, sides: str) -> list[str]:
              "", "| Scenario | PPO Selfplay (SPIRAL) | PPO No Selfplay | SPIRAL vs No Selfplay |", "|---|---|---|---|"]
     for scenario in SCENARIOS:
         cells = []
-        for key in MODE_OF:
-            r = held[scenario]["rows"][key]
+        for method in MODE_OF:
+            r = held[scenario]["rows"][method]
             if r.metrics is None:
                 cells.append("missing")
                 continue
@@ -521,18 +523,18 @@ def _cross_section(matrices: dict[str, Any]) -> list[str]:
              "Win rate of the row team against the column team (a race is won by the team whose first drone "
              "finishes first; draws: nobody finished). Same races and start placements as above.", ""]
     for scenario, mat in matrices.items():
-        keys = mat["keys"]
-        if not keys:
+        methods = mat["methods"]
+        if not methods:
             lines += [f"{scenario}: no methods to pair.", ""]
             continue
-        lines += [f"### {scenario}", "", "| row vs column | " + " | ".join(APPROACHES[k] for k in keys) + " |",
-                  "|---" * (len(keys) + 1) + "|"]
-        for ka in keys:
+        lines += [f"### {scenario}", "", "| row vs column | " + " | ".join(METHODS[m] for m in methods) + " |",
+                  "|---" * (len(methods) + 1) + "|"]
+        for row in methods:
             cells = []
-            for kb in keys:
-                c = mat["cells"][ka][kb]
+            for column in methods:
+                c = mat["cells"][row][column]
                 cells.append("–" if c is None else "n/a" if "error" in c
                              else f"{c['win_rate']:.2f} (draws {c['draws']:.2f})")
-            lines.append(f"| {APPROACHES[ka]} | " + " | ".join(cells) + " |")
+            lines.append(f"| {METHODS[row]} | " + " | ".join(cells) + " |")
         lines.append("")
     return lines

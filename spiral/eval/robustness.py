@@ -1,5 +1,5 @@
 """Report sections beyond the paper's tables: the learned methods under the opt-in separation filter, the final
-policy of each method in every race format, racing strangers, and downwash they never trained with."""
+policy of each method in every scenario, racing strangers, and downwash they never trained with."""
 
 from __future__ import annotations
 
@@ -11,13 +11,14 @@ from spiral.core.scenario import SCENARIO_DRONES
 from spiral.eval.evaluate import SE_IBR, FlightOverride
 from spiral.eval.runs import MODE_OF, Evaluations, RowResult, StageRun, final_stage
 
-__all__ = ["FORMATS", "Robustness", "filter_rows", "final_stages", "race_learned", "race_se_ibr", "robustness_markdown"]
+__all__ = ["ALL_SCENARIOS", "Robustness", "filter_rows", "final_stages", "race_learned", "race_se_ibr",
+           "robustness_markdown"]
 
-FORMATS = tuple(SCENARIO_DRONES)
-"""Race formats a final policy is raced in: all of them."""
+ALL_SCENARIOS = tuple(SCENARIO_DRONES)
+"""Scenarios a final policy is raced in: all of them."""
 
-NAMES = {"spiral": "SPIRAL", "noselfplay": "PPO No Selfplay", "se-ibr": "SE-IBR"}
-"""Short method names of these sections."""
+SHORT_LABELS = {"spiral": "SPIRAL", "noselfplay": "PPO No Selfplay", "se-ibr": "SE-IBR"}
+"""Each method's label in these sections, by name."""
 
 OWN_FILTER = "+ separation filter on own drones"
 """Label of the strangers rows whose method flies with the separation filter and its opponent without."""
@@ -27,82 +28,89 @@ OWN_FILTER = "+ separation filter on own drones"
 class Robustness:
     """What the extra sections measured (None where a method or its stage is missing)."""
 
-    formats: dict[str, dict[str, RowResult]] = field(default_factory=dict)
-    """Approach -> format -> self-match of the approach's final policy."""
+    every_scenario: dict[str, dict[str, RowResult]] = field(default_factory=dict)
+    """Method -> scenario -> self-match of the method's final policy."""
     strangers: dict[str, dict[str, dict[str, Any]]] = field(default_factory=dict)
-    """Scenario -> approach -> opponent label -> metrics of the approach's drones (cross-play entries)."""
+    """Scenario -> method -> opponent label -> metrics of the method's drones (cross-play entries)."""
     downwash: dict[str, dict[str, RowResult]] = field(default_factory=dict)
-    """Scenario -> approach -> self-match with downwash on."""
+    """Scenario -> method -> self-match with downwash on."""
     runs: int = 0
     seed: int = 0
     final_names: dict[str, str] = field(default_factory=dict)
-    """Approach -> the stage whose best is its final policy."""
+    """Method -> the stage whose best is its final policy."""
 
 
 def final_stages(stages: list[StageRun]) -> dict[str, StageRun]:
-    """Each learned approach's final policy: the stage published under a name (``publish_as``), else its last
+    """Each learned method's final policy: the stage published under a name (``publish_as``), else its last
     stage."""
     trained = {s.name: s for s in stages if s.best.is_file()}
     listed = [(s.name, s.mode, bool(s.spec["stage"].get("publish_as"))) for s in trained.values()]
-    names = {key: final_stage(listed, mode) for key, mode in MODE_OF.items()}
-    return {key: trained[name] for key, name in names.items() if name is not None}
+    names = {method: final_stage(listed, mode) for method, mode in MODE_OF.items()}
+    return {method: trained[name] for method, name in names.items() if name is not None}
 
 
 def filter_rows(ev: Evaluations, separation: SeparationCfg) -> dict[str, list[RowResult]]:
-    """Per scenario, the learned approaches' self-matches with the separation filter, raced with ``ev``."""
+    """Per scenario, the learned methods' self-matches with the separation filter, raced with ``ev``."""
     out = {}
     for scenario in ("1v1", "2v2"):
-        agents = {key: a for key in MODE_OF if (a := ev.agent(scenario, key)) is not None}
-        out[scenario] = [ev.flown(scenario, key, a, FlightOverride(separation=separation), "filter")
-                         for key, a in agents.items()]
+        out[scenario] = [ev.flown(scenario, method, checkpoint, FlightOverride(separation=separation), "filter")
+                         for method, checkpoint in _learned_checkpoints(ev, scenario).items()]
     return out
 
 
 def race_learned(ev: Evaluations, stages: list[StageRun], separation: SeparationCfg | None = None) -> Robustness:
     """The extra sections' races among learned policies, with ``ev``'s races and seed: each final policy in every
-    format, downwash, and the learned methods against each other (pairings, mixed teams and, with ``separation``,
+    scenario, downwash, and the learned methods against each other (pairings, mixed teams and, with ``separation``,
     each method with the filter on its own drones only)."""
     out = Robustness(runs=ev.protocol.runs, seed=ev.protocol.seed)
     finals = final_stages(stages)
-    out.final_names = {key: stage.name for key, stage in finals.items()}
-    for key, stage in finals.items():
-        out.formats[key] = {fmt: ev.flown(fmt, key, str(stage.best), FlightOverride(), "final") for fmt in FORMATS}
+    out.final_names = {method: stage.name for method, stage in finals.items()}
+    for method, stage in finals.items():
+        out.every_scenario[method] = {scenario: ev.flown(scenario, method, str(stage.best), FlightOverride(), "final")
+                                      for scenario in ALL_SCENARIOS}
     for scenario in ("1v1", "2v2"):
-        agents = {key: a for key in MODE_OF if (a := ev.agent(scenario, key)) is not None}
-        out.downwash[scenario] = {key: ev.flown(scenario, key, a, FlightOverride(downwash=True), "downwash")
-                                  for key, a in agents.items()}
-        out.strangers[scenario] = _strangers(ev, scenario, agents, separation)
+        checkpoints = _learned_checkpoints(ev, scenario)
+        out.downwash[scenario] = {method: ev.flown(scenario, method, c, FlightOverride(downwash=True), "downwash")
+                                  for method, c in checkpoints.items()}
+        out.strangers[scenario] = _strangers(ev, scenario, checkpoints, separation)
     return out
+
+
+def _learned_checkpoints(ev: Evaluations, scenario: str) -> dict[str, str]:
+    """Each learned method's checkpoint in ``scenario``, where its stage has a best policy."""
+    return {method: c for method in MODE_OF if (c := ev.checkpoint(scenario, method)) is not None}
 
 
 def race_se_ibr(rb: Robustness, ev: Evaluations) -> None:
     """Add each learned method's pairing with SE-IBR to ``rb``'s strangers, raced with ``ev``'s races and seed (the
     races of the cross-play tables)."""
     for scenario, rows in rb.strangers.items():
-        for key, row in rows.items():
-            row[f"{NAMES['se-ibr']} ({ev.protocol.runs} races)"] = ev.cross(
-                scenario, (key, ev.agent(scenario, key)), ("se-ibr", SE_IBR))
+        for method, row in rows.items():
+            row[f"{SHORT_LABELS['se-ibr']} ({ev.protocol.runs} races)"] = ev.cross(
+                scenario, (method, ev.checkpoint(scenario, method)), ("se-ibr", SE_IBR))
 
 
-def _strangers(ev: Evaluations, scenario: str, agents: dict[str, str],
+def _strangers(ev: Evaluations, scenario: str, checkpoints: dict[str, str],
                separation: SeparationCfg | None) -> dict[str, dict[str, Any]]:
-    """Approach -> opponent label -> metrics of the approach's drones; each pairing is raced once and read from
-    both teams, and with ``separation`` twice more, the filter on one team's drones."""
-    rows: dict[str, dict[str, Any]] = {key: {"itself": ev.self_match(scenario, key).metrics} for key in agents}
-    keys = list(agents)
-    for i, a in enumerate(keys):
-        for b in keys[i + 1:]:
-            entry = ev.cross(scenario, (a, agents[a]), (b, agents[b]))
-            rows[a][NAMES[b]] = entry
-            rows[b][NAMES[a]] = _other_side(entry)
+    """Method -> opponent label -> metrics of the method's drones (``checkpoints``: method -> its checkpoint); each
+    pairing is raced once and read from both teams, and with ``separation`` twice more, the filter on one team's
+    drones."""
+    rows: dict[str, dict[str, Any]] = {m: {"itself": ev.self_match(scenario, m).metrics} for m in checkpoints}
+    methods = list(checkpoints)
+    for i, a in enumerate(methods):
+        for b in methods[i + 1:]:
+            entry = ev.cross(scenario, (a, checkpoints[a]), (b, checkpoints[b]))
+            rows[a][SHORT_LABELS[b]] = entry
+            rows[b][SHORT_LABELS[a]] = _other_side(entry)
             if separation is not None:
                 on_a = FlightOverride(separation=separation, separation_team="a")
-                for flight, key, other in ((on_a, a, b), (on_a.swapped(), b, a)):
-                    filtered = ev.cross(scenario, (a, agents[a]), (b, agents[b]), flight=flight,
+                for flight, own, other in ((on_a, a, b), (on_a.swapped(), b, a)):
+                    filtered = ev.cross(scenario, (a, checkpoints[a]), (b, checkpoints[b]), flight=flight,
                                         variant=f"filter-{flight.separation_team}")
-                    rows[key][f"{NAMES[other]}, {OWN_FILTER}"] = filtered if key == a else _other_side(filtered)
+                    rows[own][f"{SHORT_LABELS[other]}, {OWN_FILTER}"] = (filtered if own == a
+                                                                         else _other_side(filtered))
             if scenario == "2v2":
-                mixed = ev.mixed((a, agents[a]), (b, agents[b]))
+                mixed = ev.mixed((a, checkpoints[a]), (b, checkpoints[b]))
                 rows[a]["mixed teams"], rows[b]["mixed teams"] = mixed[a], mixed[b]
     return rows
 
@@ -116,12 +124,13 @@ def _other_side(entry: dict[str, Any]) -> dict[str, Any]:
 def robustness_markdown(rb: Robustness, sides: str) -> list[str]:
     """The sections' markdown lines."""
     where = f"{rb.runs} placements of seed {rb.seed}"
-    lines = ["## One policy for every format", "",
-             f"Each method's final policy ({', '.join(f'{NAMES[k]}: stage {n}' for k, n in rb.final_names.items())}) "
-             f"in self-matches of every race format, from {where}.", "",
-             "| Method | " + " | ".join(FORMATS) + " |", "|---" * (len(FORMATS) + 1) + "|"]
-    for key, by_format in rb.formats.items():
-        lines.append(f"| {NAMES[key]} | " + " | ".join(_self_cell(by_format[f].metrics) for f in FORMATS) + " |")
+    finals = ", ".join(f"{SHORT_LABELS[m]}: stage {n}" for m, n in rb.final_names.items())
+    lines = ["## One policy for every scenario", "",
+             f"Each method's final policy ({finals}) in self-matches of every scenario, from {where}.", "",
+             "| Method | " + " | ".join(ALL_SCENARIOS) + " |", "|---" * (len(ALL_SCENARIOS) + 1) + "|"]
+    for method, by_scenario in rb.every_scenario.items():
+        lines.append(f"| {SHORT_LABELS[method]} | "
+                     + " | ".join(_self_cell(by_scenario[s].metrics) for s in ALL_SCENARIOS) + " |")
     side = "each placement from both sides" if sides == "both" else "on team A"
     lines += ["", "## Racing strangers", "",
               f"Each learned method (its stage's best, as in the tables) racing drones it did not train with, from "
@@ -139,22 +148,24 @@ def robustness_markdown(rb: Robustness, sides: str) -> list[str]:
               "| Contacts: other ahead / beside / behind | Contacts: flew in / even / was flown into "
               "| Passes per race: made / suffered | Win / loss / draw |",
               "|---|---|---|---|---|---|---|---|---|---|"]
-    for scenario, by_key in rb.strangers.items():
-        for key, rows in by_key.items():
+    for scenario, by_method in rb.strangers.items():
+        for method, rows in by_method.items():
             for label, m in rows.items():
-                lines.append(f"| {scenario} | {NAMES[key]} | {label} | {_stranger_cells(m)} |")
+                lines.append(f"| {scenario} | {SHORT_LABELS[method]} | {label} | {_stranger_cells(m)} |")
     lines += ["", "## Downwash (zero-shot)", "",
               f"Self-matches from {where} with the simulator's downwash on (a force under each drone on the drones "
               "below it; docs/physics.md); no policy trained with it.", "",
-              "| Scenario | " + " | ".join(NAMES[k] for k in MODE_OF) + " |", "|---" * (len(MODE_OF) + 1) + "|"]
-    for scenario, by_key in rb.downwash.items():
-        lines.append(f"| {scenario} | " + " | ".join(_self_cell(by_key[k].metrics) if k in by_key else "missing"
-                                                       for k in MODE_OF) + " |")
+              "| Scenario | " + " | ".join(SHORT_LABELS[m] for m in MODE_OF) + " |",
+              "|---" * (len(MODE_OF) + 1) + "|"]
+    for scenario, by_method in rb.downwash.items():
+        lines.append(f"| {scenario} | " + " | ".join(_self_cell(by_method[m].metrics) if m in by_method else "missing"
+                                                       for m in MODE_OF) + " |")
     return [*lines, ""]
 
 
 def _has_filter_rows(rb: Robustness) -> bool:
-    return any(OWN_FILTER in label for by_key in rb.strangers.values() for rows in by_key.values() for label in rows)
+    return any(OWN_FILTER in label for by_method in rb.strangers.values() for rows in by_method.values()
+               for label in rows)
 
 
 def _self_cell(m: dict[str, Any] | None) -> str:

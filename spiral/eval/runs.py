@@ -35,10 +35,10 @@ __all__ = [
     "RowResult",
     "RunRecord",
     "StageRun",
-    "approach_stage",
     "crosses_in_workers",
     "final_stage",
     "load_json",
+    "method_stage",
     "one_torch_thread",
     "read_train_log",
     "run_protocol",
@@ -46,7 +46,7 @@ __all__ = [
 ]
 
 MODE_OF = {"spiral": "pool", "noselfplay": "frozen"}
-"""Self-play mode of the stages of each learned approach."""
+"""Self-play mode of the stages of each learned method."""
 
 
 @dataclass
@@ -67,23 +67,23 @@ class StageRun:
 
 @dataclass
 class RowResult:
-    """One cell row of a table: an approach in a scenario."""
+    """One cell row of a table: a method in a scenario."""
 
     scenario: str
-    key: str
-    agent: str | None = None
-    """Checkpoint path or ``se-ibr`` that produced (or can produce) the numbers."""
+    method: str
+    checkpoint: str | None = None
+    """The method's checkpoint (a path, or ``se-ibr``) that produced (or can produce) the numbers."""
     metrics: dict[str, Any] | None = None
     source: str = ""
     note: str = ""
 
 
-def approach_stage(stages: Iterable[tuple[str, str, str]], scenario: str, key: str) -> str | None:
-    """Name of the stage whose best policy races as approach ``key`` in ``scenario``, among ``stages`` given as
-    ``(name, scenario, self-play mode)``: the one of the approach's mode in that scenario, one named like the scenario
+def method_stage(stages: Iterable[tuple[str, str, str]], scenario: str, method: str) -> str | None:
+    """Name of the stage whose best policy races as learned ``method`` in ``scenario``, among ``stages`` given as
+    ``(name, scenario, self-play mode)``: the one of the method's mode in that scenario, one named like the scenario
     (``1v1``, ``1v1-noselfplay``) winning a tie, else the first by name."""
     found = sorted((name not in (scenario, f"{scenario}-noselfplay"), name)
-                   for name, stage_scenario, mode in stages if stage_scenario == scenario and mode == MODE_OF[key])
+                   for name, stage_scenario, mode in stages if stage_scenario == scenario and mode == MODE_OF[method])
     return found[0][1] if found else None
 
 
@@ -209,22 +209,22 @@ class Evaluations:
         other.prefix = f"racing-{laps}laps-{starts}-"
         return other
 
-    def stage_for(self, scenario: str, key: str) -> StageRun | None:
-        """The stage of approach ``key`` in ``scenario``; one named like the scenario wins a tie."""
-        name = approach_stage(((s.name, s.scenario, s.mode) for s in self.stages), scenario, key)
+    def stage_for(self, scenario: str, method: str) -> StageRun | None:
+        """The stage of learned ``method`` in ``scenario``; one named like the scenario wins a tie."""
+        name = method_stage(((s.name, s.scenario, s.mode) for s in self.stages), scenario, method)
         return next((s for s in self.stages if s.name == name), None)
 
-    def agent(self, scenario: str, key: str) -> str | None:
-        """Checkpoint (or ``se-ibr``) of approach ``key`` in ``scenario``, if it exists."""
-        if key == "se-ibr":
+    def checkpoint(self, scenario: str, method: str) -> str | None:
+        """The checkpoint (a path, or ``se-ibr``) of ``method`` in ``scenario``, if it exists."""
+        if method == "se-ibr":
             return SE_IBR
-        stage = self.stage_for(scenario, key)
+        stage = self.stage_for(scenario, method)
         return str(stage.best) if stage is not None and stage.best.is_file() else None
 
-    def self_match(self, scenario: str, key: str) -> RowResult:
-        """Self-match metrics of approach ``key`` in ``scenario``: found, run, or missing with a reason."""
-        res = RowResult(scenario, key, agent=self.agent(scenario, key))
-        if key == "se-ibr":
+    def self_match(self, scenario: str, method: str) -> RowResult:
+        """Self-match metrics of ``method`` in ``scenario``: found, run, or missing with a reason."""
+        res = RowResult(scenario, method, checkpoint=self.checkpoint(scenario, method))
+        if method == "se-ibr":
             found = self._find_se_ibr(scenario)
             if found is not None:
                 res.metrics, res.source = found
@@ -233,31 +233,33 @@ class Evaluations:
                 res.note = "not evaluated: pass --se-ibr to run the planner (slow, minutes per scenario)"
                 return res
         else:
-            stage = self.stage_for(scenario, key)
+            stage = self.stage_for(scenario, method)
             if stage is None:
-                res.note = f"no {MODE_OF[key]}-mode {scenario} stage in {self.run.root}"
+                res.note = f"no {MODE_OF[method]}-mode {scenario} stage in {self.run.root}"
                 return res
             data = None if stage.eval_path is None else load_json(stage.eval_path)
             if data is not None and (data["runs"], data["seed"]) == self._placements() and data["methods"]:
                 res.metrics, res.source = next(iter(data["methods"].values())), str(stage.eval_path)
                 return res
-            if res.agent is None:
+            if res.checkpoint is None:
                 res.note = f"stage '{stage.name}' has no best.pt"
                 return res
-        assert res.agent is not None
-        data, path = self._run(f"self-{scenario}-{key}", scenario, {key: res.agent}, None)
-        res.metrics, res.source = data["methods"][key], str(path)
+        assert res.checkpoint is not None
+        data, path = self._run(f"self-{scenario}-{method}", scenario, {method: res.checkpoint}, None)
+        res.metrics, res.source = data["methods"][method], str(path)
         return res
 
-    def flown(self, scenario: str, key: str, agent: str, flight: FlightOverride, variant: str) -> RowResult:
-        """Self-match of ``agent`` (approach ``key``) with another flight stack; ``variant`` names it in the cache."""
-        data, path = self._run(f"self-{scenario}-{key}-{variant}", scenario, {key: agent}, None, flight=flight)
-        return RowResult(scenario, key, agent=agent, metrics=data["methods"][key], source=str(path))
+    def flown(self, scenario: str, method: str, checkpoint: str, flight: FlightOverride, variant: str) -> RowResult:
+        """Self-match of ``method`` racing ``checkpoint`` with another flight stack; ``variant`` names it in the
+        cache."""
+        data, path = self._run(f"self-{scenario}-{method}-{variant}", scenario, {method: checkpoint}, None,
+                               flight=flight)
+        return RowResult(scenario, method, checkpoint=checkpoint, metrics=data["methods"][method], source=str(path))
 
     def cross(self, scenario: str, a: tuple[str, str], b: tuple[str, str], *, flight: FlightOverride | None = None,
               variant: str = "") -> dict[str, Any]:
-        """Team ``a`` (key, agent) against team ``b``: the method entry of the evaluation JSON (with the opponent
-        team's metrics under ``opponent``)."""
+        """Team ``a`` (method, checkpoint) against team ``b``: the method entry of the evaluation JSON (with the
+        opponent team's metrics under ``opponent``)."""
         data, _ = self._run(_cross_tag(scenario, a, b, variant), scenario, {a[0]: a[1]}, b, flight=flight)
         return data["methods"][a[0]]
 
@@ -287,10 +289,10 @@ class Evaluations:
                 flight: FlightOverride | None = None, mixed: bool = False) -> dict[str, Any]:
         """What an evaluation's numbers depend on, as its JSON records them under ``inputs``."""
         flight = self._flight(flight)
-        agents = [*methods.values(), *([against[1]] if against else [])]
+        checkpoints = [*methods.values(), *([against[1]] if against else [])]
         p = self.protocol
         inputs = {"track": p.track.model_dump(mode="json"), "scenario": scenario, "runs": p.runs,
-                  "seed": p.seed, "agents": [a if a == SE_IBR else _checksum(Path(a)) for a in agents],
+                  "seed": p.seed, "checkpoints": [c if c == SE_IBR else _checksum(Path(c)) for c in checkpoints],
                   **({"sides": p.sides} if against else {}), **({"mixed": True} if mixed else {}),
                   **({"flight": flight.to_json()} if flight is not None and flight.to_json() else {})}
         return json.loads(json.dumps(inputs))  # compare as read back: tuples become lists

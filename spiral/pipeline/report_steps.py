@@ -2,7 +2,7 @@
 
 Each races as soon as what it needs exists, so that ``spiral run --jobs N`` runs them beside the training steps that
 are still going: the planner's self-matches (``eval:se-ibr``) need no trained policy, each of its head-to-head
-pairings with a learned approach (``eval:se-ibr-vs-<stage>``) needs that stage's best policy, and the races among
+pairings with a learned method (``eval:se-ibr-vs-<stage>``) needs that stage's best policy, and the races among
 learned policies (``eval:report``) need every stage. They race on one torch thread each, cache their results under
 ``runs/<pipeline>/<step>/evals/`` and declare them as outputs; the ``report`` step reads what its input steps declared
 (:class:`spiral.eval.runs.RunRecord`): what it writes is the same as if it had raced everything itself.
@@ -28,7 +28,7 @@ from spiral.eval.report import (
     race_planner_pairing,
     race_planner_racing,
 )
-from spiral.eval.runs import MODE_OF, RunRecord, approach_stage, final_stage, one_torch_thread
+from spiral.eval.runs import MODE_OF, RunRecord, final_stage, method_stage, one_torch_thread
 from spiral.pipeline.manifest import MANIFEST, read_manifest
 from spiral.pipeline.step import Step, StepContext
 
@@ -122,24 +122,24 @@ def _planner_fn(plan: PlanView):
 
 
 def _pairing_steps(plan: PlanView) -> list[Step]:
-    """One step per learned approach and scenario that a stage of the pipeline trains: its pairing with SE-IBR."""
+    """One step per learned method and scenario that a stage of the pipeline trains: its pairing with SE-IBR."""
     stages = [(s.name, s.scenario, s.selfplay.mode) for s in plan.spec.stages]
     out = []
     for scenario in SCENARIOS:
-        for key in MODE_OF:
-            stage = approach_stage(stages, scenario, key)
+        for method in MODE_OF:
+            stage = method_stage(stages, scenario, method)
             if stage is None:
                 continue
-            section = {"scenario": scenario, "approach": key, "against": "se-ibr",
+            section = {"scenario": scenario, "method": method, "against": "se-ibr",
                        **plan.spec.evaluation.model_dump(include={"runs", "seed", "sides"})}
             name = f"{PLANNER_STEP}-vs-{stage}"
-            out.append(Step(name, _pairing_fn(plan, name, scenario, key), [f"train:{stage}"], section))
+            out.append(Step(name, _pairing_fn(plan, name, scenario, method), [f"train:{stage}"], section))
     return out
 
 
-def _pairing_fn(plan: PlanView, name: str, scenario: str, key: str):
+def _pairing_fn(plan: PlanView, name: str, scenario: str, method: str):
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
-        entry = race_planner_pairing(_run(plan, ctx), plan.track, ctx.step_dir, scenario, key,
+        entry = race_planner_pairing(_run(plan, ctx), plan.track, ctx.step_dir, scenario, method,
                                      _report_options(plan), log=ctx.log)
         ctx.log(f"{name}: win rate {entry['win_rate']:.2f}, success {entry['success_ratio']:.2f} against SE-IBR")
         return _caches(ctx), {"win_rate": entry["win_rate"], "success_ratio": entry["success_ratio"]}

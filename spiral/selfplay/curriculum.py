@@ -138,7 +138,7 @@ def _first_best(run_dir: Path, init_checkpoint: Path) -> Path:
 
 def _opponent_policies(stage: StageSpec, pool: Pool | None, init_meta: dict[str, Any], init_checkpoint: Path,
                        opponent_checkpoint: Path | None, *, device: str) -> tuple[list[FrozenPolicy], int, float]:
-    """The opponents a multi-drone stage starts with (one list, shared by every format's opponents), which of them
+    """The opponents a multi-drone stage starts with (one list, shared by every scenario's opponents), which of them
     is the latest best, and its rating.
 
     ``init_meta`` is the initial policy's spiral metadata (its observation layout is the stage's). Pool mode: the

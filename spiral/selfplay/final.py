@@ -1,5 +1,5 @@
 """A multi-drone stage's final pick (``selection.final``): every policy the stage promoted races self-matches on
-validation placements, in the stage's format and each format of its mix, from the start box and from track starts,
+validation placements, in the stage's scenario and each scenario of its mix, from the start box and from track starts,
 over several laps, and the one with the highest mean success becomes the stage's ``best.pt``.
 
 Promotion weighs one-lap races of 64 placements as training goes; the policy it promoted last is not always the one
@@ -30,7 +30,7 @@ FINAL_PICK_FILE = "final_pick.json"
 
 @dataclass(frozen=True)
 class Candidate:
-    """A promoted policy and its validation success per race (``<starts>-<format>`` → share of drones home)."""
+    """A promoted policy and its validation success per race (``<starts>-<scenario>`` → share of drones home)."""
 
     path: Path
     iteration: int
@@ -48,12 +48,12 @@ def rank_candidates(candidates: list[Candidate]) -> Candidate:
 
 
 def _validation_envs(stage: StageSpec, setting: RaceSetting, cfg: FinalPickCfg, *, device: str) -> dict[str, RaceEnv]:
-    """One self-match env per format (the stage's, then its mix's) and start, racing ``cfg.laps`` laps from
+    """One self-match env per scenario (the stage's, then its mix's) and start, racing ``cfg.laps`` laps from
     ``cfg.races`` placements of ``cfg.seed``."""
     laps = replace(setting, track=setting.track.with_laps(cfg.laps))  # the same setting (threads too), cfg.laps laps
-    return {f"{starts}-{fmt}": self_match_env(laps, stage.env.with_eval_starts(starts), fmt, races=cfg.races,
-                                              device=device, seed=cfg.seed)
-            for fmt in [stage.scenario, *sorted(stage.mix)] for starts in cfg.starts}
+    return {f"{starts}-{scenario}": self_match_env(laps, stage.env.with_eval_starts(starts), scenario,
+                                                   races=cfg.races, device=device, seed=cfg.seed)
+            for scenario in [stage.scenario, *sorted(stage.mix)] for starts in cfg.starts}
 
 
 def _candidates(run_dir: Path) -> list[tuple[Path, int]]:

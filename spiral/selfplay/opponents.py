@@ -132,7 +132,7 @@ class PoolOpponents:
 @dataclass
 class StageOpponents:
     """The opponents of a multi-drone stage's training worlds: one list of policies and one matchmaker, shared by
-    every format's worlds."""
+    every scenario's worlds."""
 
     members: list[FrozenPolicy]
     matchmaker: Matchmaker

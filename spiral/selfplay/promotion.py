@@ -89,24 +89,24 @@ def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[floa
 
 
 def self_match_envs(stage: StageSpec, setting: RaceSetting, *, device: str, seed: int) -> dict[str, RaceEnv]:
-    """The self-match races a promotion also weighs, by key: each other format of the stage's mix from the start box
-    (``promotion.formats``; key: the format) and, with ``promotion.track_starts``, the stage's format and those from
-    track starts (key: ``track-<format>``). Each has ``promotion.races`` worlds and a seed of its own."""
+    """The self-match races a promotion also weighs, by key: each other scenario of the stage's mix from the start
+    box (``promotion.formats``; key: the scenario) and, with ``promotion.track_starts``, the stage's scenario and
+    those from track starts (key: ``track-<scenario>``). Each has ``promotion.races`` worlds and a seed of its own."""
     cfg = stage.selfplay.promotion
-    runs = [(fmt, "box") for fmt in sorted(stage.mix)] if cfg.formats else []
+    runs = [(scenario, "box") for scenario in sorted(stage.mix)] if cfg.formats else []
     if cfg.track_starts:
-        runs += [(fmt, "track") for fmt in [stage.scenario, *(sorted(stage.mix) if cfg.formats else [])]]
-    return {fmt if starts == "box" else f"track-{fmt}": self_match_env(
-                setting, stage.env.with_eval_starts(starts), fmt, races=cfg.races, device=device,
+        runs += [(scenario, "track") for scenario in [stage.scenario, *(sorted(stage.mix) if cfg.formats else [])]]
+    return {scenario if starts == "box" else f"track-{scenario}": self_match_env(
+                setting, stage.env.with_eval_starts(starts), scenario, races=cfg.races, device=device,
                 seed=stream_seed(seed, "formats", i))
-            for i, (fmt, starts) in enumerate(runs)}
+            for i, (scenario, starts) in enumerate(runs)}
 
 
-def self_match_env(setting: RaceSetting, env_cfg: EnvCfg, fmt: Scenario, *, races: int, device: str,
+def self_match_env(setting: RaceSetting, env_cfg: EnvCfg, scenario: Scenario, *, races: int, device: str,
                    seed: int) -> RaceEnv:
-    """An evaluation env of ``races`` worlds of format ``fmt`` in which every drone is a learner drone (a
+    """An evaluation env of ``races`` worlds of ``scenario`` in which every drone is a learner drone (a
     self-match of whatever policy races it)."""
-    drones = SCENARIO_DRONES[fmt]
+    drones = SCENARIO_DRONES[scenario]
     return RaceEnv(setting, env_cfg, world_count=races, drones_per_world=drones, learner_slots=list(range(drones)),
                    device=device, seed=seed, training=False)
 
@@ -145,7 +145,7 @@ class PromotionSelector:
                            learner_slots=stage.learner_slots(), device=device, seed=stream_seed(seed, "promotion"),
                            training=False)
         self.interval = self.cfg.interval
-        self.format_envs = self_match_envs(stage, setting, device=device, seed=seed)
+        self.other_self_matches = self_match_envs(stage, setting, device=device, seed=seed)
 
     def __call__(self, trainer: StageTrainer, it: int) -> dict[str, float]:
         """Race the learner against the best and in a self-match; promote it when the rule holds."""
@@ -153,7 +153,7 @@ class PromotionSelector:
         learner = trainer.selection.candidate_policy()
         result = head_to_head(self.env, learner, self.best)
         formats = {key: tuple(score.success for score in paired_scores(env, learner, self.best))
-                   for key, env in self.format_envs.items()}
+                   for key, env in self.other_self_matches.items()}
         trainer.runner.alg.train_mode()
         learner_rating, best_rating = elo_update(self.best_rating, self.best_rating, result.score, self.cfg.elo_k)
         row = {"h2h/win_rate": result.win_rate, "h2h/draws": result.draws / max(result.races, 1),

@@ -1,7 +1,7 @@
 """Where one PPO iteration's time goes, and how far the update is from the CPU's matmul rate.
 
 The rollout is split by the environment's hooks (apply action, simulate, race events, rewards, dones, reset,
-observe; summed over the parts of a stage that mixes race formats), the opponents' policies in multi-drone stages
+observe; summed over the parts of a stage that mixes scenarios), the opponents' policies in multi-drone stages
 (apart from the hook that calls them) and the policy's part (acting, storing the transition, returns). The update
 is split from a ``torch.profiler`` trace of rsl-rl's ``PPO.update`` into forward (losses included), backward,
 gradient clipping, optimizer step and the observation normaliser. Its samples per second are set against the

@@ -16,7 +16,7 @@ from spiral.eval.evaluate import (
     RaceSet,
     evaluate_methods,
     evaluate_policy,
-    load_agent,
+    load_method,
     setup_race,
 )
 from spiral.eval.metrics import summarize_races
@@ -27,10 +27,10 @@ runner = CliRunner()
 @pytest.mark.bitwise
 def test_every_method_races_from_the_same_start_placements(sprint, tiny_checkpoint):
     """Start a learned policy, the planner and a cross-play pairing from identical 2v2 placements for one seed."""
-    policy = load_agent(tiny_checkpoint)
+    policy = load_method(tiny_checkpoint)
     starts = []
-    for agent, opponent in ((policy, None), (SE_IBR, None), (policy, SE_IBR), (SE_IBR, policy)):
-        env, _ = setup_race(RaceSet(sprint, "2v2", 3, 7), agent, opponent)
+    for own, opponent in ((policy, None), (SE_IBR, None), (policy, SE_IBR), (SE_IBR, policy)):
+        env, _ = setup_race(RaceSet(sprint, "2v2", 3, 7), own, opponent)
         env.reset()  # what run_races does first
         starts.append(env.pos.clone())
     for other in starts[1:]:
@@ -44,7 +44,7 @@ def test_every_method_races_from_the_same_start_placements(sprint, tiny_checkpoi
 
 def test_planner_racing_a_policy_uses_the_policy_layout(sprint, tiny_checkpoint):
     """Build the planner-vs-policy env with the policy's observation layout, not the default one."""
-    policy = load_agent(tiny_checkpoint)
+    policy = load_method(tiny_checkpoint)
     env, _ = setup_race(RaceSet(sprint, "1v1", 1, 0), SE_IBR, policy)
     assert env.cfg.obs == EvalLayout.of_policy(policy).env.obs
     assert env.obs_dim == policy.meta["obs_layout"]["obs_dim"]
@@ -84,7 +84,7 @@ def test_planner_self_match_reports_its_layout(sprint):
 
 def test_self_match_results_keep_the_scenarios_two_teams(sprint, tiny_checkpoint):
     """Every drone of a 2v2 self-match runs the learner, yet its results split slots 0-1 from 2-3 (for contacts)."""
-    res = evaluate_policy(load_agent(tiny_checkpoint), RaceSet(sprint, "2v2", 2, 0))
+    res = evaluate_policy(load_method(tiny_checkpoint), RaceSet(sprint, "2v2", 2, 0))
     assert res.team.tolist() == [0, 0, 1, 1]
 
 
@@ -100,7 +100,7 @@ def test_cross_play_compares_action_mappings_as_read_so_older_checkpoints_still_
     def variant(name: str, action: dict) -> object:
         path = tmp_path / f"{name}.pt"
         save_checkpoint(path, data, {**meta, "env": {**meta["env"], "action": action}})
-        return load_agent(path)
+        return load_method(path)
 
     action = dict(meta["env"]["action"])
     older = variant("older", {k: v for k, v in action.items() if k != "separation_team"})
@@ -118,13 +118,13 @@ def test_cross_play_lets_each_team_read_its_own_observation_layout(sprint, tiny_
     mixed teams, which share one layout per env, still refuse them."""
     from spiral.eval.evaluate import RaceSet, cross_play, evaluate_mixed_teams
 
-    a, b = load_agent(tiny_checkpoint), load_agent(tiny_checkpoint_other_inputs)
+    a, b = load_method(tiny_checkpoint), load_method(tiny_checkpoint_other_inputs)
     assert a.obs_layout["obs_dim"] != b.obs_layout["obs_dim"]  # a policy fed the other's rows would not run
     res, winners = cross_play(a, b, RaceSet(sprint, "1v1", 2, 0), sides="both")
     assert res.finished.shape == (4, 2) and winners.shape == (4,)
-    for agent, opponent in ((a, b), (b, a)):
-        env, _ = setup_race(RaceSet(sprint, "1v1", 2, 0), agent, opponent)
-        assert env.obs_dim == agent.obs_layout["obs_dim"] and env.opponent_observer is not None
+    for own, opponent in ((a, b), (b, a)):
+        env, _ = setup_race(RaceSet(sprint, "1v1", 2, 0), own, opponent)
+        assert env.obs_dim == own.obs_layout["obs_dim"] and env.opponent_observer is not None
         assert env.opponent_observer.rows(env.opponent_idx)["policy"].shape[1] == opponent.obs_layout["obs_dim"]
     with pytest.raises(ValueError, match="same obs_layout"):
         evaluate_mixed_teams(sprint, {"a": tiny_checkpoint, "b": tiny_checkpoint_other_inputs}, runs=2, seed=0)
@@ -133,7 +133,7 @@ def test_cross_play_lets_each_team_read_its_own_observation_layout(sprint, tiny_
 def test_actions_beyond_the_clamped_range_are_counted_per_axis_over_racing_steps(sprint, tiny_checkpoint):
     """A policy commanding (2, 0.5, −0.2, −1.5) on every step is beyond ±1 on x and yaw in each step it races and on
     y and z in none; the steps stop counting when a drone's race ends, and the summary gives the shares 1, 0, 0, 1."""
-    env, _ = setup_race(RaceSet(sprint, "1v1", 3, 0), load_agent(tiny_checkpoint))
+    env, _ = setup_race(RaceSet(sprint, "1v1", 3, 0), load_method(tiny_checkpoint))
     command = torch.tensor([2.0, 0.5, -0.2, -1.5])
     res = run_races(env, lambda obs: command.expand(obs.shape[0], 4))
     assert res.racing_steps is not None and res.beyond_steps is not None

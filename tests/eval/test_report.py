@@ -74,7 +74,7 @@ def fake_run(root: Path, track: TrackSpec, checkpoint: Path, stages=STAGES) -> R
 
 
 def test_report_builds_tables_figures_and_csv_from_a_tiny_run(sprint, tiny_checkpoint, tmp_path):
-    """Fill found cells, run the missing evaluation, mark absent approaches, and reuse cached runs next time."""
+    """Fill found cells, run the missing evaluation, mark absent methods, and reuse cached runs next time."""
     root, out = tmp_path / "runs" / "tiny", tmp_path / "report"
     run = fake_run(root, sprint, tiny_checkpoint)
     logs: list[str] = []
@@ -90,7 +90,7 @@ def test_report_builds_tables_figures_and_csv_from_a_tiny_run(sprint, tiny_check
     assert "| PPO No Selfplay | – (no finished lap) | 0.00 [0.00, 0.66] | 0.00 | – | 17.82 ± 0.27 | 0.31 ± 0.12 |" in md
     assert "no pool-mode 2v2 stage" in md and "pass --se-ibr" in md
     assert "Every drone flew with the paper's flight stack (no separation filter)." in md
-    assert md.count("(draws ") == 2  # one pairing per scenario: each scenario has one learned approach
+    assert md.count("(draws ") == 2  # one pairing per scenario: each scenario has one learned method
     assert sorted(logs) == sorted(["report: running cross-1v1-spiral-vs-spiral (2 races, seed 0)",
                             "report: running cross-2v2-noselfplay-vs-noselfplay (2 races, seed 0)",
                             *(f"report: running self-{s}-{k}-final (2 races, seed 0)" for s in ("1v1", "2v2")
@@ -102,7 +102,7 @@ def test_report_builds_tables_figures_and_csv_from_a_tiny_run(sprint, tiny_check
                               for k in ("noselfplay", "spiral"))])
 
     with open(out / "results.csv") as f:
-        rows = {(r["scenario"], r["approach"]): r for r in csv.DictReader(f)}
+        rows = {(r["scenario"], r["method"]): r for r in csv.DictReader(f)}
     assert len(rows) == 6
     spiral = rows[("1v1", "PPO Selfplay (SPIRAL)")]
     assert float(spiral["lap_time_mean"]) == pytest.approx(9.87)  # through the CSV
@@ -195,7 +195,7 @@ def test_report_races_each_pairing_once_when_both_sides_are_raced(sprint, tiny_c
 
 
 def test_report_races_the_filter_rows_final_policies_strangers_and_downwash(sprint, tiny_checkpoint, tmp_path):
-    """Filter rows fly the same checkpoints with the filter; each method's final policy races every format; a pairing
+    """Filter rows fly the same checkpoints with the filter; each method's final policy races every scenario; a pairing
     of the two methods is raced once and read from both teams; mixed teams split each team between the methods;
     downwash is switched on for every drone. All from the held-out placements, cached with what changed."""
     root, out = tmp_path / "runs" / "tiny", tmp_path / "report"
@@ -212,9 +212,9 @@ def test_report_races_the_filter_rows_final_policies_strangers_and_downwash(spri
 
     final = json.loads((evals / "holdout-self-solo-spiral-final.json").read_text())
     assert final["methods"]["spiral"]["checkpoint"].endswith("train-2v2/best.pt") and final["seed"] == 5
-    formats = md[md.index("## One policy for every format"):].splitlines()
-    assert "(SPIRAL: stage 2v2, PPO No Selfplay: stage 2v2-noselfplay)" in formats[2]
-    assert sum(line.startswith(("| SPIRAL |", "| PPO No Selfplay |")) for line in formats[:9]) == 2
+    every_scenario = md[md.index("## One policy for every scenario"):].splitlines()
+    assert "(SPIRAL: stage 2v2, PPO No Selfplay: stage 2v2-noselfplay)" in every_scenario[2]
+    assert sum(line.startswith(("| SPIRAL |", "| PPO No Selfplay |")) for line in every_scenario[:9]) == 2
 
     duel = json.loads((evals / "holdout-cross-1v1-spiral-vs-noselfplay.json").read_text())["methods"]["spiral"]
     assert not (evals / "holdout-cross-1v1-noselfplay-vs-spiral.json").exists()
@@ -249,7 +249,7 @@ def test_report_races_the_filter_rows_final_policies_strangers_and_downwash(spri
 
 def test_racing_section_races_final_policies_over_laps_from_box_and_track_ahead_of_the_paper_tables(
         sprint, tiny_checkpoint, tmp_path):
-    """The racing section races each final policy in every format and SPIRAL's duel with the baseline, over the
+    """The racing section races each final policy in every scenario and SPIRAL's duel with the baseline, over the
     section's laps from the held-out placements, once from the box and once from track starts (cached apart), and
     leads the report; without held-out placements it is refused."""
     root, out = tmp_path / "runs" / "tiny", tmp_path / "report"
@@ -270,7 +270,7 @@ def test_racing_section_races_final_policies_over_laps_from_box_and_track_ahead_
     assert duel["inputs"]["track"]["laps"] == 2 and duel["races"] == 4  # both sides
     section = md[md.index("## Racing: 2-lap races"):md.index("## Two-drone (1v1) race: the paper's protocol")]
     rows = [line for line in section.splitlines() if line.startswith(("| start box |", "| track starts |"))]
-    assert len(rows) == 2 * 3 * 2 + 2 * 2  # starts x formats x methods self-matches, starts x scenarios duels
+    assert len(rows) == 2 * 3 * 2 + 2 * 2  # starts x scenarios x methods self-matches, starts x scenarios duels
     solo = next(r for r in rows if r.startswith("| start box | solo | SPIRAL |"))
     assert solo.split(" | ")[8:11] == ["–", "–", "–"]  # no overtakes, lead changes or winner in a solo race
     d = duel["methods"]["spiral"]
@@ -379,7 +379,7 @@ def test_pairings_race_in_workers_while_the_body_of_the_with_runs(sprint, tiny_c
     run = fake_run(root, sprint, tiny_checkpoint)
     logs: list[str] = []
     ev = _evaluations(run, sprint, tmp_path / "out", logs)
-    ckpt = ev.agent("1v1", "spiral")
+    ckpt = ev.checkpoint("1v1", "spiral")
     pairings = [("1v1", ("spiral", ckpt), ("noselfplay", ckpt)), ("2v2", ("spiral", ckpt), ("noselfplay", ckpt))]
     threads = torch.get_num_threads()
     with crosses_in_workers(ev, pairings, jobs=2):

@@ -11,7 +11,7 @@ from spiral.config import SeparationCfg
 from spiral.core.outcome import race_winner
 from spiral.core.scenario import TEAMS
 from spiral.env.racing import RaceResults, concat_results
-from spiral.eval.evaluate import FlightOverride, RaceSet, cross_play, evaluate_methods, load_agent, race_agents
+from spiral.eval.evaluate import FlightOverride, RaceSet, cross_play, evaluate_methods, load_method, race_policies
 
 SHIPPED = Path(__file__).resolve().parents[2] / "checkpoints" / "full"
 SPIRAL_1V1, NOSELFPLAY_1V1 = SHIPPED / "1v1" / "best.pt", SHIPPED / "1v1-noselfplay" / "best.pt"
@@ -67,11 +67,11 @@ def test_concatenated_results_list_the_races_one_after_another():
 @pytest.mark.bitwise
 def test_both_sides_race_each_placement_again_with_the_methods_swapped(circuit6):
     """The first half is the team-A protocol; the second half is the swapped race with the method back on team A."""
-    spiral, baseline = load_agent(SPIRAL_1V1), load_agent(NOSELFPLAY_1V1)
+    spiral, baseline = load_method(SPIRAL_1V1), load_method(NOSELFPLAY_1V1)
     races = RaceSet(circuit6, "1v1", 4, 5)
     one_side, first = cross_play(spiral, baseline, races, sides="a")
     both, winners = cross_play(spiral, baseline, races, sides="both")
-    swapped, won = race_agents(races, baseline, spiral)
+    swapped, won = race_policies(races, baseline, spiral)
     assert bool(both.finished.any())  # real laps: the comparisons below are not of zeros
     assert torch.equal(both.lap_time[:4], one_side.lap_time) and torch.equal(winners[:4], first)
     assert torch.equal(both.lap_time[4:], swapped.lap_time.flip(1))
@@ -99,14 +99,14 @@ def test_a_policy_against_itself_from_both_sides_wins_exactly_as_often_as_it_los
 def test_a_one_team_filter_stays_with_its_method_when_the_sides_are_swapped(circuit6):
     """The method's drones carry the filter in both halves: team A's slots first, team B's in the swapped races.
     Seed 6's placements bring the drones close enough for the filter to act (the laps differ with it on either team)."""
-    spiral, baseline = load_agent(SPIRAL_1V1), load_agent(NOSELFPLAY_1V1)
+    spiral, baseline = load_method(SPIRAL_1V1), load_method(NOSELFPLAY_1V1)
     on_a = FlightOverride(separation=SeparationCfg(distance=0.25, horizon_s=0.4, gain=1.5), separation_team="a")
     assert on_a.swapped().separation_team == "b" and on_a.swapped().swapped() == on_a
     races = RaceSet(circuit6, "1v1", 4, 6)
     both, _ = cross_play(spiral, baseline, races, sides="both", flight=on_a)
-    first, _ = race_agents(races, spiral, baseline, flight=on_a)
-    swapped, _ = race_agents(races, baseline, spiral, flight=on_a.swapped())
-    unswapped, _ = race_agents(races, baseline, spiral, flight=on_a)  # the filter on the baseline
+    first, _ = race_policies(races, spiral, baseline, flight=on_a)
+    swapped, _ = race_policies(races, baseline, spiral, flight=on_a.swapped())
+    unswapped, _ = race_policies(races, baseline, spiral, flight=on_a)  # the filter on the baseline
     assert bool(both.finished.any()) and not torch.equal(swapped.lap_time, unswapped.lap_time)
     assert torch.equal(both.lap_time[:4], first.lap_time)
     assert torch.equal(both.lap_time[4:], swapped.lap_time.flip(1))
