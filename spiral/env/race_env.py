@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import torch
 import warp as wp
@@ -37,6 +37,14 @@ class EpisodeEnds:
     """Means over the ended episodes, for rsl-rl's log."""
 
 
+def observed_tensors(state: RaceState) -> ObsSource:
+    """The tensors of ``state`` that the observations are made of, named one by one."""
+    return ObsSource(pos=state.pos, vel=state.vel, rpy=state.rpy, omega=state.omega, integral=state.integral,
+                     out=state.out, next_gate=state.next_gate, gates_passed=state.gates_passed,
+                     priority=state.priority, race_team=state.race_team, gate_center=state.gate_center,
+                     gate_forward=state.gate_forward, other_slots=state.other_slots)
+
+
 class RaceEnv(RaceState):
     """``world_count`` races of ``drones_per_world`` drones; the learner drives ``learner_slots`` of each world.
 
@@ -54,7 +62,7 @@ class RaceEnv(RaceState):
                          learner_slots=learner_slots, device=device, seed=seed, training=training)
         self.action_map = ActionMap(cfg, setting.track, world_count=world_count, drones_per_world=drones_per_world,
                                     training=training, device=self.device)
-        self._obs_source = ObsSource(**{f.name: getattr(self, f.name) for f in fields(ObsSource)})
+        self._obs_source = observed_tensors(self)
         self.observer = Observer(cfg, self._obs_source, device=self.device)
         self.obs_builder = self.observer.builder
         """The observation layout and history buffer."""
