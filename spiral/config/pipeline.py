@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import Field, field_validator, model_validator
 
@@ -16,8 +16,14 @@ from spiral.core.device import canonical_device
 
 __all__ = ["PIPELINE_VERSION", "EvaluationCfg", "PipelineSpec", "RacingCfg", "ReportCfg"]
 
-PIPELINE_VERSION = 1
-"""Schema version of pipeline files; a file of another version is refused."""
+PIPELINE_VERSION = 2
+"""Schema version of pipeline files; a file of another version is refused, naming what changed since it."""
+
+_CHANGED_SINCE = {
+    1: "stages' selfplay.promotion.formats is now selfplay.promotion.scenarios, and report.racing.planner_formats "
+       "is now report.racing.planner_scenarios",
+}
+"""What changed in the schema after each older version."""
 
 
 class EvaluationCfg(StrictModel):
@@ -60,7 +66,7 @@ class RacingCfg(StrictModel):
         description="Placements (the held-out seed's first) of SPIRAL's duels against SE-IBR, each raced from both "
         "sides (with report.se_ibr; the planner takes about 20 s of a CPU core per drone and 3-lap race); 0: none",
     )
-    planner_formats: list[Literal["1v1", "2v2"]] = Field(
+    planner_scenarios: list[Literal["1v1", "2v2"]] = Field(
         default=["1v1"], min_length=1, description="Scenarios of SPIRAL's duels against SE-IBR",
     )
 
@@ -91,7 +97,7 @@ class PipelineSpec(StrictModel):
     """A training and evaluation pipeline."""
 
     kind: Literal["pipeline"]
-    version: Literal[1] = Field(default=PIPELINE_VERSION, description="Schema version of this file")
+    version: int = Field(default=PIPELINE_VERSION, description="Schema version of this file")
     name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$", description="Pipeline name (run folder name)")
     track: Path = Field(description="Track file, relative to this pipeline file")
     airframe: AirframeSel = Field(default_factory=AirframeSel)
@@ -101,6 +107,19 @@ class PipelineSpec(StrictModel):
     stages: list[StageSpec] = Field(min_length=1, description="Training stages in curriculum order")
     evaluation: EvaluationCfg = Field(default_factory=EvaluationCfg)
     report: ReportCfg = Field(default_factory=ReportCfg)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _this_version(cls, data: Any) -> Any:
+        version = data.get("version", PIPELINE_VERSION) if isinstance(data, dict) else PIPELINE_VERSION
+        if version == PIPELINE_VERSION:
+            return data
+        if isinstance(version, int) and 1 <= version < PIPELINE_VERSION:
+            changes = "; ".join(_CHANGED_SINCE[v] for v in sorted(_CHANGED_SINCE) if v >= version)
+            raise ValueError(f"version: the file is version {version}, this spiral reads version {PIPELINE_VERSION} "
+                             f"({changes}); change the file, then set version: {PIPELINE_VERSION}")
+        raise ValueError(f"version: {version!r} is not a version this spiral reads ({PIPELINE_VERSION}; a newer file "
+                         "needs a newer spiral)")
 
     @field_validator("device")
     @classmethod

@@ -71,7 +71,7 @@ class PromotionCfg(StrictModel):
 
     interval: PosInt = Field(default=25, description="Iterations between head-to-head evaluations")
     races: PosInt = Field(default=64, description="Seeded races per evaluation (M): the head to head's, the "
-                          "self-match's and each of `formats` and `track_starts`")
+                          "self-match's and each of `scenarios` and `track_starts`")
     min_races: PosInt | None = Field(default=None, description="Fewest races a promotion may rest on (at most "
                                      "`races`); null: `races`")
     min_win_rate: float = Field(default=0.55, ge=0, le=1, description="Win rate needed over the current best")
@@ -92,7 +92,7 @@ class PromotionCfg(StrictModel):
         "slower); 0: any",
     )
     elo_k: float = Field(default=16.0, gt=0, description="Elo K-factor applied per evaluation (match score)")
-    formats: bool = Field(
+    scenarios: bool = Field(
         default=False,
         description="Also race the learner and the best in a self-match of each other scenario of the stage's "
         "`mix` (`races` races each, the same placements for both): a learner whose success in one of them is more "
@@ -102,9 +102,10 @@ class PromotionCfg(StrictModel):
     track_starts: bool = Field(
         default=False,
         description="Also race the learner and the best in self-matches from track starts (every drone at a random "
-        "point between two gates; the stage's scenario and, with `formats`, each other scenario of its `mix`; `races` "
-        "races each, the same placements for both): a learner more than max_success_drop below the best's in one of "
-        "them is not promoted, so that the stage's best still races from anywhere on the track (not in the paper)",
+        "point between two gates; the stage's scenario and, with `scenarios`, each other scenario of its `mix`; "
+        "`races` races each, the same placements for both): a learner more than max_success_drop below the best's in "
+        "one of them is not promoted, so that the stage's best still races from anywhere on the track (not in the "
+        "paper)",
     )
 
 

@@ -6,13 +6,13 @@ from typing import Literal
 
 __all__ = ["MIX_PART_STRIDE", "SEED_OFFSETS", "Stream", "stream_seed"]
 
-Stream = Literal["training", "selection", "promotion", "formats", "matchmaking"]
+Stream = Literal["training", "selection", "promotion", "scenarios", "matchmaking"]
 
 SEED_OFFSETS: dict[Stream, int] = {
     "training": 0,
     "selection": 10_000,
     "promotion": 20_000,
-    "formats": 30_000,
+    "scenarios": 30_000,
     "matchmaking": 30_000,
 }
 """Offset of each stream from the stage's seed:
@@ -21,11 +21,11 @@ SEED_OFFSETS: dict[Stream, int] = {
   stage adds ``r``: :mod:`spiral.train.distributed`);
 - ``selection``: the races that select the stage's best (:mod:`spiral.train.runner`);
 - ``promotion``: promotion's head-to-head races (:mod:`spiral.selfplay.promotion`);
-- ``formats``: promotion's other self-matches (the other scenarios of the stage's mix, then those from track starts:
+- ``scenarios``: promotion's other self-matches (the other scenarios of the stage's mix, then those from track starts:
   :func:`spiral.selfplay.promotion.self_match_envs`), the ``i``-th at offset + ``i``;
 - ``matchmaking``: the generator that draws each opponent slot's pool member (:mod:`spiral.selfplay.curriculum`).
 
-``formats`` and ``matchmaking`` share a value but feed different generators (race placements, opponent draws)."""
+``scenarios`` and ``matchmaking`` share a value but feed different generators (race placements, opponent draws)."""
 
 MIX_PART_STRIDE = 1_000
 """Seed step between the parts of a mixed env: part ``k`` races with seed + ``k`` × stride."""

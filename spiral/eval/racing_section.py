@@ -69,14 +69,14 @@ def race_racing(held: Evaluations, stages: list[StageRun], cfg: RacingCfg) -> Ra
 
 def race_planner_duels(held: Evaluations, stages: list[StageRun], cfg: RacingCfg
                        ) -> dict[str, dict[str, dict[str, Any]]]:
-    """SPIRAL's final policy against SE-IBR in ``cfg.planner_formats``, from ``cfg.planner_runs`` placements of
+    """SPIRAL's final policy against SE-IBR in ``cfg.planner_scenarios``, from ``cfg.planner_runs`` placements of
     ``held``'s seed and every start of ``cfg``: starts -> scenario -> SPIRAL's entry."""
     final = final_stages(stages).get("spiral")
     out: dict[str, dict[str, dict[str, Any]]] = {}
     if final is None or cfg.planner_runs == 0:
         return out
     for starts, ev in _variants(held, cfg, cfg.planner_runs).items():
-        out[starts] = {s: ev.cross(s, ("spiral", str(final.best)), ("se-ibr", SE_IBR)) for s in cfg.planner_formats}
+        out[starts] = {s: ev.cross(s, ("spiral", str(final.best)), ("se-ibr", SE_IBR)) for s in cfg.planner_scenarios}
     return out
 
 

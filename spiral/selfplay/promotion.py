@@ -63,7 +63,7 @@ def head_to_head(env: RaceEnv, challenger: Policy, holder: Policy) -> HeadToHead
 
 
 def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[float, float] | None = None,
-                   formats: Mapping[str, tuple[float, float]] | None = None) -> bool:
+                   scenarios: Mapping[str, tuple[float, float]] | None = None) -> bool:
     """Whether the learner (team A of ``result``) replaces the best.
 
     Faster: win rate at least ``min_win_rate`` over at least ``min_races`` races with success not below the best's
@@ -71,11 +71,11 @@ def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[floa
     ``cfg.self_match``, self-match success not below the best's by more than that either). Safer (with
     ``cfg.self_match`` and ``cfg.self_match_gain``): self-match success at least ``self_match_gain`` above the
     best's over at least ``min_races`` races, head-to-head success not below the best's by more than
-    ``max_success_drop`` and win rate at least ``safer_min_win_rate``. Either way, given ``formats`` (key →
+    ``max_success_drop`` and win rate at least ``safer_min_win_rate``. Either way, given ``scenarios`` (key →
     (learner, best) success ratios in the other self-matches of :func:`self_match_envs`), none of them more than
     ``max_success_drop`` below the best's.
     """
-    if any(own < best - cfg.max_success_drop for own, best in (formats or {}).values()):
+    if any(own < best - cfg.max_success_drop for own, best in (scenarios or {}).values()):
         return False
     enough = result.races >= (cfg.races if cfg.min_races is None else cfg.min_races)
     as_safe = result.a_success >= result.b_success - cfg.max_success_drop
@@ -90,15 +90,15 @@ def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[floa
 
 def self_match_envs(stage: StageSpec, setting: RaceSetting, *, device: str, seed: int) -> dict[str, RaceEnv]:
     """The self-match races a promotion also weighs, by key: each other scenario of the stage's mix from the start
-    box (``promotion.formats``; key: the scenario) and, with ``promotion.track_starts``, the stage's scenario and
+    box (``promotion.scenarios``; key: the scenario) and, with ``promotion.track_starts``, the stage's scenario and
     those from track starts (key: ``track-<scenario>``). Each has ``promotion.races`` worlds and a seed of its own."""
     cfg = stage.selfplay.promotion
-    runs = [(scenario, "box") for scenario in sorted(stage.mix)] if cfg.formats else []
+    runs = [(scenario, "box") for scenario in sorted(stage.mix)] if cfg.scenarios else []
     if cfg.track_starts:
-        runs += [(scenario, "track") for scenario in [stage.scenario, *(sorted(stage.mix) if cfg.formats else [])]]
+        runs += [(scenario, "track") for scenario in [stage.scenario, *(sorted(stage.mix) if cfg.scenarios else [])]]
     return {scenario if starts == "box" else f"track-{scenario}": self_match_env(
                 setting, stage.env.with_eval_starts(starts), scenario, races=cfg.races, device=device,
-                seed=stream_seed(seed, "formats", i))
+                seed=stream_seed(seed, "scenarios", i))
             for i, (scenario, starts) in enumerate(runs)}
 
 
@@ -152,7 +152,7 @@ class PromotionSelector:
         own, best_own = trainer.selection.evaluate_pair(it, self.best)
         learner = trainer.selection.candidate_policy()
         result = head_to_head(self.env, learner, self.best)
-        formats = {key: tuple(score.success for score in paired_scores(env, learner, self.best))
+        scenarios = {key: tuple(score.success for score in paired_scores(env, learner, self.best))
                    for key, env in self.other_self_matches.items()}
         trainer.runner.alg.train_mode()
         learner_rating, best_rating = elo_update(self.best_rating, self.best_rating, result.score, self.cfg.elo_k)
@@ -161,9 +161,9 @@ class PromotionSelector:
                "h2h/promoted": 0.0, "eval/success": own.success,
                "eval/lap_time": own.lap_time if own.lap_time is not None else float("nan"),
                "eval/best_success": best_own.success}
-        for key, (mine, theirs) in formats.items():
-            row[f"formats/{key}_success"], row[f"formats/{key}_best_success"] = mine, theirs
-        if should_promote(result, self.cfg, (own.success, best_own.success), formats):
+        for key, (mine, theirs) in scenarios.items():
+            row[f"scenarios/{key}_success"], row[f"scenarios/{key}_best_success"] = mine, theirs
+        if should_promote(result, self.cfg, (own.success, best_own.success), scenarios):
             path = trainer.save_best(it)
             keep_promoted(path, it)
             if self.pool is not None:

@@ -84,3 +84,25 @@ def test_pipeline_with_a_broken_track_names_the_track_file(tmp_path):
     with pytest.raises(SpecError) as info:
         load_pipeline(path)
     assert info.value.problems == [f"{bad}: gates.0.colour: Extra inputs are not permitted"]
+
+
+def test_a_pipeline_of_an_older_version_is_refused_naming_what_changed(tmp_path):
+    """A version-1 file (with the field since renamed) gets one line: its version, this one, and the renames."""
+    path = tmp_path / "p.yaml"
+    path.write_text(f"kind: pipeline\nversion: 1\nname: p\ntrack: {ROOT / 'tracks' / 'oval4.yaml'}\nstages:\n"
+                    "  - {name: solo, iterations: 1}\n"
+                    "  - {name: 2v2, scenario: 2v2, selfplay: {promotion: {formats: true}}}\n")
+    with pytest.raises(SpecError) as info:
+        load_pipeline(path)
+    [problem] = info.value.problems
+    assert problem.startswith(f"{path}: version: the file is version 1, this spiral reads version 2")
+    assert "selfplay.promotion.formats is now selfplay.promotion.scenarios" in problem
+
+
+@pytest.mark.parametrize("version", [3, "two"])
+def test_a_pipeline_of_a_version_this_spiral_does_not_know_is_refused(tmp_path, version):
+    path = tmp_path / "p.yaml"
+    path.write_text(f"kind: pipeline\nversion: {version}\nname: p\ntrack: {ROOT / 'tracks' / 'oval4.yaml'}\n"
+                    "stages:\n  - {name: solo, iterations: 1}\n")
+    with pytest.raises(SpecError, match="is not a version this spiral reads"):
+        load_pipeline(path)

@@ -215,7 +215,7 @@ def test_the_shipped_pipeline_charges_closing_in_both_branches_and_blinds_only_s
         "solo": 0.0, "1v1": 0.5, "2v2": 0.5, "1v1-noselfplay": 0.5, "2v2-noselfplay": 0.5})
     assert {name: s.selfplay.opponent_blind for name, s in stages.items() if s.scenario != "solo"} == pytest.approx({
         "1v1": 0.3, "2v2": 0.3, "1v1-noselfplay": 0.0, "2v2-noselfplay": 0.0})
-    assert {name: s.selfplay.promotion.formats for name, s in stages.items() if s.scenario != "solo"} == {
+    assert {name: s.selfplay.promotion.scenarios for name, s in stages.items() if s.scenario != "solo"} == {
         "1v1": False, "2v2": True, "1v1-noselfplay": False, "2v2-noselfplay": True}
 
 

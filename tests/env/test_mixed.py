@@ -17,7 +17,7 @@ def mixed_stage(**kw) -> StageSpec:
                      env={"obs": {"history_len": 1}, "episode": {"track_start_prob": 0.0}}, **kw)
 
 
-def test_mix_splits_the_worlds_between_formats_the_stages_own_first():
+def test_mix_splits_the_worlds_between_scenarios_the_stages_own_first():
     stage = mixed_stage()
     assert stage.world_split() == {"2v2": 4, "solo": 2, "1v1": 2}
     assert list(StageSpec(name="s", scenario="1v1", worlds=100, iterations=1, mix={"solo": 0.001}).world_split()
@@ -34,7 +34,7 @@ def test_mixes_that_make_no_sense_are_refused_naming_the_field(scenario, mix, fi
 
 
 def test_a_race_critic_is_refused_in_a_mixed_stage():
-    """Its inputs grow with the drones of a format, so one critic cannot take the formats of a mixed stage."""
+    """Its inputs grow with the drones of a scenario, so one critic cannot take the scenarios of a mixed stage."""
     with pytest.raises(ValidationError, match=r"env\.critic"):
         StageSpec(name="s", scenario="2v2", worlds=8, iterations=1, mix={"1v1": 0.25}, env={"critic": "race"})
 
@@ -45,7 +45,7 @@ def test_env_steps_budget_counts_the_learners_of_every_format():
     assert stage.iteration_budget() == 10
 
 
-def test_mixed_env_puts_each_formats_drones_in_its_slots_and_routes_actions_to_them(line2):
+def test_mixed_env_puts_each_scenarios_drones_in_its_slots_and_routes_actions_to_them(line2):
     """Parts in split order: 2v2 (learners 0, 1; opponents 2, 3), solo (learner 0 alone), 1v1 (learner 0, opponent
     1). Each learner row's action reaches its own drone; opponents fly their policy; a solo world has no opponent."""
     stage = mixed_stage()
@@ -74,7 +74,7 @@ def test_mixed_env_puts_each_formats_drones_in_its_slots_and_routes_actions_to_t
         torch.testing.assert_close(opponent, torch.full_like(opponent, -0.5))
 
 
-def test_mixed_env_statistics_add_up_and_report_each_formats_success(line2):
+def test_mixed_env_statistics_add_up_and_report_each_scenarios_success(line2):
     env = training_env(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), mixed_stage(), device="cpu", seed=0)
     parts = list(env.parts.values())
     for part, (episodes, successes) in zip(parts, [(4, 3), (2, 2), (2, 0)], strict=True):
@@ -85,7 +85,7 @@ def test_mixed_env_statistics_add_up_and_report_each_formats_success(line2):
     assert env.pop_stats()["episodes"] == 0
 
 
-def test_learner_mirror_worlds_split_off_each_formats_mirror_share_as_all_learner_worlds(line2):
+def test_learner_mirror_worlds_split_off_each_scenarios_mirror_share_as_all_learner_worlds(line2):
     """With ``mirror_actions: learner`` the mirror share of every multi-drone format becomes worlds whose drones
     are all learner drones (no opponents); solo worlds have no mirror."""
     stage = mixed_stage(selfplay={"p_self": 0.5, "mirror_actions": "learner"})

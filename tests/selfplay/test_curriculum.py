@@ -1,5 +1,5 @@
 """Self-play stages: frozen opponents' settings, promotion feeding the pool, resume, the frozen opponent's checkpoint,
-init snapshots and blind opponents across a stage's formats."""
+init snapshots and blind opponents across a stage's scenarios."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
-"""Promotion: the rule on scripted results (win rate, self-match, other formats, safer learners), Elo, and a
-stage's races in its mix's other formats."""
+"""Promotion: the rule on scripted results (win rate, self-match, other scenarios, safer learners), Elo, and a
+stage's races in its mix's other scenarios."""
 
 from __future__ import annotations
 
@@ -69,31 +69,31 @@ def test_elo_update_is_zero_sum_and_follows_the_expected_score():
     assert a + b == pytest.approx(2200.0) and a < 1200.0
 
 
-def test_promotion_with_formats_races_the_learner_and_the_best_in_each_other_format_of_the_mix(line2, tmp_path):
-    """With `promotion.formats` a 1v1 stage mixing in solo worlds logs, at each promotion check, the solo success of
+def test_promotion_with_scenarios_races_the_learner_and_the_best_in_each_other_scenario_of_the_mix(line2, tmp_path):
+    """With `promotion.scenarios` a 1v1 stage mixing in solo worlds logs, at each promotion check, the solo success of
     learner and best (four one-drone races each: a multiple of 1/4), and nothing of it without the option."""
     solo = StageSpec.model_validate({"name": "solo", "iterations": 1, **SOLO})
     run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, tmp_path / "solo",
               sources=StageSources(pool_dir=tmp_path / "pool"), progress=False)
     logged = {}
-    for formats in (True, False):
+    for scenarios in (True, False):
         duel = StageSpec.model_validate({
             "name": "1v1", "scenario": "1v1", "iterations": 1, "mix": {"solo": 0.25},
-            "selfplay": {"promotion": {**PERMISSIVE["promotion"], "formats": formats}}, **COMMON})
-        run_dir = tmp_path / f"duel-{formats}"
+            "selfplay": {"promotion": {**PERMISSIVE["promotion"], "scenarios": scenarios}}, **COMMON})
+        run_dir = tmp_path / f"duel-{scenarios}"
         run_stage(RaceSetting(line2, CF2X, SimCfg()), duel, run_dir,
-                  sources=StageSources(pool_dir=tmp_path / f"pool-{formats}",
+                  sources=StageSources(pool_dir=tmp_path / f"pool-{scenarios}",
                                        init_checkpoint=tmp_path / "solo" / "best.pt"), progress=False)
         row = json.loads((run_dir / "train_log.jsonl").read_text().splitlines()[-1])
-        logged[formats] = {k: v for k, v in row.items() if k.startswith("formats/")}
-    assert set(logged[True]) == {"formats/solo_success", "formats/solo_best_success"}
+        logged[scenarios] = {k: v for k, v in row.items() if k.startswith("scenarios/")}
+    assert set(logged[True]) == {"scenarios/solo_success", "scenarios/solo_best_success"}
     assert all(v in (0.0, 0.25, 0.5, 0.75, 1.0) for v in logged[True].values())
     assert logged[False] == {}
 
 
 def test_promotion_with_track_starts_also_races_self_matches_from_the_track(line2):
-    """`promotion.track_starts` adds self-matches from track starts of the stage's format and, with `formats`, of
-    each other format of its mix; box self-matches of the other formats keep their seeds. A learner that wins its
+    """`promotion.track_starts` adds self-matches from track starts of the stage's scenario and, with `scenarios`, of
+    each other scenario of its mix; box self-matches of the other scenarios keep their seeds. A learner that wins its
     duels but races 0.60 from the track where the best races 0.90 is not promoted."""
     spec = {"name": "1v1", "scenario": "1v1", "iterations": 1, "mix": {"solo": 0.25}, **COMMON}
 
@@ -101,11 +101,11 @@ def test_promotion_with_track_starts_also_races_self_matches_from_the_track(line
         stage = StageSpec.model_validate({**spec, "selfplay": {"promotion": promotion}})
         return self_match_envs(stage, RaceSetting(line2, CF2X, SimCfg()), device="cpu", seed=0)
 
-    both = envs(formats=True, track_starts=True)
+    both = envs(scenarios=True, track_starts=True)
     assert list(both) == ["solo", "track-1v1", "track-solo"]
     assert [both[k].drones_per_world for k in both] == [1, 2, 1]
     assert [both[k].cfg.episode.eval_starts for k in both] == ["box", "track", "track"]
-    assert both["solo"].generator.initial_seed() == envs(formats=True)["solo"].generator.initial_seed()
+    assert both["solo"].generator.initial_seed() == envs(scenarios=True)["solo"].generator.initial_seed()
     assert list(envs(track_starts=True)) == ["track-1v1"]
     assert envs() == {}
     cfg, win = PromotionCfg(max_success_drop=0.05), HeadToHead(64, 40, 20, 4, 0.98, 0.98)
