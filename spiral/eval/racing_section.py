@@ -53,8 +53,9 @@ def race_racing(held: Evaluations, stages: list[StageRun], cfg: RacingCfg) -> Ra
     """The section's races among learned policies, from ``held``'s placements: each final policy's self-matches in
     every scenario and SPIRAL's duel with PPO without self-play, from every start of ``cfg``."""
     out = Racing(cfg.laps, held.protocol.runs, held.protocol.seed)
-    finals = {method: str(stage.best) for method, stage in final_stages(stages).items()}
-    out.final_names = {method: stage.name for method, stage in final_stages(stages).items()}
+    final = final_stages(stages)
+    finals = {method: str(stage.best) for method, stage in final.items()}
+    out.final_names = {method: stage.name for method, stage in final.items()}
     for starts, ev in _variants(held, cfg).items():
         out.self_matches[starts] = {
             scenario: {method: ev.flown(scenario, method, checkpoint, FlightOverride(), "final")
