@@ -34,3 +34,16 @@ def test_the_shipped_final_policy_flies_its_documented_success_and_lap_time(scen
     assert entry["success_ratio"] >= min_success
     assert lap_range[0] <= entry["lap_time_mean"] <= lap_range[1]
     assert entry["crashes"]["ground"] == 0  # exact: integer count
+
+
+def test_every_member_of_the_shipped_pool_loads_with_the_final_policys_layout():
+    """The shipped pool (what a user's fine-tuning or ``spiral bench ppo --stage 1v1`` races) has no member that its
+    index refuses: every file matches its recorded checksum and the final policy's observation layout."""
+    from spiral.core.checkpoint import load_policy
+    from spiral.selfplay.pool import Pool
+
+    skipped: list[str] = []
+    pool = Pool(ROOT / "checkpoints" / "full" / "pool", log=skipped.append)
+    policies = pool.load_policies(load_policy(SPIRAL).obs_layout)
+    assert skipped == []
+    assert sorted(policies) == sorted(m.id for m in pool.members)
