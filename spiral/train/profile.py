@@ -8,11 +8,15 @@ gradient clipping, optimizer step and the observation normaliser. Its samples pe
 *matmul limit*: the rate at which the same update would run if it did nothing but the plain matrix products of its
 linear layers (forward, gradient of the input, gradient of the weights) at the speed this CPU reaches on them, timed
 here.
+
+On a CUDA device every clock is read after waiting for the device (:func:`device_clock`), so a time is that of the
+work queued before it, not of its launch; on a CPU the clocks are plain ``time.perf_counter``.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import tempfile
 import time
 from collections import defaultdict
@@ -31,11 +35,26 @@ from spiral.env.mixed import MixedRaceEnv
 from spiral.env.setting import RaceSetting
 from spiral.train.runner import StageStart, StageTrainer
 
-__all__ = ["ENV_HOOKS", "linear_layers", "matmul_seconds", "profile_iteration", "timed_methods",
+__all__ = ["ENV_HOOKS", "device_clock", "linear_layers", "matmul_seconds", "profile_iteration", "timed_methods",
            "update_flops_per_sample"]
 
 ENV_HOOKS = ("apply_actions", "simulate", "race_events", "rewards", "dones", "reset_ended", "get_observations")
 """RaceEnv's step hooks, in the order ``RaceEnv.step`` calls them."""
+
+
+def device_clock(device: str | torch.device) -> Callable[[], float]:
+    """A wall clock [s] for timing work on ``device``: ``time.perf_counter`` itself on a CPU; on a CUDA device a
+    clock that first waits for the device (``torch.cuda.synchronize``: every stream of it, Warp's as well as
+    torch's), so that a time read after queued work includes that work."""
+    device = torch.device(device)
+    if device.type != "cuda":
+        return time.perf_counter
+
+    def now() -> float:
+        torch.cuda.synchronize(device)
+        return time.perf_counter()
+
+    return now
 
 
 def linear_layers(*modules: nn.Module) -> list[tuple[int, int]]:
@@ -68,7 +87,7 @@ def matmul_seconds(layers: list[tuple[int, int]], first: set[int], batch: int, *
         x, w, g = (torch.randn(*shape, device=device, dtype=dtype)
                    for shape in ((batch, n_in), (n_out, n_in), (batch, n_out)))
         mats.append((x, w, g, i not in first))
-    sync = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
+    clock = device_clock(device)
 
     def once() -> None:
         for x, w, g, grad_input in mats:
@@ -76,28 +95,29 @@ def matmul_seconds(layers: list[tuple[int, int]], first: set[int], batch: int, *
             torch.mm(g.t(), x)
             if grad_input:
                 torch.mm(g, w)
-        sync()
 
     once()
     wall = cpu = float("inf")
     for _ in range(repeats):
-        t0, c0 = time.perf_counter(), time.process_time()
+        t0, c0 = clock(), time.process_time()
         once()
-        wall, cpu = min(wall, time.perf_counter() - t0), min(cpu, time.process_time() - c0)
+        wall, cpu = min(wall, clock() - t0), min(cpu, time.process_time() - c0)
     return wall, cpu
 
 
 @contextlib.contextmanager
-def timed_methods(obj: Any, names: tuple[str, ...], totals: dict[str, float]) -> Iterator[None]:
+def timed_methods(obj: Any, names: tuple[str, ...], totals: dict[str, float], *,
+                  clock: Callable[[], float] = time.perf_counter) -> Iterator[None]:
     """Accumulate the wall time of ``obj``'s methods ``names`` into ``totals`` while the context is open (``obj`` an
-    instance, or a class to time the methods of all its instances)."""
+    instance, or a class to time the methods of all its instances), read off ``clock`` (a :func:`device_clock` for
+    methods that queue work on a GPU)."""
     def wrap(name: str, fn: Callable[..., Any]) -> Callable[..., Any]:
         def timed(*args: Any, **kwargs: Any) -> Any:
-            t0 = time.perf_counter()
+            t0 = clock()
             try:
                 return fn(*args, **kwargs)
             finally:
-                totals[name] += time.perf_counter() - t0
+                totals[name] += clock() - t0
         return timed
 
     own = {name: vars(obj)[name] for name in names if name in vars(obj)}  # a class's own methods: put back after
@@ -118,13 +138,14 @@ def _rollout(trainer: StageTrainer, obs: Any, totals: dict[str, float],
     """One rollout of :meth:`StageTrainer.collect`, with the policy's and the env's parts timed (the hooks of every
     part of a mixed env, and the opponents' policies apart from the ``apply_actions`` hook that calls them)."""
     parts = trainer.env.parts.values() if isinstance(trainer.env, MixedRaceEnv) else [trainer.env]
+    timed = functools.partial(timed_methods, clock=device_clock(trainer.device))
     with contextlib.ExitStack() as stack:
-        stack.enter_context(timed_methods(trainer.runner.alg, ("act", "process_env_step", "compute_returns"), totals))
+        stack.enter_context(timed(trainer.runner.alg, ("act", "process_env_step", "compute_returns"), totals))
         for env in parts:
-            stack.enter_context(timed_methods(env, ENV_HOOKS, totals))
+            stack.enter_context(timed(env, ENV_HOOKS, totals))
         inside: dict[str, float] = defaultdict(float)
         for kind in {type(policy) for policy in opponents.values()}:  # a call looks __call__ up on the class
-            stack.enter_context(timed_methods(kind, ("__call__",), inside))
+            stack.enter_context(timed(kind, ("__call__",), inside))
         obs = trainer.collect(obs)[0]
     if inside:
         totals["opponents"] += inside["__call__"]
@@ -132,8 +153,9 @@ def _rollout(trainer: StageTrainer, obs: Any, totals: dict[str, float],
     return obs
 
 
-def _update_parts(trace: torch.profiler.profile) -> dict[str, float]:
-    """Seconds of the update's top-level profiler events by part."""
+def _update_parts(trace: torch.profiler.profile, *, on_device: bool = False) -> dict[str, float]:
+    """Seconds of the update's top-level profiler events by part: their processor time, or with ``on_device`` the
+    time of the GPU kernels they (and the events under them) launched."""
     parts: dict[str, float] = defaultdict(float)
     for ev in trace.events():
         if ev.cpu_parent is not None:
@@ -149,12 +171,13 @@ def _update_parts(trace: torch.profiler.profile) -> dict[str, float]:
             part = name
         else:
             part = "forward"
-        parts[part] += ev.cpu_time_total * 1e-6
+        parts[part] += (ev.device_time_total if on_device else ev.cpu_time_total) * 1e-6
     return dict(parts)
 
 
-def _traced_update(alg: Any) -> torch.profiler.profile:
-    """rsl-rl's update under the profiler, with gradient clipping and the normaliser labelled."""
+def _traced_update(alg: Any, *, on_device: bool = False) -> torch.profiler.profile:
+    """rsl-rl's update under the profiler, with gradient clipping and the normaliser labelled; with ``on_device``
+    the GPU's kernels traced too."""
     record = torch.profiler.record_function
     clip, actor_norm, critic_norm = nn.utils.clip_grad_norm_, alg.actor.update_normalization, \
         alg.critic.update_normalization
@@ -169,7 +192,8 @@ def _traced_update(alg: Any) -> torch.profiler.profile:
     alg.actor.update_normalization = labelled("update_normalization", actor_norm)
     alg.critic.update_normalization = labelled("update_normalization", critic_norm)
     try:
-        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as trace:
+        activity = torch.profiler.ProfilerActivity
+        with torch.profiler.profile(activities=[activity.CPU, *([activity.CUDA] if on_device else [])]) as trace:
             alg.update()
     finally:
         nn.utils.clip_grad_norm_ = clip
@@ -198,7 +222,8 @@ def profile_iteration(setting: RaceSetting, stage: StageSpec, *, iterations: int
         alg.update()
         obs, timings = _timed_iterations(trainer, obs, opponents, iterations)
         obs = _rollout(trainer, obs, defaultdict(float), opponents)
-        parts = _update_parts(_traced_update(alg))
+        on_device = torch.device(device).type == "cuda"  # the GPU's share of each part, not its launches'
+        parts = _update_parts(_traced_update(alg, on_device=on_device), on_device=on_device)
     return _report(stage, trainer, device, timings, parts)
 
 
@@ -221,14 +246,14 @@ def _timed_iterations(trainer: StageTrainer, obs: Any, opponents: dict[str, Oppo
                       iterations: int) -> tuple[Any, _Timings]:
     """Run ``iterations`` PPO iterations from ``obs``, timing the rollouts by part and the updates; the observations
     after them and the times."""
-    alg, t = trainer.runner.alg, _Timings(iterations)
+    alg, t, clock = trainer.runner.alg, _Timings(iterations), device_clock(trainer.device)
     for _ in range(iterations):
-        t0 = time.perf_counter()
+        t0 = clock()
         obs = _rollout(trainer, obs, t.rollout_parts, opponents)
-        t.rollout_s += time.perf_counter() - t0
-        t0, c0 = time.perf_counter(), time.process_time()
+        t.rollout_s += clock() - t0
+        t0, c0 = clock(), time.process_time()
         alg.update()
-        t.update_s, t.update_cpu_s = t.update_s + time.perf_counter() - t0, t.update_cpu_s + time.process_time() - c0
+        t.update_s, t.update_cpu_s = t.update_s + clock() - t0, t.update_cpu_s + time.process_time() - c0
     return obs, t
 
 

@@ -7,9 +7,11 @@ import importlib.util
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
+import torch
 from torch import nn
 
 from spiral.config import AIRFRAMES, SimCfg, StageSpec
@@ -19,6 +21,7 @@ from spiral.selfplay.curriculum import published_opponents
 from spiral.train import StageStart
 from spiral.train.profile import (
     ENV_HOOKS,
+    device_clock,
     linear_layers,
     matmul_seconds,
     profile_iteration,
@@ -105,6 +108,35 @@ def test_a_profiled_self_play_stage_races_a_copy_of_the_pool_and_times_the_oppon
     assert r["rollout_parts_s"]["opponents"] > 0
     with pytest.raises(ValueError, match="needs the checkpoint it starts from and its opponents"):
         profile_iteration(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), duel, iterations=1)
+
+
+def test_on_a_cpu_the_clock_is_perf_counter_and_a_timed_method_reads_the_clock_it_is_given():
+    """The CPU clock is ``time.perf_counter`` itself (nothing waits, the figures as before); a timed method is timed
+    by the clock it is given, read once before and once after each call."""
+    assert device_clock("cpu") is time.perf_counter and device_clock(torch.device("cpu")) is time.perf_counter
+
+    class Thing:
+        def double(self, x):
+            return 2 * x
+
+    ticks, totals = iter([1.0, 3.5, 10.0, 10.25]), {"double": 0.0}
+    with timed_methods(Thing, ("double",), totals, clock=lambda: next(ticks)):
+        assert Thing().double(2) == 4 and Thing().double(3) == 6
+    assert totals["double"] == pytest.approx(2.75)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_on_a_gpu_the_clock_waits_for_the_queued_work():
+    """A CUDA clock is not perf_counter and reads the time after the products queued before it have finished."""
+    clock = device_clock("cuda:0")
+    assert clock is not time.perf_counter
+    x = torch.randn(2048, 2048, device="cuda:0")
+    t0 = clock()
+    y = x @ x
+    t1 = clock()
+    assert t1 > t0 and torch.cuda.current_stream().query()  # nothing left queued when the clock was read
+    assert y.shape == (2048, 2048)
 
 
 def test_timed_methods_put_a_classs_own_method_back():
