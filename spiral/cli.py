@@ -315,23 +315,27 @@ def _flight_override(separation: str, separation_team: str, downwash: bool | Non
 @bench_app.command("sim")
 @handles_errors
 def bench_sim(
-    worlds: Annotated[str, typer.Option("--worlds", help="Comma-separated world counts")] = "1,64,1024,4096,16384",
+    worlds: Annotated[str | None, typer.Option("--worlds", help="Comma-separated world counts (default: "
+                                               "1,64,1024,4096,16384; on a GPU up to 65536)")] = None,
     device: DeviceOpt = "cpu",
     steps: Annotated[int, typer.Option("--steps", min=1, help="Timed control steps per row")] = 100,
-    two_process: Annotated[bool, typer.Option("--two-process", help="Also run 4096x4 in two processes")] = True,
-    builds: Annotated[bool, typer.Option("--builds/--no-builds", help="CPU: also time 4096x4 with each CPU build "
-                                         "(SPIRAL_CPU_TARGET portable and native), each in fresh processes")] = True,
-    threads: Annotated[int, typer.Option("--threads", min=1, help="Also run 4096x4 in one process with the worlds "
-                                         "stepped on this many threads (1: not)")] = 2,
+    two_process: Annotated[bool | None, typer.Option("--two-process/--no-two-process", help="CPU: also run 4096x4 "
+                                                     "in two processes (default: on a CPU)")] = None,
+    builds: Annotated[bool | None, typer.Option("--builds/--no-builds", help="CPU: also time 4096x4 with each CPU "
+                                                "build (SPIRAL_CPU_TARGET portable and native), each in fresh "
+                                                "processes (default: on a CPU)")] = None,
+    threads: Annotated[int | None, typer.Option("--threads", min=1, help="CPU: also run 4096x4 in one process with "
+                                                "the worlds stepped on this many threads (1: not; default: 2 on a "
+                                                "CPU)")] = None,
     json_out: JsonOut = None,
 ) -> None:
     """Simulator throughput (pid mode, gates and collisions on) against the numpy reference."""
     device = check_device(device)
-    from spiral.sim.bench import BenchExtras, format_bench_table, run_sim_bench
+    from spiral.sim.bench import BenchExtras, default_world_counts, format_bench_table, run_sim_bench
 
-    counts = [int(w) for w in worlds.split(",") if w.strip()]
-    result = run_sim_bench(counts, device=device, steps=steps,
-                           extras=BenchExtras(two_process=two_process, builds=builds, threads=threads))
+    extras = BenchExtras.for_device(device, two_process=two_process, builds=builds, threads=threads)
+    counts = [int(w) for w in worlds.split(",") if w.strip()] if worlds else list(default_world_counts(device))
+    result = run_sim_bench(counts, device=device, steps=steps, extras=extras)
     typer.echo(format_bench_table(result))
     _write_json(json_out, result)
 

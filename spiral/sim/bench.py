@@ -28,13 +28,15 @@ from spiral.config.airframe import AIRFRAMES, AirframeCfg
 from spiral.config.load import load_track
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
+from spiral.core.errors import UsageError
 from spiral.core.numerics import CPU_TARGET_ENV, cpu_target
 from spiral.sim.options import MODULE_OPTIONS
 from spiral.sim.reference import ReferenceSim
 from spiral.sim.world import World
 
-__all__ = ["BenchExtras", "format_bench_table", "format_kernel_table", "kernel_profile", "machine_info",
-           "run_build_comparison", "run_sim_bench", "run_sim_bench_two_process", "time_world", "two_process_worker"]
+__all__ = ["BenchExtras", "default_world_counts", "format_bench_table", "format_kernel_table", "kernel_profile",
+           "machine_info", "run_build_comparison", "run_sim_bench", "run_sim_bench_two_process", "time_world",
+           "two_process_worker"]
 
 TARGET_REDRAW_STEPS = 10
 """Control steps between two draws of the random targets (about 0.2 s at 48 Hz)."""
@@ -45,6 +47,20 @@ NUMPY_BUDGET_S = 2.0
 row), never fewer than 3."""
 DEFAULT_TRACK = Path(__file__).resolve().parents[2] / "tracks" / "circuit6.yaml"
 """Track of the benchmark: the paper's 6-gate circuit."""
+CPU_WORLD_COUNTS = (1, 64, 1024, 4096, 16384)
+"""Rows of a CPU run by default (a CPU's rate levels off from about 1024 worlds)."""
+CUDA_WORLD_COUNTS = (1, 64, 1024, 4096, 16384, 65536)
+"""Rows of a GPU run by default: a GPU fills up only at tens of thousands of drones."""
+
+
+def default_world_counts(device: str) -> tuple[int, ...]:
+    """The world counts of a benchmark run on ``device`` when none are asked for."""
+    return CUDA_WORLD_COUNTS if _is_cuda(device) else CPU_WORLD_COUNTS
+
+
+def _is_cuda(device: str) -> bool:
+    """Whether ``device`` names a GPU (``cuda`` or ``cuda:N``), read off the name alone."""
+    return str(device).startswith("cuda")
 
 
 def machine_info() -> dict[str, Any]:
@@ -198,6 +214,25 @@ class BenchExtras:
     """Above 1, time Warp alone with the worlds stepped on this many threads of one process (``threaded`` entry;
     the rows use one)."""
 
+    @classmethod
+    def for_device(cls, device: str, *, two_process: bool | None = None, builds: bool | None = None,
+                   threads: int | None = None) -> BenchExtras:
+        """The extras of a run on ``device``, each left ``None`` at its default: on a CPU all of them (two
+        processes, both builds, two threads); on a GPU none, since each measures how the CPU's cores are shared.
+
+        Raises:
+            UsageError: an extra asked for on a GPU, naming its option.
+        """
+        if not _is_cuda(device):
+            return cls(two_process=two_process is not False, builds=builds is not False,
+                       threads=2 if threads is None else threads)
+        asked = [option for option, on in (("--two-process", two_process), ("--builds", builds),
+                                           (f"--threads {threads}", (threads or 1) > 1)) if on]
+        if asked:
+            raise UsageError(f"{', '.join(asked)}: the simulator runs on the GPU on {device}, and these rows compare "
+                             "CPU processes, threads and builds; leave them out or use --device cpu")
+        return cls()
+
 
 def run_sim_bench(worlds: Sequence[int], *, device: str = "cpu", drones: Sequence[int] = (1, 4), steps: int = 100,
                   seed: int = 0, repeats: int = 3, extras: BenchExtras = BenchExtras(),
@@ -211,13 +246,14 @@ def run_sim_bench(worlds: Sequence[int], *, device: str = "cpu", drones: Sequenc
         steps: Timed control steps of Warp per repeat.
         seed: Seed of start positions and targets.
         repeats: Timed repeats; each row keeps the fastest (other processes may share the cores).
-        extras: Entries to add beside the rows.
+        extras: Entries to add beside the rows (CPU only: :meth:`BenchExtras.for_device`).
         track: Track of the run; the paper's circuit by default.
 
     Returns:
         ``{"device", "machine", "settings", "results": [row, ...]}`` and the entries of ``extras``.
     """
     wp.init()
+    BenchExtras.for_device(device, two_process=extras.two_process, builds=extras.builds, threads=extras.threads)
     track, airframe = track if track is not None else load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"]
     machine = machine_info()
     rows = [_bench_row(track, airframe, w, d, device=device, steps=steps, seed=seed, repeats=repeats)
@@ -228,16 +264,23 @@ def run_sim_bench(worlds: Sequence[int], *, device: str = "cpu", drones: Sequenc
         "settings": _bench_settings(track, airframe, _bench_cfg(), repeats=repeats, seed=seed),
         "results": rows,
     }
+    _add_extras(result, extras, track, steps=steps, seed=seed, repeats=repeats)
+    return result
+
+
+def _add_extras(result: dict[str, Any], extras: BenchExtras, track: TrackSpec, *, steps: int, seed: int,
+                repeats: int) -> None:
+    """Time the entries of ``extras`` at 4096 worlds × 4 drones into ``result``, the machine's load read after the
+    in-process ones (the others run in processes of their own)."""
     if extras.threads > 1:
-        result["threaded"] = time_world(4096, 4, device=device, steps=steps, repeats=repeats, seed=seed,
+        result["threaded"] = time_world(4096, 4, device=result["device"], steps=steps, repeats=repeats, seed=seed,
                                         cpu_threads=extras.threads, track=track)
     result["machine"]["load_avg_1min_end"] = _load_avg()
     if extras.builds and result["device"] == "cpu":
         result["builds"] = run_build_comparison(4096, 4, steps=steps, seed=seed, repeats=repeats)
     if extras.two_process:
-        result["two_process"] = run_sim_bench_two_process(4096, 4, device=device, steps=steps, seed=seed,
+        result["two_process"] = run_sim_bench_two_process(4096, 4, device=result["device"], steps=steps, seed=seed,
                                                           repeats=repeats)
-    return result
 
 
 def time_world(world_count: int, drones: int, *, device: str = "cpu", steps: int = 100, repeats: int = 3,
@@ -281,19 +324,33 @@ def _restorer(world: World) -> Callable[[], None]:
 
 
 def _best_per_call(world: World, restore: Callable[[], None], run: Callable[[], Any], count: int, *,
-                   repeats: int) -> tuple[float, float]:
+                   repeats: int, graphed: bool = False) -> tuple[float, float]:
     """Wall and process CPU seconds per call of ``run``, ``count`` calls in a row from the restored state, best of
-    ``repeats``."""
+    ``repeats``; the clock read after the device has finished (``wp.synchronize_device``). With ``graphed``, on a GPU
+    the ``count`` calls are captured once as a CUDA graph and its launch is timed: the GPU's time for the calls
+    without Python's time to launch each of them."""
+    calls = _captured(world.device, run, count) if graphed and _is_cuda(world.device) else None
     times = []
     for _ in range(repeats):
         restore()
         wp.synchronize_device(world.device)
         start, cpu = time.perf_counter(), time.process_time()
-        for _ in range(count):
-            run()
+        if calls is not None:
+            wp.capture_launch(calls)
+        else:
+            for _ in range(count):
+                run()
         wp.synchronize_device(world.device)
         times.append((time.perf_counter() - start, time.process_time() - cpu))
     return min(t[0] for t in times) / count, min(t[1] for t in times) / count
+
+
+def _captured(device: str, run: Callable[[], Any], count: int) -> Any:
+    """A CUDA graph of ``count`` calls of ``run`` on ``device`` (recorded, not run)."""
+    with wp.ScopedCapture(device=device) as capture:
+        for _ in range(count):
+            run()
+    return capture.graph
 
 
 def kernel_profile(world_count: int, drones: int, *, device: str = "cpu", launches: int = 30, repeats: int = 9,
@@ -304,7 +361,9 @@ def kernel_profile(world_count: int, drones: int, *, device: str = "cpu", launch
     Each kernel's recorded launch runs ``launches`` times in a row from the same state (restored before every
     repeat, crash flags cleared), best of ``repeats``; then ``launches`` whole control steps are timed the same way
     (crash flags cleared before each, as :func:`time_world` does), so that the rows can be compared with their sum.
-    Wall clock (synchronised on the device) and process CPU time.
+    Wall clock (read after synchronising the device) and process CPU time. On a GPU a kernel's ``launches`` launches
+    are timed as one CUDA graph (the GPU's time, not Python's to launch them), and a whole step is
+    :meth:`World.step`'s own graph launch.
     """
     wp.init()
     track, airframe = track if track is not None else load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"]
@@ -330,17 +389,17 @@ def kernel_profile(world_count: int, drones: int, *, device: str = "cpu", launch
     }
 
 
-def _kernel_rows(world: World, best_of: Callable[[Callable[[], Any], int], tuple[float, float]],
-                 launches: int) -> list[dict[str, Any]]:
+def _kernel_rows(world: World, best_of: Callable[..., tuple[float, float]], launches: int) -> list[dict[str, Any]]:
     """One row per kernel of a control step, in launch order: its recorded launch timed ``launches`` times in a row
-    by ``best_of`` (wall and CPU seconds per call), per launch, per drone and per control step."""
+    by ``best_of`` (wall and CPU seconds per call; on a GPU from a graph of the launches), per launch, per drone and
+    per control step."""
     order: dict[str, list] = {}
     for cmd in world._simulate(record=True):  # one control step's launches, arguments packed
         order.setdefault(cmd.kernel.key, []).append(cmd)
     n = world.drone_count
     rows = []
     for key, cmds in order.items():
-        wall, cpu = best_of(cmds[0].launch, launches)
+        wall, cpu = best_of(cmds[0].launch, launches, graphed=True)
         rows.append({"kernel": key, "launches_per_step": len(cmds), "cpu_ms_per_launch": 1e3 * cpu,
                      "cpu_ns_per_drone": 1e9 * cpu / n, "cpu_ms_per_step": 1e3 * cpu * len(cmds),
                      "wall_ms_per_launch": 1e3 * wall, "wall_ns_per_drone": 1e9 * wall / n,

@@ -11,8 +11,11 @@ import numpy as np
 import pytest
 import warp as wp
 
+from spiral.core.errors import UsageError
 from spiral.sim.bench import (
+    BenchExtras,
     _restorer,
+    default_world_counts,
     format_bench_table,
     format_kernel_table,
     kernel_profile,
@@ -56,6 +59,22 @@ def test_threaded_row_steps_the_worlds_on_the_threads_asked_for(kernels, gate_tr
     result = run_sim_bench([2], drones=(1,), steps=3, repeats=1, track=gate_track)
     table = format_bench_table(result | {"threaded": row})
     assert "on 2 threads, 3 worlds × 2 drones" in table and "threads" not in format_bench_table(result)
+
+
+def test_the_cpu_extras_are_on_by_default_on_a_cpu_and_off_and_refused_on_a_gpu():
+    """A CPU run adds two processes, both builds and two threads unless told not to; a GPU run adds none, refuses
+    each when asked for by its option, in one message, before building anything; a GPU's rows go up to 65536
+    worlds."""
+    assert BenchExtras.for_device("cpu") == BenchExtras(two_process=True, builds=True, threads=2)
+    assert BenchExtras.for_device("cpu", two_process=False, builds=False, threads=1) == BenchExtras()
+    assert BenchExtras.for_device("cuda:0") == BenchExtras()
+    assert BenchExtras.for_device("cuda:0", two_process=False, builds=False, threads=1) == BenchExtras()
+    with pytest.raises(UsageError, match=r"^--two-process, --threads 2: the simulator runs on the GPU on cuda:1"):
+        BenchExtras.for_device("cuda:1", two_process=True, threads=2)
+    with pytest.raises(UsageError, match=r"^--builds: .*use --device cpu$"):
+        run_sim_bench([1], device="cuda:0", extras=BenchExtras(builds=True))
+    assert default_world_counts("cpu") == (1, 64, 1024, 4096, 16384)
+    assert default_world_counts("cuda:0") == (1, 64, 1024, 4096, 16384, 65536)
 
 
 def test_crazyflow_peer_script_runs_spiral_half(tmp_path):
