@@ -1,4 +1,5 @@
-"""Simulator fixtures: Warp modules loaded once per session, a hand-made gate track, world factories, test kernels."""
+"""Simulator fixtures: Warp modules loaded once per session, a hand-made gate track, world factories over the devices
+present (``cpu``, and ``cuda:0`` where Warp finds a GPU), test kernels."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from spiral.sim.collisions import sphere_gate_overlap
 from spiral.sim.dynamics import all_finite, body_wrench
 from spiral.sim.gates import segment_gate_crossing
 from spiral.sim.pid import mix
+from tests.sim.helpers import DEVICES
 
 wp.config.quiet = True
 
@@ -62,41 +64,42 @@ class Kernels:
 
     @staticmethod
     def segment_crossing(world: World, p0: np.ndarray, p1: np.ndarray, gate: np.ndarray) -> np.ndarray:
-        """Crossing fraction of each segment through its gate, or −1."""
-        n = len(p0)
-        out = wp.zeros(n, dtype=wp.float32)
+        """Crossing fraction of each segment through its gate, or −1 (on ``world``'s device)."""
+        n, dev = len(p0), world.device
+        out = wp.zeros(n, dtype=wp.float32, device=dev)
         wp.launch(segment_crossing_kernel, n,
-                  inputs=[wp.array(np.asarray(p0, np.float32), dtype=wp.vec3),
-                          wp.array(np.asarray(p1, np.float32), dtype=wp.vec3),
-                          wp.array(np.asarray(gate, np.int32), dtype=wp.int32), world.track],
-                  outputs=[out])
+                  inputs=[wp.array(np.asarray(p0, np.float32), dtype=wp.vec3, device=dev),
+                          wp.array(np.asarray(p1, np.float32), dtype=wp.vec3, device=dev),
+                          wp.array(np.asarray(gate, np.int32), dtype=wp.int32, device=dev), world.track],
+                  outputs=[out], device=dev)
         return out.numpy()
 
     @staticmethod
     def gate_overlap(world: World, pos: np.ndarray, gate: np.ndarray, radius: float) -> np.ndarray:
-        """1 where a sphere at ``pos`` touches a bar of its gate."""
-        n = len(pos)
-        out = wp.zeros(n, dtype=wp.int32)
+        """1 where a sphere at ``pos`` touches a bar of its gate (on ``world``'s device)."""
+        n, dev = len(pos), world.device
+        out = wp.zeros(n, dtype=wp.int32, device=dev)
         wp.launch(gate_overlap_kernel, n,
-                  inputs=[wp.array(np.asarray(pos, np.float32), dtype=wp.vec3),
-                          wp.array(np.asarray(gate, np.int32), dtype=wp.int32), radius, world.track],
-                  outputs=[out])
+                  inputs=[wp.array(np.asarray(pos, np.float32), dtype=wp.vec3, device=dev),
+                          wp.array(np.asarray(gate, np.int32), dtype=wp.int32, device=dev), radius, world.track],
+                  outputs=[out], device=dev)
         return out.numpy()
 
     @staticmethod
     def mix_roundtrip(world: World, wrench: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Motor speeds of each (thrust, τx, τy, τz) and the wrench those speeds produce."""
-        n = len(wrench)
-        rpm, out = wp.zeros(n, dtype=wp.vec4), wp.zeros(n, dtype=wp.vec4)
-        wp.launch(mix_wrench_kernel, n, inputs=[wp.array(np.asarray(wrench, np.float32), dtype=wp.vec4),
-                                                world.params], outputs=[rpm, out])
+        """Motor speeds of each (thrust, τx, τy, τz) and the wrench those speeds produce (on ``world``'s device)."""
+        n, dev = len(wrench), world.device
+        rpm, out = wp.zeros(n, dtype=wp.vec4, device=dev), wp.zeros(n, dtype=wp.vec4, device=dev)
+        wp.launch(mix_wrench_kernel, n, inputs=[wp.array(np.asarray(wrench, np.float32), dtype=wp.vec4, device=dev),
+                                                world.params], outputs=[rpm, out], device=dev)
         return rpm.numpy(), out.numpy()
 
     @staticmethod
     def all_finite(v: np.ndarray) -> np.ndarray:
-        """1 where every component of a 3-vector is finite (the dynamics kernel's health check)."""
-        out = wp.zeros(len(v), dtype=wp.int32)
-        wp.launch(finite_kernel, len(v), inputs=[wp.array(np.asarray(v, np.float32), dtype=wp.vec3)], outputs=[out])
+        """1 where every component of a 3-vector is finite (the dynamics kernel's health check), on the CPU."""
+        out = wp.zeros(len(v), dtype=wp.int32, device="cpu")
+        wp.launch(finite_kernel, len(v), inputs=[wp.array(np.asarray(v, np.float32), dtype=wp.vec3, device="cpu")],
+                  outputs=[out], device="cpu")
         return out.numpy()
 
 
@@ -130,22 +133,30 @@ def cf2x_no_drag() -> AirframeCfg:
 @pytest.fixture(scope="session")
 def kernels(gate_track: TrackSpec, cf2x: AirframeCfg) -> type[Kernels]:
     """Test kernels, with every simulator module loaded once for the session (Warp compiles each on first use)."""
-    world = World(gate_track, cf2x, SimCfg(), world_count=1, drones_per_world=2)
+    world = World(gate_track, cf2x, SimCfg(), world_count=1, drones_per_world=2, device="cpu")
     world.reset_all(np.array([[-2.0, 1.4, 1.5], [-2.0, 1.6, 1.5]]))
     world.step()
     Kernels.mix_roundtrip(world, np.zeros((1, 4)))
     return Kernels
 
 
+@pytest.fixture(params=DEVICES)
+def sim_device(request: pytest.FixtureRequest) -> str:
+    """The device of the test's worlds: each of :data:`DEVICES` (a test pins one with
+    ``@pytest.mark.parametrize("sim_device", [...])``)."""
+    return request.param
+
+
 @pytest.fixture
-def make_world(kernels: type[Kernels], gate_track: TrackSpec, cf2x: AirframeCfg) -> Callable[..., World]:
+def make_world(kernels: type[Kernels], gate_track: TrackSpec, cf2x: AirframeCfg,
+               sim_device: str) -> Callable[..., World]:
     """Factory: ``make_world(track=gate_track, airframe=cf2x, world_count=1, drones=1, cpu_threads=1,
-    **SimCfg fields)``."""
+    **SimCfg fields)``, the worlds on ``sim_device``."""
 
     def make(track: TrackSpec | None = None, airframe: AirframeCfg | None = None, *, world_count: int = 1,
              drones: int = 1, cpu_threads: int = 1, **sim: Any) -> World:
         return World(track or gate_track, airframe or cf2x, SimCfg(**sim), world_count=world_count,
-                     drones_per_world=drones, cpu_threads=cpu_threads)
+                     drones_per_world=drones, device=sim_device, cpu_threads=cpu_threads)
 
     return make
 

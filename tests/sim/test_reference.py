@@ -113,13 +113,14 @@ def test_reference_contacts_match_kernel(kernels, make_world, circuit6):
     pos[40:80, 0] = rng.uniform(4.3, 4.7, 40)  # some near the x bound (4.5 m)
     crashed = (rng.random(3000) < 0.1).astype(np.int32)
     world = make_world(track=circuit6, drones=3)
-    out = wp.zeros(3000, dtype=wp.int32)
-    p = wp.array(pos, dtype=wp.vec3)
-    counters = [wp.zeros(3000, dtype=wp.int32) for _ in range(3)]  # next gate, gates passed, step passes
+    dev = world.device
+    out = wp.zeros(3000, dtype=wp.int32, device=dev)
+    p = wp.array(pos, dtype=wp.vec3, device=dev)
+    counters = [wp.zeros(3000, dtype=wp.int32, device=dev) for _ in range(3)]  # next gate, gates passed, step passes
     wp.launch(detect_collisions_and_gate_passes, 3000,
-              inputs=[p, p, wp.array(crashed, dtype=wp.int32), world.track, world.params,
-                      wp.zeros(1000, dtype=wp.int32), 3, 0, 1.0 / 240.0],
-              outputs=[out, *counters, wp.zeros(3000, dtype=wp.float32)])
+              inputs=[p, p, wp.array(crashed, dtype=wp.int32, device=dev), world.track, world.params,
+                      wp.zeros(1000, dtype=wp.int32, device=dev), 3, 0, 1.0 / 240.0],
+              outputs=[out, *counters, wp.zeros(3000, dtype=wp.float32, device=dev)], device=dev)
     expected = out.numpy()
     assert not counters[1].numpy().any()  # standing still, nobody passes a gate
     got = contact_bits(pos, crashed, GateArrays(circuit6, np.float32), np.float32(world.airframe.radius), 3)

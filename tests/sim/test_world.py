@@ -8,6 +8,7 @@ import warp as wp
 from pydantic import ValidationError
 
 from spiral.config import SimCfg
+from tests.sim.helpers import ON_CUDA
 
 STATE = ("pos", "vel", "quat", "omega", "rpm")
 RACE = ("next_gate", "gates_passed", "out", "crash_time", "pass_time", "step_collision", "world_substeps")
@@ -55,7 +56,7 @@ def test_trajectory_does_not_depend_on_world_count(make_world, run, targets):
 
 @pytest.mark.bitwise
 def test_same_seed_gives_bit_identical_runs(make_world, run, targets):
-    """Reproduce every state and race array bit for bit from the same seed (CPU)."""
+    """Reproduce every state and race array bit for bit from the same seed (on one device)."""
     results = []
     for _ in range(2):
         rng = np.random.default_rng(7)
@@ -79,8 +80,10 @@ def test_reset_of_a_subset_leaves_other_worlds_untouched(make_world, run, target
     before = snapshot(world)
     new_pos, new_yaw = starts(rng, 6)
     mask = np.array([0, 1, 0], np.int32)
-    world.reset(wp.array(mask, dtype=wp.int32), wp.array(new_pos.astype(np.float32), dtype=wp.vec3),
-                wp.array(new_yaw.astype(np.float32), dtype=wp.float32))
+    dev = world.device
+    world.reset(wp.array(mask, dtype=wp.int32, device=dev),
+                wp.array(new_pos.astype(np.float32), dtype=wp.vec3, device=dev),
+                wp.array(new_yaw.astype(np.float32), dtype=wp.float32, device=dev))
     after = snapshot(world)
     keep = np.array([0, 1, 4, 5])
     for k in (*STATE, "integral", "next_gate", "gates_passed", "out"):
@@ -139,6 +142,7 @@ def test_world_time_is_exact_at_48_hz(make_world):
         SimCfg(physics_hz=240, ctrl_hz=50)
 
 
+@pytest.mark.parametrize("sim_device", ["cpu"])  # a GPU replays a CUDA graph instead (the test below)
 @pytest.mark.parametrize("downwash", [False, True], ids=["plain", "downwash"])
 @pytest.mark.bitwise
 def test_replayed_launches_give_exactly_the_plain_launch_path(make_world, targets, downwash):
@@ -162,6 +166,7 @@ def test_replayed_launches_give_exactly_the_plain_launch_path(make_world, target
         np.testing.assert_array_equal(out[True][key], value, err_msg=key)
 
 
+@pytest.mark.parametrize("sim_device", ["cpu"])  # CPU threads; a GPU steps every world in one launch
 @pytest.mark.parametrize(("world_count", "drones", "threads"), [(5, 4, 2), (5, 4, 3), (7, 1, 2)],
                          ids=["4-drones-2-threads", "4-drones-3-threads", "1-drone-2-threads"])
 @pytest.mark.bitwise
@@ -192,6 +197,38 @@ def test_worlds_stepped_in_threads_give_exactly_the_one_thread_state(make_world,
     assert out[1]["nonfinite"].tolist() == [0] * (world_count - 1) + [1]
     for key, value in out[1].items():
         np.testing.assert_array_equal(out[threads][key], value, err_msg=key)
+
+
+@pytest.mark.parametrize("sim_device", [ON_CUDA])
+@pytest.mark.parametrize("downwash", [False, True], ids=["plain", "downwash"])
+@pytest.mark.bitwise
+def test_cuda_graph_gives_exactly_the_plain_launch_path(make_world, targets, downwash):
+    """On a GPU, 300 control steps replayed from the captured CUDA graph give bit for bit the state of launching
+    every kernel afresh: drones flying random targets (some crash, some fly on, one passes a gate, one world's drone
+    goes non-finite), every state, race, controller and attitude array, the clocks and health flags included."""
+    rng = np.random.default_rng(13)
+    pos, yaw = starts(rng, 16)
+    commands = targets(rng, 300, 16)
+    pos[0], yaw[0], commands[:, 0] = (-1.0, 0.0, 1.5), 0.0, (1.5, 0.0, 1.5, 0.0)  # drone 0 flies through gate 0
+    out = {}
+    for graph in (False, True):
+        world = make_world(world_count=4, drones=4, downwash=downwash)
+        world.use_graph, world.replay_launches = graph, False
+        world.reset_all(pos, yaw)
+        for i, cmd in enumerate(commands):
+            wp.copy(world.cmd, wp.array(cmd, dtype=wp.vec4, device=world.device))
+            if i == 20:  # the last world's last drone gets a NaN velocity while it still flies
+                vel = world.state.vel.numpy().copy()
+                vel[15] = [np.nan, 0.0, 0.0]
+                world.state.vel.assign(vel)
+            world.step()
+        out[graph] = snapshot(world) | {"rpy": world.rpy.numpy().copy(),
+                                        "nonfinite": world.race.world_nonfinite.numpy().copy()}
+    assert world._graph is not None and world.device == "cuda:0"  # the second run did replay a graph
+    assert out[True]["out"].any() and (out[True]["out"] == 0).any() and out[True]["gates_passed"][0] == 1
+    assert out[True]["nonfinite"].tolist() == [0, 0, 0, 1]
+    for key, value in out[False].items():
+        np.testing.assert_array_equal(out[True][key], value, err_msg=key)
 
 
 def test_cpu_threads_must_be_positive(make_world):
