@@ -155,7 +155,9 @@ def _rollout(trainer: StageTrainer, obs: Any, totals: dict[str, float],
 
 def _update_parts(trace: torch.profiler.profile, *, on_device: bool = False) -> dict[str, float]:
     """Seconds of the update's top-level profiler events by part: their processor time, or with ``on_device`` the
-    time of the GPU kernels they (and the events under them) launched."""
+    time of the GPU kernels they (and the events under them) launched (their processor time all the same if the
+    trace holds no kernel times, as without CUDA's profiling library)."""
+    on_device = on_device and any(ev.device_time_total for ev in trace.events())
     parts: dict[str, float] = defaultdict(float)
     for ev in trace.events():
         if ev.cpu_parent is not None:
