@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from torch import nn
@@ -21,6 +22,7 @@ from spiral.selfplay.curriculum import published_opponents
 from spiral.train import StageStart
 from spiral.train.profile import (
     ENV_HOOKS,
+    _update_parts,
     device_clock,
     linear_layers,
     matmul_seconds,
@@ -125,6 +127,16 @@ def test_on_a_cpu_the_clock_is_perf_counter_and_a_timed_method_reads_the_clock_i
     assert totals["double"] == pytest.approx(2.75)
 
 
+def test_a_trace_without_kernel_times_is_split_by_processor_time_even_when_the_gpus_share_is_asked_for():
+    """Without the GPU's kernel times in a trace (a CPU run, or CUDA without its profiling library) the update's
+    parts are the processor times, never all zero."""
+    x = torch.randn(64, 64)
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as trace:
+        torch.mm(x, x)
+    parts = _update_parts(trace)
+    assert parts["forward"] > 0 and _update_parts(trace, on_device=True) == pytest.approx(parts)
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_on_a_gpu_the_clock_waits_for_the_queued_work():
@@ -215,3 +227,61 @@ def test_pool_opponents_script_times_both_implementations_and_finds_the_same_act
     r = json.loads(out.read_text())
     assert r["members"] == 3 and r["same_actions"] is True
     assert all(len(v) == 2 and min(v) > 0 for v in r["seconds_per_call"].values())
+
+
+def _gpu_check():
+    root = Path(__file__).resolve().parents[2]
+    spec = importlib.util.spec_from_file_location("gpu_check", root / "benchmarks" / "gpu_check.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_gpu_check_quick_mode_runs_every_check_on_the_cpu(tmp_path):
+    """`gpu_check.py --device cpu --quick`: the flight agrees with the saved reference (to the bit where the host
+    should reproduce it), the fast path with plain launches, host syncs are counted in all three stages, rates at
+    both tiny sizes, and the smoke pipeline runs on the CPU into folders of its own."""
+    root = Path(__file__).resolve().parents[2]
+    out = tmp_path / "gpu_check.json"
+    proc = subprocess.run([sys.executable, str(root / "benchmarks" / "gpu_check.py"), "--device", "cpu", "--quick",
+                           "--json", str(out)], capture_output=True, text=True, cwd=root)
+    assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
+    checks = {c["check"]: c for c in json.loads(out.read_text())["checks"]}
+    assert list(checks) == ["agreement", "graph", "host_syncs", "rates", "smoke"]
+    assert [line.split()[0] for line in proc.stdout.splitlines()[:5]] == ["PASS", "PASS", "INFO", "INFO", "PASS"]
+    agreement = checks["agreement"]
+    assert agreement["events_equal"] and (agreement["bitwise"] or not agreement["bitwise_expected"])
+    assert checks["graph"]["differing_arrays"] == [] and checks["graph"]["drones_out"] > 0
+    assert set(checks["host_syncs"]["stages"]) == {"solo", "1v1", "2v2"}
+    assert all(s["steps"] == 8 and s["per_step_mean"] >= 0 for s in checks["host_syncs"]["stages"].values())
+    assert [r["worlds"] for r in checks["rates"]["rows"]] == [16, 64]
+    assert all(r["env_steps_per_s"] > 0 and r["update_samples_per_s"] > 0 for r in checks["rates"]["rows"])
+    assert checks["smoke"]["steps"] > 0 and set(checks["smoke"]["training_devices"].values()) == {"cpu"}
+
+
+def test_gpu_check_agreement_passes_on_the_saved_reference_and_fails_beyond_its_tolerance(tmp_path):
+    """The saved CPU reference is flown again here: same events, within the tolerances, to the bit on a host that
+    runs the portable build. A reference with one position moved past the tolerance fails, and one moved by a
+    rounding-size step fails only where the bits are expected."""
+    gpu_check = _gpu_check()
+    same = gpu_check.agreement("cpu")
+    assert same["status"] == "pass" and same["events_equal"]
+    assert same["bitwise"] or not same["bitwise_expected"]
+    saved = dict(np.load(gpu_check.REFERENCE))
+    for step, fails in ((2e-3, True), (1e-6, same["bitwise_expected"])):
+        moved = {**saved, "pos": saved["pos"].copy()}
+        moved["pos"][-1, 5, 0] += np.float32(step)
+        np.savez(tmp_path / "moved.npz", **moved)
+        result = gpu_check.agreement("cpu", reference=tmp_path / "moved.npz")
+        assert result["status"] == ("fail" if fails else "pass"), (step, result["summary"])
+        moved_by = float(np.float64(moved["pos"][-1, 5, 0]) - saved["pos"][-1, 5, 0])  # the step, rounded to float32
+        assert result["max_abs_diff"]["pos"] == pytest.approx(moved_by) and moved_by == pytest.approx(step, rel=0.1)
+
+
+def test_gpu_check_counts_only_running_out_of_memory_as_a_size_that_does_not_fit():
+    """torch's OutOfMemoryError and Warp's failed allocation are out of memory; any other error is not."""
+    out_of_memory = _gpu_check().out_of_memory
+    assert out_of_memory(torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB"))
+    assert out_of_memory(RuntimeError("Failed to allocate 1073741824 bytes on device 'cuda:0'"))
+    assert not out_of_memory(RuntimeError("mat1 and mat2 shapes cannot be multiplied"))
+    assert not out_of_memory(ValueError("out of memory"))
