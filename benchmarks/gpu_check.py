@@ -193,9 +193,9 @@ def graph(device: str, *, worlds: int = 64, steps: int = 300, seed: int = 1) -> 
     path = "CUDA graph" if wp.get_device(device).is_cuda else "replayed launches"
     crashed, passes = int((plain["race.out"] != 0).sum()), int(plain["race.gates_passed"].sum())
     ok = not differ and fast_ran
+    verdict = "equal to the bit" if not differ else f"DIFFER in {', '.join(differ)}"
     summary = (f"{path} against plain launches, {steps} control steps of {worlds} worlds × 4 drones ({crashed} "
-               f"drones out, {passes} gate passes): " + ("equal to the bit" if not differ else
-                                                          f"DIFFER in {', '.join(differ)}"))
+               f"drones out, {passes} gate pass{'' if passes == 1 else 'es'}): {verdict}")
     return {"status": "pass" if ok else "fail", "summary": summary, "path": path, "differing_arrays": differ,
             "drones_out": crashed, "gate_passes": passes, "worlds": worlds, "steps": steps}
 
