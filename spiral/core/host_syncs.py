@@ -9,9 +9,11 @@ indices (``nonzero``, one-argument ``where``, ``argwhere``), outputs sized by th
 
 from __future__ import annotations
 
+import os
 import traceback
 from collections import Counter
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -19,6 +21,8 @@ from torch.overrides import TorchFunctionMode
 
 __all__ = ["HostSyncCounter", "is_host_sync"]
 
+_PACKAGE = str(Path(__file__).resolve().parents[1]) + os.sep
+"""The spiral package's folder: call sites are counted in its files by default."""
 _READS = frozenset({"__bool__", "__int__", "__float__", "__index__", "item", "tolist", "cpu", "numpy"})
 _SIZED_BY_DATA = frozenset({"nonzero", "argwhere", "masked_select", "unique", "unique_consecutive", "bincount"})
 
@@ -54,8 +58,8 @@ def is_host_sync(name: str, args: tuple[Any, ...], kwargs: dict[str, Any]) -> bo
 
 
 class HostSyncCounter(TorchFunctionMode):
-    """A torch function mode that counts host synchronisations by call site (file:line of the innermost frame under
-    ``under``, default any file of spiral's), and lets every call through unchanged.
+    """A torch function mode that counts host synchronisations by call site (file:line of the innermost frame whose
+    file ``under`` accepts, by default the spiral package's files), and lets every call through unchanged.
 
     >>> with HostSyncCounter() as syncs:
     ...     env.step(actions)
@@ -66,7 +70,7 @@ class HostSyncCounter(TorchFunctionMode):
         super().__init__()
         self.sites: Counter[tuple[str, str]] = Counter()
         """Count by ``(call, "path:line")``."""
-        self._under = under or (lambda filename: "/spiral/" in filename)
+        self._under = under or (lambda filename: filename.startswith(_PACKAGE))
 
     @property
     def total(self) -> int:
@@ -87,4 +91,4 @@ class HostSyncCounter(TorchFunctionMode):
         if not frames:
             return "?"
         f = frames[-1]
-        return f"{f.filename.rsplit('/spiral/', 1)[-1]}:{f.lineno}"
+        return f"{f.filename.removeprefix(_PACKAGE)}:{f.lineno}"

@@ -19,7 +19,7 @@ from spiral.env.observations import Observer, ObsSource
 from spiral.env.passages import PassageStarts
 from spiral.env.rewards import compute_rewards
 from spiral.env.setting import RaceSetting
-from spiral.env.starts import draw_starts
+from spiral.env.starts import Starts, draw_starts
 from spiral.env.state import RaceState
 
 __all__ = ["EpisodeEnds", "RaceEnv"]
@@ -43,6 +43,14 @@ def observed_tensors(state: RaceState) -> ObsSource:
                      out=state.out, next_gate=state.next_gate, gates_passed=state.gates_passed,
                      priority=state.priority, race_team=state.race_team, gate_center=state.gate_center,
                      gate_forward=state.gate_forward, other_slots=state.other_slots)
+
+
+def _draw_starts(env: RaceEnv, world_count: int) -> Starts:
+    """Starts of ``world_count`` worlds of ``env`` (passage starts among them in training), drawn with its generator
+    on the generator's device (:func:`~spiral.env.state.draw_device`) and moved to the env's."""
+    starts = draw_starts(env.track, env.cfg.episode, world_count, env.drones_per_world, env.generator,
+                         training=env.training, device=env.generator.device)
+    return env.passages.apply(starts, env.generator).to(env.device)
 
 
 class RaceEnv(RaceState):
@@ -210,8 +218,7 @@ class RaceEnv(RaceState):
         """Draw new starts for the worlds in the bool mask ``worlds`` (for those only, in world order, so a reset of
         every world draws what it always did) and reset them in the simulator."""
         d, idx = self.drones_per_world, worlds.nonzero().squeeze(1)
-        starts = self.passages.apply(draw_starts(self.track, self.cfg.episode, idx.numel(), d, self.generator,
-                                                 training=self.training, device=self.device), self.generator)
+        starts = _draw_starts(self, idx.numel())
         buf, t = self._wp_starts, wp.to_torch
         t(buf["mask"]).copy_(worlds.int())
         for name in ("pos", "vel", "yaw", "gate"):
@@ -220,11 +227,12 @@ class RaceEnv(RaceState):
         drones = worlds.repeat_interleave(d)
         self._reset_drone_buffers(drones)
         if any(o is not None and o.builder.cfg.priority for o in (self.observer, self.opponent_observer)):
-            self.priority[drones] = torch.rand(idx.numel() * d, generator=self.generator, device=self.device)
+            drawn = torch.rand(idx.numel() * d, generator=self.generator, device=self.generator.device)
+            self.priority[drones] = drawn.to(self.device)
         driven = self.learner_slots + (self.opponent_slots if self.opponent_policy is not None else [])
         self.contested[idx] = starts.box & (len({int(self.race_team[s]) for s in driven}) > 1)
         if self.training and self.cfg.episode.start_cut_prob > 0:
-            cut = starts.box & (torch.rand(idx.numel(), generator=self.generator, device=self.device)
+            cut = starts.box & (torch.rand(idx.numel(), generator=self.generator, device=self.generator.device)
                                 < self.cfg.episode.start_cut_prob)
             self.cut_time[idx] = torch.where(cut, self.cfg.episode.start_cut_s, math.inf)
         if isinstance(self.opponent_policy, ResettingOpponent):

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 
@@ -140,6 +140,10 @@ class Starts:
     """Next gate (W, D), int32."""
     box: torch.Tensor
     """Whether each world starts in the start box (W,), else along the track (at a random point or in single file)."""
+
+    def to(self, device: torch.device) -> Starts:
+        """These starts on ``device``."""
+        return Starts(*(getattr(self, f.name).to(device) for f in fields(self)))
 
 
 def draw_starts(track: TrackSpec, episode: EpisodeCfg, world_count: int, drones: int, generator: torch.Generator, *,

@@ -30,7 +30,14 @@ from spiral.env.stats import empty_stats, log_episodes, summarize_stats
 from spiral.sim import World
 from spiral.sim.state import COLLISION_KINDS
 
-__all__ = ["RaceState"]
+__all__ = ["RaceState", "draw_device"]
+
+
+def draw_device(device: torch.device, *, training: bool) -> torch.device:
+    """Where an env on ``device`` makes its random draws: on ``device`` in training (no copy to the device at every
+    reset), on the CPU in evaluation, so that a seed means the same placements on any device (a CUDA generator draws
+    other numbers than the CPU's for the same seed)."""
+    return device if training else torch.device("cpu")
 
 
 class RaceState:
@@ -61,7 +68,7 @@ class RaceState:
         self.passes_needed = len(setting.track.gates) * self.track.laps + 1
         self.margin_distance = 2.0 * setting.airframe.radius + cfg.episode.contact_margin
         """Training with ``episode.contact_margin``: drones closer than this collide [m]."""
-        self.generator = torch.Generator(device=self.device).manual_seed(seed)
+        self.generator = torch.Generator(device=draw_device(self.device, training=training)).manual_seed(seed)
         self.opponent_policy: OpponentPolicy | None = None
         self._bind_views()
         self._alloc_buffers()

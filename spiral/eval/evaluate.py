@@ -9,6 +9,7 @@ planner flies through the same action interface, so when it races a learned poli
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -76,6 +77,7 @@ __all__ = [
     "format_eval",
     "load_method",
     "parse_separation",
+    "race_device",
     "race_policies",
     "setup_race",
 ]
@@ -175,6 +177,12 @@ def parse_separation(text: str) -> SeparationCfg | str | None:
     except ValueError:
         raise UsageError(f"--separation: expected keep, none or DISTANCE,HORIZON_S,GAIN, got {text!r}") from None
     return SeparationCfg(distance=distance, horizon_s=horizon, gain=gain)
+
+
+def race_device(device: str, checkpoints: Iterable[str | Path]) -> str:
+    """The device a race of ``checkpoints`` (paths, or ``se-ibr``) runs on: the CPU when SE-IBR flies in it (it plans
+    on the host, and on a CUDA env it would copy the race's state there at every plan), else ``device``."""
+    return "cpu" if any(str(c).lower() == SE_IBR for c in checkpoints) else device
 
 
 def load_method(checkpoint: str | Path, *, device: str = "cpu") -> MethodPolicy:
@@ -290,7 +298,8 @@ def evaluate_methods(races: RaceSet, methods: dict[str, str | Path], *, device: 
     entry's ``layout`` says which. ``flight`` changes the flight stack of every drone (JSON ``flight``). Where the
     planner flew, ``planning`` is its cost (:func:`~spiral.baselines.planning_cost`: ms per plan per drone).
     """
-    out = _eval_json(races, flight)
+    device = race_device(device, [*methods.values(), *([against[1]] if against is not None else [])])
+    out = _eval_json(races, flight, device)
     check_sides(sides)
     if against is not None:
         out["against"] = {"name": against[0], "checkpoint": str(against[1])}
@@ -317,10 +326,11 @@ def evaluate_methods(races: RaceSet, methods: dict[str, str | Path], *, device: 
     return out
 
 
-def _eval_json(races: RaceSet, flight: FlightOverride | None) -> dict[str, Any]:
-    """The head of an evaluation's JSON: what was raced and the flight changes, with no method yet."""
+def _eval_json(races: RaceSet, flight: FlightOverride | None, device: str) -> dict[str, Any]:
+    """The head of an evaluation's JSON: what was raced, on which device, and the flight changes, with no method
+    yet."""
     out: dict[str, Any] = {"track": races.track.name, "scenario": races.scenario, "laps": races.track.laps,
-                           "runs": races.runs, "seed": races.seed, "methods": {}}
+                           "runs": races.runs, "seed": races.seed, "device": device, "methods": {}}
     if flight is not None and flight.to_json():
         out["flight"] = flight.to_json()
     return out
@@ -385,8 +395,8 @@ def evaluate_mixed_teams(track: TrackSpec, methods: dict[str, str | Path], *, ru
         layout = flight.apply(layout)
     env = _race_env(layout, RaceSet(track, "2v2", runs, seed), device=device, team_a_only=False)
     res = run_races(env, SlotPolicy([a, b, a, b]), teams=TEAMS["2v2"])  # type: ignore[list-item]
-    out: dict[str, Any] = {"track": track.name, "scenario": "2v2", "runs": runs, "seed": seed, "mixed": True,
-                           "methods": {}}
+    out: dict[str, Any] = {"track": track.name, "scenario": "2v2", "runs": runs, "seed": seed, "device": device,
+                           "mixed": True, "methods": {}}
     if flight is not None and flight.to_json():
         out["flight"] = flight.to_json()
     for (name, checkpoint), slots in zip(methods.items(), MIXED_SLOTS, strict=True):

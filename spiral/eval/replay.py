@@ -28,7 +28,7 @@ from spiral.config.track import TrackSpec
 from spiral.core.errors import UsageError
 from spiral.core.scenario import TEAMS
 from spiral.env.race_env import RaceEnv
-from spiral.eval.evaluate import EvalLayout, RaceSet, load_method, setup_race
+from spiral.eval.evaluate import EvalLayout, RaceSet, load_method, race_device, setup_race
 from spiral.eval.plots import _draw_view
 from spiral.sim import COLLISION_KINDS
 
@@ -105,10 +105,11 @@ def record_race(track: TrackSpec, scenario: str, method: tuple[str, str], agains
         method: (name, checkpoint or ``se-ibr``) flying every drone, or team A when ``against`` is given.
         against: (name, checkpoint or ``se-ibr``) of team B.
         seed: Seed of the start placement.
-        device: Torch/Warp device.
+        device: Torch/Warp device (the CPU when SE-IBR flies).
         airframe: Airframe when no learned policy is involved (default cf2x).
         sim: Simulator settings when no learned policy is involved.
     """
+    device = race_device(device, [method[1], *([against[1]] if against is not None else [])])
     policy = load_method(method[1], device=device)
     opponent = load_method(against[1], device=device) if against is not None else None
     layout = EvalLayout.default(airframe=airframe, sim=sim)

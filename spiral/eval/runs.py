@@ -26,7 +26,15 @@ from spiral.config.airframe import AIRFRAMES, AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
 from spiral.core.files import atomic_write_bytes, file_sha256
-from spiral.eval.evaluate import SE_IBR, EvalLayout, FlightOverride, RaceSet, evaluate_methods, evaluate_mixed_teams
+from spiral.eval.evaluate import (
+    SE_IBR,
+    EvalLayout,
+    FlightOverride,
+    RaceSet,
+    evaluate_methods,
+    evaluate_mixed_teams,
+    race_device,
+)
 
 __all__ = [
     "MODE_OF",
@@ -292,7 +300,8 @@ class Evaluations:
         checkpoints = [*methods.values(), *([against[1]] if against else [])]
         p = self.protocol
         inputs = {"track": p.track.model_dump(mode="json"), "scenario": scenario, "runs": p.runs,
-                  "seed": p.seed, "checkpoints": [c if c == SE_IBR else _checksum(Path(c)) for c in checkpoints],
+                  "seed": p.seed, "device": race_device(self.device, checkpoints),
+                  "checkpoints": [c if c == SE_IBR else _checksum(Path(c)) for c in checkpoints],
                   **({"sides": p.sides} if against else {}), **({"mixed": True} if mixed else {}),
                   **({"flight": flight.to_json()} if flight is not None and flight.to_json() else {})}
         return json.loads(json.dumps(inputs))  # compare as read back: tuples become lists

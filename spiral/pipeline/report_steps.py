@@ -19,7 +19,7 @@ from spiral.config.airframe import AirframeCfg
 from spiral.config.pipeline import PipelineSpec
 from spiral.config.track import TrackSpec
 from spiral.core.files import atomic_write_bytes
-from spiral.eval.evaluate import EvalLayout, RaceSet, evaluate_methods
+from spiral.eval.evaluate import SE_IBR, EvalLayout, RaceSet, evaluate_methods, race_device
 from spiral.eval.report import (
     SCENARIOS,
     ReportOptions,
@@ -98,9 +98,10 @@ def read_run(root: Path) -> RunRecord:
 
 
 def _planner_section(plan: PlanView) -> dict[str, Any]:
+    """What the planner's self-matches depend on: raced on the CPU whatever the pipeline's device."""
     return {"scenarios": list(SCENARIOS), **plan.spec.evaluation.model_dump(include={"runs", "seed"}),
-            "track": plan.track, "sim": plan.spec.sim,
-            "airframe": plan.airframe}
+            "track": plan.track, "sim": plan.spec.sim, "airframe": plan.airframe,
+            "device": race_device(plan.spec.device, [SE_IBR])}
 
 
 def _planner_fn(plan: PlanView):

@@ -113,3 +113,30 @@ def test_evaluation_starts_every_world_off_the_box_when_asked_and_ignores_the_tr
     box = draw_starts(line2, EpisodeCfg(track_start_prob=0.0), 64, 2, torch.Generator().manual_seed(3),
                       training=True, device=CPU)
     assert trained.box.all() and torch.equal(trained.pos, box.pos)
+
+
+def test_evaluation_draws_on_the_cpu_and_training_on_the_envs_device():
+    """A CUDA generator draws other numbers than the CPU's for one seed: evaluation placements are drawn on the CPU
+    whatever the env's device, so that a seed means the same races on any device; training draws stay on the device
+    (no copy to it at every reset)."""
+    from spiral.env.state import draw_device
+
+    gpu = torch.device("cuda:0")  # a name only: nothing is built on it
+    assert draw_device(gpu, training=False) == CPU
+    assert draw_device(gpu, training=True) == gpu
+    assert draw_device(CPU, training=True) == CPU
+
+
+@pytest.mark.parametrize("eval_starts", ["box", "track"])
+def test_an_evaluation_envs_placements_are_the_cpu_draws_of_its_seed(circuit6, eval_starts):
+    """The starts an evaluation env races are what ``draw_starts`` gives for a CPU generator of its seed: the code
+    path of an env on any device, whose draws are then moved to it."""
+    from tests.env.helpers import make_env
+
+    episode = EpisodeCfg(eval_starts=eval_starts)
+    env = make_env(circuit6, worlds=5, drones=2, learners=(0, 1), training=False, episode=episode)
+    assert env.generator.device == CPU
+    expected = draw_starts(env.track, env.cfg.episode, 5, 2, torch.Generator().manual_seed(3), training=False,
+                           device=CPU)
+    torch.testing.assert_close(env.pos.view(5, 2, 3), expected.pos, rtol=0, atol=0)
+    torch.testing.assert_close(env.vel.view(5, 2, 3), expected.vel, rtol=0, atol=0)

@@ -403,3 +403,23 @@ def test_a_pairing_that_fails_in_a_worker_fails_the_with(sprint, tiny_checkpoint
     pairings = [("1v1", ("spiral", missing), ("noselfplay", missing))] * 2
     with pytest.raises(Exception, match=r"absent\.pt"), crosses_in_workers(ev, pairings, jobs=2):
         pass
+
+
+def test_a_race_cache_from_another_device_is_raced_again_and_the_planners_races_are_on_the_cpu(
+        sprint, tiny_checkpoint, tmp_path):
+    """Races on another device give other floats: a cache records the device it raced on and is reused only for
+    that device. A race with SE-IBR runs on the CPU whatever the report's device."""
+    from spiral.eval.evaluate import SE_IBR, race_device
+
+    root = tmp_path / "runs" / "tiny"
+    run = fake_run(root, sprint, tiny_checkpoint)
+    ev = _evaluations(run, sprint, tmp_path / "out", [])
+    ckpt = ev.checkpoint("1v1", "spiral")
+    ev.cross("1v1", ("spiral", ckpt), ("noselfplay", ckpt))
+    cache = json.loads((tmp_path / "out" / "evals" / "cross-1v1-spiral-vs-noselfplay.json").read_text())
+    assert cache["device"] == "cpu" and cache["inputs"]["device"] == "cpu"
+    gpu = Evaluations(run, tmp_path / "out", ev.protocol, device="cuda:0", se_ibr=False, log=lambda _: None)
+    assert ev.has_cross("1v1", ("spiral", ckpt), ("noselfplay", ckpt))
+    assert not gpu.has_cross("1v1", ("spiral", ckpt), ("noselfplay", ckpt))
+    assert race_device("cuda:0", [ckpt, SE_IBR]) == "cpu"
+    assert race_device("cuda:0", [ckpt]) == "cuda:0"
