@@ -35,7 +35,10 @@ def _mask_index(args: tuple[Any, ...]) -> bool:
 
 
 def _to_host(args: tuple[Any, ...], kwargs: dict[str, Any]) -> bool:
-    """Whether a ``to`` call moves a tensor to the CPU."""
+    """Whether a ``to`` call moves a tensor from a GPU to the CPU (``x.to(env.device)`` on a CPU env waits for
+    nothing, on any device)."""
+    if not args or not isinstance(args[0], torch.Tensor) or args[0].device.type == "cpu":
+        return False
     targets = [*args[1:], kwargs.get("device")]
     return any((isinstance(t, str) and t.startswith("cpu")) or (isinstance(t, torch.device) and t.type == "cpu")
                for t in targets)
