@@ -116,12 +116,21 @@ class PipelineRunner:
                     continue
                 if step.name not in forced:
                     self._refuse_a_device_change(step)
+                self._refuse_missing_inputs(step, todo, fps)
                 todo[step.name] = (step, state)  # running upstream steps leaves a step's own folder as it is
             if jobs > 1 and len(todo) > 1:
                 return run_parallel(self, [step for step, _ in todo.values()], forced, jobs)
             for step, state in todo.values():
                 self._run_step(step, fps[step.name], state, fresh=step.name in forced)
         return list(todo)
+
+    def _refuse_missing_inputs(self, step: Step, todo: dict[str, Any], fps: dict[str, Fingerprint]) -> None:
+        """A step runs only once every step it reads is complete or runs before it in this run."""
+        missing = [name for name in step.inputs
+                   if name not in todo and self._state(self._step(name), fps[name]).status != "complete"]
+        if missing:
+            raise UsageError(f"step '{step.name}' reads {', '.join(missing)}, not complete: run it first "
+                             f"(--only {missing[0]}), or the pipeline without --only")
 
     def run_step(self, name: str, *, fresh: bool = False) -> None:
         """Run one step now, resuming it if it was interrupted (the caller holds the pipeline lock)."""

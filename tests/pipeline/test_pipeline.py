@@ -77,6 +77,17 @@ def test_no_self_play_2v2_stage_waits_for_the_stage_its_frozen_opponent_comes_fr
     assert steps["train:2v2"].inputs == ["train:1v1"]
 
 
+def test_a_step_run_alone_before_the_steps_it_reads_is_refused_naming_them(tmp_path):
+    """--only train:1v1 before train:solo has run: one line names the missing step and the way on; nothing runs."""
+    from spiral.core.errors import UsageError
+
+    path = write_pipeline(tmp_path, stages=2)
+    with pytest.raises(UsageError, match=r"step 'train:1v1' reads train:solo, not complete: run it first "
+                                         r"\(--only train:solo\)"):
+        runner_for(path, tmp_path).run(only="train:1v1")
+    assert not list((tmp_path / "runs").glob("*/train-1v1"))
+
+
 def test_changing_a_stage_parameter_reruns_that_step_and_downstream_only(tmp_path):
     """Rerun train, eval and promote of a changed stage and nothing upstream of it."""
     path = write_pipeline(tmp_path, stages=2)
