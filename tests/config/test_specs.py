@@ -153,7 +153,7 @@ def test_pipeline_names_evaluation_sides_when_it_is_not_a_head_to_head_protocol(
         load_pipeline(oval_pipeline(tmp_path, stages + "evaluation: {sides: swapped}\n"))
 
 
-@pytest.mark.parametrize("name", ["full.yaml", "smoke.yaml"])
+@pytest.mark.parametrize("name", ["full.yaml", "smoke.yaml", "paper.yaml"])
 def test_shipped_baseline_stages_match_their_self_play_stage_but_for_the_opponents(name):
     """PPO without self-play is an ablation: same env (reward, observation, actions), PPO and budget per format; it
     races every format mixed into its twin stage that it races at all, with the same share (it may keep fewer)."""
@@ -265,3 +265,30 @@ def test_a_pipeline_refuses_motor_speed_commands_its_policies_cannot_give(tmp_pa
                                 "sim": {"control_mode": "rpm"}, "stages": [{"name": "solo", "iterations": 1}]}))
     with pytest.raises(SpecError, match=r"sim\.control_mode"):
         load_pipeline(path)
+
+
+def test_the_paper_pipeline_observes_the_papers_814_inputs_and_rewards_its_four_terms_only():
+    """paper.yaml: every stage observes the 12-D ego state and K = 50 steps of the 2 nearest opponents', the 2 next
+    gates' and its own actions (814 inputs); it commands positions in the arena; its reward has the paper's terms only (progress with the gate bonus,
+    collision, alignment, the lap's 100 / T_lap); the self-play stages race the newest best, promoted on its head to
+    head alone; every episode starts from the start box."""
+    import torch
+
+    from spiral.env.observations import ObservationBuilder
+    from spiral.env.rewards import REWARD_TERMS
+
+    stages = load_pipeline(ROOT / "pipelines" / "paper.yaml")[0].stages
+    paper_terms = {"progress", "gate", "collision", "alignment", "lap"}
+    for stage in stages:
+        assert ObservationBuilder(stage.env.obs, 2, device=torch.device("cpu")).obs_dim == 814, stage.name
+        weights = {name: value for name, value in stage.env.reward.model_dump().items()
+                   if name in REWARD_TERMS and value}
+        assert set(weights) == paper_terms, stage.name
+        assert stage.env.episode.track_start_prob == 0 and stage.env.episode.passage_starts is None, stage.name
+        assert stage.env.action.mode == "absolute" and stage.env.action.separation is None, stage.name
+        assert stage.env.shield is None, stage.name
+        assert not stage.mix, stage.name
+    for stage in (s for s in stages if s.selfplay.mode == "pool" and s.scenario != "solo"):
+        assert stage.selfplay.p_latest == 1 and stage.selfplay.p_self == 0, stage.name
+        promotion = stage.selfplay.promotion
+        assert not promotion.self_match and not promotion.scenarios and not promotion.track_starts, stage.name
