@@ -214,9 +214,8 @@ def race_result(finished_now: torch.Tensor, lap_time: torch.Tensor, racing: torc
     result = torch.zeros(w, d, device=contested.device)
     if forfeited is not None:
         result = -(contested[:, None] & forfeited.view(w, d)).float()
-    if decided.any():
-        winner = race_winner(fin, lap_time.view(w, d), teams)
-        same_team = race_team[None, :] == winner[:, None]
-        paid = decided[:, None] & (winner >= 0)[:, None] & racing.view(w, d)
-        result = result + torch.where(same_team, 1.0, -1.0) * paid
+    winner = race_winner(fin, lap_time.view(w, d), teams)  # for every world: its pay is masked, its count not read
+    same_team = race_team[None, :] == winner[:, None]
+    paid = decided[:, None] & (winner >= 0)[:, None] & racing.view(w, d)
+    result = result + torch.where(same_team, 1.0, -1.0) * paid
     return result.flatten(), decided

@@ -78,7 +78,7 @@ class MixedRaceEnv:
         rewards = torch.cat([o[1] for o in out])
         dones = torch.cat([o[2] for o in out])
         time_outs = torch.cat([o[3]["time_outs"] for o in out])
-        return obs, rewards, dones, {"time_outs": time_outs, "log": _merge_logs([(o[3]["log"], o[2]) for o in out])}
+        return obs, rewards, dones, {"time_outs": time_outs}
 
     def take_stats(self) -> dict[str, float]:
         """Sums over the learner episodes of every part ended since the last call."""
@@ -96,16 +96,6 @@ class MixedRaceEnv:
         for name, s in per_part.items():
             out[f"success/{name}"] = s["successes"] / max(s["episodes"], 1.0)
         return out
-
-
-def _merge_logs(logs: list[tuple[dict, torch.Tensor]]) -> dict:
-    """Episode means of several parts, weighted by the episodes each ended this step."""
-    weights = [float(dones.sum()) for _, dones in logs]
-    total = sum(weights)
-    if total == 0:
-        return {}
-    keys = {k for log, _ in logs for k in log}
-    return {k: sum(w * log[k] for (log, _), w in zip(logs, weights, strict=True) if k in log) / total for k in keys}
 
 
 def training_env(setting: RaceSetting, stage: StageSpec, *, device: str, seed: int) -> RaceEnv | MixedRaceEnv:

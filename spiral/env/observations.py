@@ -264,8 +264,7 @@ class ObservationBuilder:
         if self.length > 1:
             self.history[:, :-1] = self.history[:, 1:].clone()
         self.history[:, -1] = features
-        if fresh.any():
-            self.history[fresh] = features[fresh, None, :].expand(-1, self.length, -1)
+        self.history.copy_(torch.where(fresh[:, None, None], features[:, None, :], self.history))
 
     def observed_history(self) -> torch.Tensor:
         """The observed history entries (N, K, 16), oldest first."""

@@ -64,24 +64,26 @@ class PassageBuffer:
 
     def __init__(self, gate_count: int, capacity: int, *, device: torch.device) -> None:
         self.gate_count, self.capacity = gate_count, capacity
-        self.pos = torch.zeros(gate_count, capacity, 3, device=device)
-        self.vel = torch.zeros(gate_count, capacity, 3, device=device)
-        self.yaw = torch.zeros(gate_count, capacity, device=device)
+        rows = gate_count + 1  # a spare row past the last gate takes the states of drones that passed none
+        self.pos = torch.zeros(rows, capacity, 3, device=device)
+        self.vel = torch.zeros(rows, capacity, 3, device=device)
+        self.yaw = torch.zeros(rows, capacity, device=device)
         self.count = torch.zeros(gate_count, dtype=torch.long, device=device)
         """States recorded per gate, at most ``capacity``."""
         self.head = torch.zeros(gate_count, dtype=torch.long, device=device)
         """Slot of each gate's next recorded state (the oldest once full)."""
 
     def record(self, gate: torch.Tensor, pos: torch.Tensor, vel: torch.Tensor, yaw: torch.Tensor) -> None:
-        """Keep the states of the drones that passed ``gate`` (N,; −1 for a drone that passed none) in this step."""
-        keep = gate >= 0
-        if not bool(keep.any()):
-            return
-        g = gate[keep].long()
-        rank = torch.nn.functional.one_hot(g, self.gate_count).cumsum(dim=0)[torch.arange(g.numel()), g] - 1
-        slot = (self.head[g] + rank) % self.capacity
-        self.pos[g, slot], self.vel[g, slot], self.yaw[g, slot] = pos[keep], vel[keep], yaw[keep]
-        added = torch.bincount(g, minlength=self.gate_count)
+        """Keep the states of the drones that passed ``gate`` (N,; −1 for a drone that passed none) in this step.
+
+        Every drone's state is written, those of drones that passed no gate to a spare row past the last gate, so
+        that no count is read on the host."""
+        g = torch.where(gate >= 0, gate.long(), self.gate_count)
+        passed = g[:, None] == torch.arange(self.gate_count + 1, device=g.device)
+        rank = passed.long().cumsum(dim=0).gather(1, g[:, None]).squeeze(1) - 1
+        slot = (torch.cat([self.head, self.head.new_zeros(1)])[g] + rank) % self.capacity
+        self.pos[g, slot], self.vel[g, slot], self.yaw[g, slot] = pos, vel, yaw
+        added = passed[:, :-1].sum(dim=0)
         self.head = (self.head + added) % self.capacity
         self.count = (self.count + added).clamp(max=self.capacity)
 

@@ -33,8 +33,6 @@ class EpisodeEnds:
     time_outs: torch.Tensor
     """Ended without a terminal state (time limit, a cut start, or another drone of the world ended it)."""
     worlds: torch.Tensor
-    log: dict
-    """Means over the ended episodes, for rsl-rl's log."""
 
 
 def observed_tensors(state: RaceState) -> ObsSource:
@@ -100,7 +98,7 @@ class RaceEnv(RaceState):
         """Apply learner ``actions`` (num_envs, 4), advance one control step, reset ended worlds, observe.
 
         Returns:
-            Learner observations, rewards (num_envs,), dones (num_envs,) and extras with ``time_outs`` and ``log``.
+            Learner observations, rewards (num_envs,), dones (num_envs,) and extras with ``time_outs``.
         """
         self.apply_actions(actions)
         gate, dist_before = self.simulate()
@@ -109,7 +107,7 @@ class RaceEnv(RaceState):
         ends = self.dones(events)
         self.reset_ended(ends)
         obs = self.get_observations()
-        return obs, rewards[self.learner_idx], ends.dones, {"time_outs": ends.time_outs, "log": ends.log}
+        return obs, rewards[self.learner_idx], ends.dones, {"time_outs": ends.time_outs}
 
     def apply_actions(self, actions: torch.Tensor) -> None:
         """Apply action: the learner's ``actions`` (num_envs, 4) and the opponent policy's (on the last observations)
@@ -126,7 +124,7 @@ class RaceEnv(RaceState):
         target, shift = self.action_map.targets(all_actions, self.pos, self.vel, self.rpy[:, 2], racing)
         if shift is not None:
             self.intervention = shift
-        self.cmd[racing] = target[racing]
+        self.cmd.copy_(torch.where(racing[:, None], target, self.cmd))
         self.last_action = all_actions
 
     def simulate(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -149,7 +147,7 @@ class RaceEnv(RaceState):
         finished_now = racing & ~crashed_now & (self.gates_passed >= self.passes_needed)
         self.finished |= finished_now
         self.lap_time = torch.where(finished_now, self.pass_time, self.lap_time)
-        self.out[finished_now] = 1
+        self.out.masked_fill_(finished_now, 1)
         split, self.lap_start = lap_splits(self.gates_passed, self.step_passes, self.pass_time, self.lap_start,
                                            racing & ~crashed_now, len(self.track.gates))
         self.passages.record(self, racing, crashed_now)
@@ -174,11 +172,11 @@ class RaceEnv(RaceState):
         terminated = (ev.crashed_now | ev.finished_now)[self.learner_idx]
         time_up = self.world_time() >= torch.clamp(self.cut_time, max=self.time_limit) - 1e-6
         worlds = terminated.view(self.world_count, -1).any(dim=1) | time_up | (self.world_nonfinite != 0)
-        time_outs = worlds.repeat_interleave(len(self.learner_slots)) & ~terminated
+        time_outs = worlds[:, None].expand(-1, len(self.learner_slots)).reshape(-1) & ~terminated
         dones = terminated | time_outs
         self.episode_length_buf += 1
-        log = self._log_episodes(self.learner_idx[dones]) if dones.any() else {}
-        return EpisodeEnds(dones, time_outs, worlds, log)
+        self._count_ended(dones)
+        return EpisodeEnds(dones, time_outs, worlds)
 
     def reset_ended(self, ends: EpisodeEnds) -> None:
         """Reset: tell the opponent policy who won the ended races, then (training) start new ones after
@@ -187,7 +185,7 @@ class RaceEnv(RaceState):
             ended = ends.worlds.nonzero().squeeze(1)
             self.opponent_policy.record(ended, self.learner_won()[ended])
         if self.training and ends.worlds.any():
-            self.stats["nonfinite_resets"] += float((self.world_nonfinite != 0).sum())
+            self.stats["nonfinite_resets"] += (self.world_nonfinite != 0).sum()
             self.before_auto_reset(ends.worlds)
             self._reset_worlds(ends.worlds)
             self.episode_length_buf[ends.worlds.repeat_interleave(len(self.learner_slots))] = 0

@@ -26,7 +26,7 @@ from spiral.env.events import (
 from spiral.env.rewards import REWARD_TERMS, StepOutcome
 from spiral.env.setting import RaceSetting
 from spiral.env.slots import slot_map
-from spiral.env.stats import empty_stats, log_episodes, summarize_stats
+from spiral.env.stats import add_ended_episodes, empty_stats, read_stats, summarize_stats
 from spiral.sim import World
 from spiral.sim.state import COLLISION_KINDS
 
@@ -118,7 +118,7 @@ class RaceState:
             ("mask", w, wp.int32), ("pos", n, wp.vec3), ("vel", n, wp.vec3), ("yaw", n, wp.float32),
             ("gate", n, wp.int32))}
         """Warp buffers of the start states a reset hands the simulator."""
-        self.stats = empty_stats()
+        self.stats = empty_stats(dev)
 
     def set_opponent_policy(self, policy: OpponentPolicy | None) -> None:
         """Drive the opponent slots with ``policy`` from the next reset on (``None``: the slots are absent)."""
@@ -226,17 +226,18 @@ class RaceState:
         """Simulated time of each world since its reset [s]."""
         return self.world_substeps.float() * self.world.sim.dt
 
-    def _log_episodes(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Count the ended episodes of drones ``idx`` in :attr:`stats`; their means for rsl-rl's log."""
-        return log_episodes(self.stats, finished=self.finished[idx], crashed=self.crashed[idx],
-                            lap_time=self.lap_time[idx], crash_kind=self.crash_kind[idx],
-                            term_sums={name: value[idx] for name, value in self.term_sums.items()})
+    def _count_ended(self, dones: torch.Tensor) -> None:
+        """Add the learner episodes ending where ``dones`` (num_envs,) to :attr:`stats`."""
+        idx = self.learner_idx
+        add_ended_episodes(self.stats, dones, finished=self.finished[idx], lap_time=self.lap_time[idx],
+                           crash_kind=self.crash_kind[idx], term_sums={k: v[idx] for k, v in self.term_sums.items()})
 
     def pop_stats(self) -> dict[str, float]:
         """Means over the learner episodes ended since the last call, then start counting afresh."""
         return summarize_stats(self.take_stats())
 
     def take_stats(self) -> dict[str, float]:
-        """Sums over the learner episodes ended since the last call (:func:`summarize_stats`); counting restarts."""
-        s, self.stats = self.stats, empty_stats()
-        return s
+        """Sums over the learner episodes ended since the last call (:func:`summarize_stats`), read from the device;
+        counting restarts."""
+        s, self.stats = self.stats, empty_stats(self.device)
+        return read_stats(s)

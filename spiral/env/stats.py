@@ -1,4 +1,8 @@
-"""Statistics of ended learner episodes: sums a race env keeps, and the means training logs."""
+"""Statistics of ended learner episodes: sums a race env keeps on its device, and the means training logs.
+
+The sums stay on the env's device as it steps (no value is read on the host per step); training reads them once per
+iteration.
+"""
 
 from __future__ import annotations
 
@@ -7,38 +11,40 @@ import torch
 from spiral.env.rewards import REWARD_TERMS
 from spiral.sim import COLLISION_KINDS
 
-__all__ = ["empty_stats", "log_episodes", "summarize_stats"]
+__all__ = ["add_ended_episodes", "empty_stats", "read_stats", "summarize_stats"]
 
 
-def empty_stats() -> dict[str, float]:
-    """Zero sums: episodes, successes, laps and their times, non-finite resets, crashes by kind, reward terms."""
-    stats = {"episodes": 0.0, "successes": 0.0, "lap_time_sum": 0.0, "laps": 0.0, "nonfinite_resets": 0.0}
-    stats.update({f"crash_{kind}": 0.0 for kind in COLLISION_KINDS})
-    stats.update({f"term_{name}": 0.0 for name in REWARD_TERMS})
-    return stats
+def empty_stats(device: torch.device) -> dict[str, torch.Tensor]:
+    """Zero sums on ``device``: episodes, successes, laps and their times, non-finite resets, crashes by kind, reward
+    terms."""
+    names = ["episodes", "successes", "lap_time_sum", "laps", "nonfinite_resets",
+             *(f"crash_{kind}" for kind in COLLISION_KINDS), *(f"term_{name}" for name in REWARD_TERMS)]
+    return {name: torch.zeros((), dtype=torch.float64, device=device) for name in names}
 
 
-def log_episodes(stats: dict[str, float], *, finished: torch.Tensor, crashed: torch.Tensor, lap_time: torch.Tensor,
-                 crash_kind: torch.Tensor, term_sums: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """Add the ended episodes (one row per drone of each argument) to ``stats``; return their means for rsl-rl's
-    log."""
+def add_ended_episodes(stats: dict[str, torch.Tensor], ended: torch.Tensor, *, finished: torch.Tensor,
+                       lap_time: torch.Tensor, crash_kind: torch.Tensor, term_sums: dict[str, torch.Tensor]) -> None:
+    """Add to ``stats`` the episodes of the rows where ``ended`` (a bool mask over the rows of every other
+    argument): counts and sums by masks, so the number of ended episodes is never read."""
+    won = ended & finished
     s = stats
-    s["episodes"] += finished.numel()
-    s["successes"] += float(finished.sum())
-    s["laps"] += float(finished.sum())
-    s["lap_time_sum"] += float(lap_time[finished].sum())
+    s["episodes"] += ended.sum()
+    s["successes"] += won.sum()
+    s["laps"] += won.sum()
+    s["lap_time_sum"] += torch.where(won, lap_time, 0.0).sum(dtype=torch.float64)
     for kind, bit in COLLISION_KINDS.items():
-        s[f"crash_{kind}"] += float(((crash_kind & bit) != 0).sum())
-    log = {f"Episode_Reward/{name}": term_sums[name].mean() for name in REWARD_TERMS}
+        s[f"crash_{kind}"] += (ended & ((crash_kind & bit) != 0)).sum()
     for name in REWARD_TERMS:
-        s[f"term_{name}"] += float(term_sums[name].sum())
-    log["Episode/success"] = finished.float().mean()
-    log["Episode/crash"] = crashed.float().mean()
-    return log
+        s[f"term_{name}"] += torch.where(ended, term_sums[name], 0.0).sum(dtype=torch.float64)
+
+
+def read_stats(stats: dict[str, torch.Tensor]) -> dict[str, float]:
+    """The sums as numbers, read from the device at once."""
+    return dict(zip(stats, torch.stack(list(stats.values())).tolist(), strict=True))
 
 
 def summarize_stats(s: dict[str, float]) -> dict[str, float]:
-    """Means per ended learner episode from sums of :func:`log_episodes` (sums of several envs add)."""
+    """Means per ended learner episode from sums read by :func:`read_stats` (sums of several envs add)."""
     n = max(s["episodes"], 1.0)
     out = {"episodes": s["episodes"], "success": s["successes"] / n,
            "lap_time": s["lap_time_sum"] / s["laps"] if s["laps"] else float("nan"),

@@ -78,7 +78,8 @@ def test_mixed_env_statistics_add_up_and_report_each_scenarios_success(line2):
     env = training_env(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), mixed_stage(), device="cpu", seed=0)
     parts = list(env.parts.values())
     for part, (episodes, successes) in zip(parts, [(4, 3), (2, 2), (2, 0)], strict=True):
-        part.stats["episodes"], part.stats["successes"] = float(episodes), float(successes)
+        part.stats["episodes"] += episodes  # the sums the parts keep on their device
+        part.stats["successes"] += successes
     stats = env.pop_stats()
     assert stats["episodes"] == 8 and stats["success"] == pytest.approx(5 / 8)
     assert (stats["success/2v2"], stats["success/solo"], stats["success/1v1"]) == pytest.approx((0.75, 1.0, 0.0))

@@ -42,7 +42,7 @@ def test_contact_margin_makes_drones_closer_than_it_collide_in_training_only(ova
         _, _, dones, extras = env.step(torch.zeros(2, 4))
         if not training:
             return tuple(env.crashed.tolist())
-        return (*dones.tolist(), env.stats["crash_drone"], bool(extras["time_outs"].any()))
+        return (*dones.tolist(), float(env.stats["crash_drone"]), bool(extras["time_outs"].any()))
 
     assert 2 * CF2X.radius == pytest.approx(0.12)
     expected = (True, True, 2.0, False) if gap < 0.17 else (False, False, 0.0, False)
@@ -65,8 +65,8 @@ def test_crash_pays_the_penalty_once_and_ends_the_episode(oval2):
             break
     assert done_at is not None
     assert not bool(extras["time_outs"][0])
-    assert env.stats["crash_ground"] == pytest.approx(1.0)  # a count
-    assert env.stats["term_collision"] == pytest.approx(-env.cfg.reward.collision)
+    assert float(env.stats["crash_ground"]) == pytest.approx(1.0)  # a count
+    assert float(env.stats["term_collision"]) == pytest.approx(-env.cfg.reward.collision)
     assert float(env.world_time()[0]) == pytest.approx(0.0, abs=1e-12) and float(env.world_time()[1]) > 0.0  # reset
 
 
