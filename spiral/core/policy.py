@@ -47,8 +47,9 @@ class ResettingOpponent(Protocol):
 class RecordingOpponent(Protocol):
     """An opponent policy that wants the outcome of each ended race (matchmaking statistics)."""
 
-    def record(self, worlds: torch.Tensor, learner_won: torch.Tensor) -> None:
-        """Races of the world indices ``worlds`` ended; ``learner_won`` (bool, one per world) says who won."""
+    def record(self, ended: torch.Tensor, learner_won: torch.Tensor) -> None:
+        """The races of the worlds in the bool mask ``ended`` (W,) ended; ``learner_won`` (bool, W,) says who won
+        each world's race (read where ``ended`` is set)."""
         ...
 
 

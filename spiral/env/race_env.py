@@ -181,9 +181,8 @@ class RaceEnv(RaceState):
     def reset_ended(self, ends: EpisodeEnds) -> None:
         """Reset: tell the opponent policy who won the ended races, then (training) start new ones after
         :meth:`before_auto_reset`."""
-        if ends.worlds.any() and isinstance(self.opponent_policy, RecordingOpponent):
-            ended = ends.worlds.nonzero().squeeze(1)
-            self.opponent_policy.record(ended, self.learner_won()[ended])
+        if isinstance(self.opponent_policy, RecordingOpponent):
+            self.opponent_policy.record(ends.worlds, self.learner_won())
         if self.training and ends.worlds.any():
             self.stats["nonfinite_resets"] += (self.world_nonfinite != 0).sum()
             self.before_auto_reset(ends.worlds)

@@ -46,7 +46,9 @@ class Matchmaker:
         self.losses = torch.cat([self.losses, self.losses.new_zeros(1)])
         self.latest = len(self.races) - 1
 
-    def record(self, members: torch.Tensor, learner_won: torch.Tensor) -> None:
-        """Count finished races against ``members``; a race the learner did not win counts as a loss."""
-        self.races.index_add_(0, members, torch.ones_like(members, dtype=self.races.dtype))
-        self.losses.index_add_(0, members, (~learner_won).to(self.races.dtype))
+    def record(self, members: torch.Tensor, learner_won: torch.Tensor, counted: torch.Tensor | None = None) -> None:
+        """Count finished races against ``members`` (those where the bool mask ``counted`` is set, all when None); a
+        race the learner did not win counts as a loss."""
+        counted = torch.ones_like(learner_won) if counted is None else counted
+        self.races.index_add_(0, members, counted.to(self.races.dtype))
+        self.losses.index_add_(0, members, (counted & ~learner_won).to(self.races.dtype))

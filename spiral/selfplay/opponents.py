@@ -123,10 +123,10 @@ class PoolOpponents:
         policy[rows[:, None] & self.unseen[None]] = 0.0
         return obs.replace(policy=policy)
 
-    def record(self, worlds: torch.Tensor, learner_won: torch.Tensor) -> None:
-        """Feed race outcomes of ended pool worlds (indices) to the matchmaker."""
-        pooled = ~self.mirror[worlds]
-        self.matchmaker.record(self.assignment[worlds][pooled], learner_won[pooled])
+    def record(self, ended: torch.Tensor, learner_won: torch.Tensor) -> None:
+        """Feed the outcomes of the races that ended in pool worlds (``ended``: a bool mask over worlds) to the
+        matchmaker."""
+        self.matchmaker.record(self.assignment, learner_won, ended & ~self.mirror)
 
 
 @dataclass

@@ -93,7 +93,7 @@ def test_mirror_worlds_race_the_live_policy_and_stay_out_of_matchmaking(solo_pol
     pooled = ~opponents.mirror
     single = TensorDict({"policy": obs[pooled], "critic": obs[pooled]}, batch_size=[int(pooled.sum())])
     assert torch.allclose(actions[pooled], solo_policy(single), atol=1e-6)
-    opponents.record(torch.arange(4000), torch.zeros(4000, dtype=torch.bool))
+    opponents.record(torch.ones(4000, dtype=torch.bool), torch.zeros(4000, dtype=torch.bool))
     assert mm.races.item() == int(pooled.sum()) and mm.losses.item() == int(pooled.sum())
 
 
