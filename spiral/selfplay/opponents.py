@@ -116,12 +116,8 @@ class PoolOpponents:
 
     def _blinded(self, obs: TensorDict) -> TensorDict:
         """``obs`` with the unseen entries of the blind worlds' rows zeroed."""
-        rows = self.blind_world.repeat_interleave(self.per_world)
-        if not rows.any():
-            return obs
-        policy = obs["policy"].clone()
-        policy[rows[:, None] & self.unseen[None]] = 0.0
-        return obs.replace(policy=policy)
+        rows = self.blind_world[:, None].expand(-1, self.per_world).reshape(-1)
+        return obs.replace(policy=torch.where(rows[:, None] & self.unseen[None], 0.0, obs["policy"]))
 
     def record(self, ended: torch.Tensor, learner_won: torch.Tensor) -> None:
         """Feed the outcomes of the races that ended in pool worlds (``ended``: a bool mask over worlds) to the
