@@ -237,7 +237,6 @@ class RaceState:
         return summarize_stats(self.take_stats())
 
     def take_stats(self) -> dict[str, float]:
-        """Sums over the learner episodes ended since the last call (:func:`summarize_stats`), read from the device;
-        counting restarts."""
+        """Sums over the learner episodes ended since the last call, read from the device; counting restarts."""
         s, self.stats = self.stats, empty_stats(self.device)
         return read_stats(s)
