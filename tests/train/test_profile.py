@@ -176,9 +176,10 @@ def test_timed_methods_add_up_calls_and_leave_the_object_as_it_was():
     assert totals["double"] > 0 and "double" not in vars(thing) and thing.double(1) == 2
 
 
-def _time_to_solo():
+def _benchmark(name: str):
+    """The script ``benchmarks/<name>.py`` as a module."""
     root = Path(__file__).resolve().parents[2]
-    spec = importlib.util.spec_from_file_location("time_to_solo", root / "benchmarks" / "time_to_solo.py")
+    spec = importlib.util.spec_from_file_location(name, root / "benchmarks" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -190,8 +191,8 @@ def test_time_to_solo_takes_the_first_evaluation_that_meets_both_success_and_lap
             {"iteration": 39, "eval/success": 0.9, "eval/lap_time": 4.0},
             {"iteration": 59, "eval/success": 0.97, "eval/lap_time": 5.2},
             {"iteration": 79, "eval/success": 1.0, "eval/lap_time": 4.8}]
-    assert _time_to_solo().first_reaching(rows, 0.95, 5.5)["iteration"] == 59
-    assert _time_to_solo().first_reaching(rows[:3], 0.95, 5.5) is None
+    assert _benchmark("time_to_solo").first_reaching(rows, 0.95, 5.5)["iteration"] == 59
+    assert _benchmark("time_to_solo").first_reaching(rows[:3], 0.95, 5.5) is None
 
 
 def test_time_to_solo_script_runs_the_smoke_pipeline(tmp_path):
@@ -229,14 +230,6 @@ def test_pool_opponents_script_times_both_implementations_and_finds_the_same_act
     assert all(len(v) == 2 and min(v) > 0 for v in r["seconds_per_call"].values())
 
 
-def _gpu_check():
-    root = Path(__file__).resolve().parents[2]
-    spec = importlib.util.spec_from_file_location("gpu_check", root / "benchmarks" / "gpu_check.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_gpu_check_quick_mode_runs_every_check_on_the_cpu(tmp_path):
     """`gpu_check.py --device cpu --quick`: the flight agrees with the saved reference (to the bit where the host
     should reproduce it), the fast path with plain launches, host syncs are counted in all three stages, rates at
@@ -263,7 +256,7 @@ def test_gpu_check_agreement_passes_on_the_saved_reference_and_fails_beyond_its_
     """The saved CPU reference is flown again here: same events, within the tolerances, to the bit on a host that
     runs the portable build. A reference with one position moved past the tolerance fails, and one moved by a
     rounding-size step fails only where the bits are expected."""
-    gpu_check = _gpu_check()
+    gpu_check = _benchmark("gpu_check")
     same = gpu_check.agreement("cpu")
     assert same["status"] == "pass" and same["events_equal"]
     assert same["bitwise"] or not same["bitwise_expected"]
@@ -280,7 +273,7 @@ def test_gpu_check_agreement_passes_on_the_saved_reference_and_fails_beyond_its_
 
 def test_gpu_check_counts_only_running_out_of_memory_as_a_size_that_does_not_fit():
     """torch's OutOfMemoryError and Warp's failed allocation are out of memory; any other error is not."""
-    out_of_memory = _gpu_check().out_of_memory
+    out_of_memory = _benchmark("gpu_check").out_of_memory
     assert out_of_memory(torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB"))
     assert out_of_memory(RuntimeError("Failed to allocate 1073741824 bytes on device 'cuda:0'"))
     assert not out_of_memory(RuntimeError("mat1 and mat2 shapes cannot be multiplied"))
