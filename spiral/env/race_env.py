@@ -43,6 +43,11 @@ def observed_tensors(state: RaceState) -> ObsSource:
                      gate_forward=state.gate_forward, other_slots=state.other_slots)
 
 
+def _per_row(worlds: torch.Tensor, rows: int) -> torch.Tensor:
+    """A per-world mask (W,) repeated for each of a world's ``rows`` rows (W·rows,), world-major."""
+    return worlds[:, None].expand(-1, rows).reshape(-1)
+
+
 def _draw_starts(env: RaceEnv, world_count: int) -> Starts:
     """Starts of ``world_count`` worlds of ``env`` (passage starts among them in training), drawn with its generator
     on the generator's device (:func:`~spiral.env.state.draw_device`) and moved to the env's."""
@@ -172,7 +177,7 @@ class RaceEnv(RaceState):
         terminated = (ev.crashed_now | ev.finished_now)[self.learner_idx]
         time_up = self.world_time() >= torch.clamp(self.cut_time, max=self.time_limit) - 1e-6
         worlds = terminated.view(self.world_count, -1).any(dim=1) | time_up | (self.world_nonfinite != 0)
-        time_outs = worlds[:, None].expand(-1, len(self.learner_slots)).reshape(-1) & ~terminated
+        time_outs = _per_row(worlds, len(self.learner_slots)) & ~terminated
         dones = terminated | time_outs
         self.episode_length_buf += 1
         self._count_ended(dones)
@@ -187,7 +192,7 @@ class RaceEnv(RaceState):
             self.stats["nonfinite_resets"] += (self.world_nonfinite != 0).sum()
             self.before_auto_reset(ends.worlds)
             self._reset_worlds(ends.worlds)
-            self.episode_length_buf[ends.worlds.repeat_interleave(len(self.learner_slots))] = 0
+            self.episode_length_buf.masked_fill_(_per_row(ends.worlds, len(self.learner_slots)), 0)
         else:
             self._fresh = torch.zeros_like(self.finished)
 
@@ -221,7 +226,7 @@ class RaceEnv(RaceState):
         for name in ("pos", "vel", "yaw", "gate"):
             t(buf[name]).view(-1, d, *getattr(starts, name).shape[2:])[idx] = getattr(starts, name)
         self.world.reset(buf["mask"], buf["pos"], buf["yaw"], init_vel=buf["vel"], init_next_gate=buf["gate"])
-        drones = worlds.repeat_interleave(d)
+        drones = _per_row(worlds, d)
         self._reset_drone_buffers(drones)
         if any(o is not None and o.builder.cfg.priority for o in (self.observer, self.opponent_observer)):
             drawn = torch.rand(idx.numel() * d, generator=self.generator, device=self.generator.device)

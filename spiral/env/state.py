@@ -127,15 +127,15 @@ class RaceState:
     def _reset_drone_buffers(self, drones: torch.Tensor) -> None:
         """Start the race afresh for the drones in the bool mask ``drones``; opponent slots without a policy are out."""
         for buf in (self.last_action, self.lap_time, self.lap_start, self.crash_kind, *self.term_sums.values()):
-            buf[drones] = 0
-        self.finished[drones] = False
-        self.crashed[drones] = False
+            buf.masked_fill_(drones.view(-1, *[1] * (buf.dim() - 1)), 0)
+        self.finished &= ~drones
+        self.crashed &= ~drones
         absent = torch.zeros_like(drones)
         if self.opponent_policy is None and self.opponent_idx.numel():
             absent[self.opponent_idx] = True
-        self.absent[drones] = absent[drones]
-        self.out[drones & absent] = 1
-        self.cmd[drones] = torch.cat([self.pos[drones], self.rpy[drones, 2:3]], dim=-1)
+        self.absent.copy_(torch.where(drones, absent, self.absent))
+        self.out.masked_fill_(drones & absent, 1)
+        self.cmd.copy_(torch.where(drones[:, None], torch.cat([self.pos, self.rpy[:, 2:3]], dim=-1), self.cmd))
         self._fresh = drones
         """Drones whose observation history starts afresh at the next observation."""
 
