@@ -142,25 +142,40 @@ def test_world_time_is_exact_at_48_hz(make_world):
         SimCfg(physics_hz=240, ctrl_hz=50)
 
 
+def _flight_through_gate_0(rng, targets, drones: int, steps: int):
+    """Random starts and targets for ``drones`` drones over ``steps`` control steps, drone 0 flying through gate 0."""
+    pos, yaw = starts(rng, drones)
+    commands = targets(rng, steps, drones)
+    pos[0], yaw[0], commands[:, 0] = (-1.0, 0.0, 1.5), 0.0, (1.5, 0.0, 1.5, 0.0)
+    return pos, yaw, commands
+
+
+def _fly(world, commands, *, nan_at: tuple[int, int] | None = None) -> dict:
+    """Step ``world`` through ``commands``; ``nan_at = (step, drone)`` gives that drone a NaN velocity at that step.
+    The end state with the attitudes and the per-world health flags."""
+    for i, cmd in enumerate(commands):
+        wp.copy(world.cmd, wp.array(cmd, dtype=wp.vec4, device=world.device))
+        if nan_at is not None and i == nan_at[0]:
+            vel = world.state.vel.numpy().copy()
+            vel[nan_at[1]] = [np.nan, 0.0, 0.0]
+            world.state.vel.assign(vel)
+        world.step()
+    return snapshot(world) | {"rpy": world.rpy.numpy().copy(), "nonfinite": world.race.world_nonfinite.numpy().copy()}
+
+
 @pytest.mark.parametrize("sim_device", ["cpu"])  # a GPU replays a CUDA graph instead (the test below)
 @pytest.mark.parametrize("downwash", [False, True], ids=["plain", "downwash"])
 @pytest.mark.bitwise
 def test_replayed_launches_give_exactly_the_plain_launch_path(make_world, targets, downwash):
     """Four drones per world flying random targets (some crash, some fly on, one passes a gate): replaying the
     recorded launches gives bit for bit the state of launching every kernel afresh."""
-    rng = np.random.default_rng(7)
-    pos, yaw = starts(rng, 16)
-    commands = targets(rng, 120, 16)
-    pos[0], yaw[0], commands[:, 0] = (-1.0, 0.0, 1.5), 0.0, (1.5, 0.0, 1.5, 0.0)  # drone 0 flies through gate 0
+    pos, yaw, commands = _flight_through_gate_0(np.random.default_rng(7), targets, 16, 120)
     out = {}
     for replay in (False, True):
         world = make_world(world_count=4, drones=4, downwash=downwash)
         world.replay_launches = replay
         world.reset_all(pos, yaw)
-        for cmd in commands:
-            wp.copy(world.cmd, wp.array(cmd, dtype=wp.vec4, device=world.device))
-            world.step()
-        out[replay] = snapshot(world)
+        out[replay] = _fly(world, commands)
     assert out[True]["out"].any() and (out[True]["out"] == 0).any() and out[True]["gates_passed"][0] == 1
     for key, value in out[False].items():
         np.testing.assert_array_equal(out[True][key], value, err_msg=key)
@@ -175,24 +190,13 @@ def test_worlds_stepped_in_threads_give_exactly_the_one_thread_state(make_world,
     """Worlds split into uneven contiguous shares, each stepped on its own thread (downwash on, some drones crash,
     one passes a gate, one world's drone goes non-finite): every state, race, controller and attitude array is bit
     for bit that of one thread, and so are the per-world clocks and health flags."""
-    rng = np.random.default_rng(11)
     n = world_count * drones
-    pos, yaw = starts(rng, n)
-    commands = targets(rng, 60, n)
-    pos[0], yaw[0], commands[:, 0] = (-1.0, 0.0, 1.5), 0.0, (1.5, 0.0, 1.5, 0.0)  # drone 0 flies through gate 0
+    pos, yaw, commands = _flight_through_gate_0(np.random.default_rng(11), targets, n, 60)
     out = {}
     for count in (1, threads):
         world = make_world(world_count=world_count, drones=drones, downwash=True, cpu_threads=count)
         world.reset_all(pos, yaw)
-        for i, cmd in enumerate(commands):
-            wp.copy(world.cmd, wp.array(cmd, dtype=wp.vec4, device=world.device))
-            if i == 30:  # the last world's last drone gets a NaN velocity half-way
-                vel = world.state.vel.numpy().copy()
-                vel[n - 1] = [np.nan, 0.0, 0.0]
-                world.state.vel.assign(vel)
-            world.step()
-        out[count] = snapshot(world) | {"rpy": world.rpy.numpy().copy(),
-                                         "nonfinite": world.race.world_nonfinite.numpy().copy()}
+        out[count] = _fly(world, commands, nan_at=(30, n - 1))  # the last world's last drone, half-way
     assert out[1]["out"].any() and (out[1]["out"] == 0).any() and out[1]["gates_passed"][0] == 1
     assert out[1]["nonfinite"].tolist() == [0] * (world_count - 1) + [1]
     for key, value in out[1].items():
@@ -206,24 +210,13 @@ def test_cuda_graph_gives_exactly_the_plain_launch_path(make_world, targets, dow
     """On a GPU, 300 control steps replayed from the captured CUDA graph give bit for bit the state of launching
     every kernel afresh: drones flying random targets (some crash, some fly on, one passes a gate, one world's drone
     goes non-finite), every state, race, controller and attitude array, the clocks and health flags included."""
-    rng = np.random.default_rng(13)
-    pos, yaw = starts(rng, 16)
-    commands = targets(rng, 300, 16)
-    pos[0], yaw[0], commands[:, 0] = (-1.0, 0.0, 1.5), 0.0, (1.5, 0.0, 1.5, 0.0)  # drone 0 flies through gate 0
+    pos, yaw, commands = _flight_through_gate_0(np.random.default_rng(13), targets, 16, 300)
     out = {}
     for graph in (False, True):
         world = make_world(world_count=4, drones=4, downwash=downwash)
         world.use_graph, world.replay_launches = graph, False
         world.reset_all(pos, yaw)
-        for i, cmd in enumerate(commands):
-            wp.copy(world.cmd, wp.array(cmd, dtype=wp.vec4, device=world.device))
-            if i == 20:  # the last world's last drone gets a NaN velocity while it still flies
-                vel = world.state.vel.numpy().copy()
-                vel[15] = [np.nan, 0.0, 0.0]
-                world.state.vel.assign(vel)
-            world.step()
-        out[graph] = snapshot(world) | {"rpy": world.rpy.numpy().copy(),
-                                        "nonfinite": world.race.world_nonfinite.numpy().copy()}
+        out[graph] = _fly(world, commands, nan_at=(20, 15))  # the last world's last drone, while it still flies
     assert world._graph is not None and world.device == "cuda:0"  # the second run did replay a graph
     assert out[True]["out"].any() and (out[True]["out"] == 0).any() and out[True]["gates_passed"][0] == 1
     assert out[True]["nonfinite"].tolist() == [0, 0, 0, 1]
