@@ -261,10 +261,8 @@ class ObservationBuilder:
 
     def push(self, features: torch.Tensor, fresh: torch.Tensor) -> None:
         """Append this step's features; drones in ``fresh`` (bool, N) start a new history filled with them."""
-        if self.length > 1:
-            self.history[:, :-1] = self.history[:, 1:].clone()
-        self.history[:, -1] = features
-        self.history.copy_(torch.where(fresh[:, None, None], features[:, None, :], self.history))
+        shifted = torch.cat([self.history[:, 1:], features[:, None, :]], dim=1)  # one pass over the history
+        self.history.copy_(torch.where(fresh[:, None, None], features[:, None, :], shifted))
 
     def observed_history(self) -> torch.Tensor:
         """The observed history entries (N, K, 16), oldest first."""
