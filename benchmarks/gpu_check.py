@@ -19,7 +19,8 @@ The checks, in order (``--only NAME`` runs one; repeatable):
 - ``host_syncs``: the calls that make the host wait for the GPU (:class:`spiral.core.host_syncs.HostSyncCounter`)
   in each env step of a training rollout of pipelines/full.yaml's solo, 1v1 and 2v2 stages (the multi-drone stages
   from the published checkpoints and pool, as ``spiral bench ppo`` profiles them), with the five most frequent call
-  sites. Reported, not judged.
+  sites: on the device's own path and on the path without synchronisations (``sync_free`` of the env and the pool
+  opponents, the default off a CPU); pass: none on the latter, in every step.
 - ``rates``: ``spiral bench ppo``'s profile of the solo stage at 1024, 4096, 16384 and 65536 worlds: env steps per
   second of the rollout and samples per second of PPO's update (a size that does not fit the device's memory is
   skipped). Reported.
@@ -56,7 +57,9 @@ from spiral.core.device import check_device
 from spiral.core.host_syncs import HostSyncCounter
 from spiral.core.numerics import cpu_target, host_runs_x86_64_v3
 from spiral.env import RaceSetting
+from spiral.env.mixed import MixedRaceEnv
 from spiral.selfplay.curriculum import published_opponents
+from spiral.selfplay.opponents import PoolOpponents
 from spiral.sim import World
 from spiral.sim.bench import machine_info
 from spiral.train import StageStart, StageTrainer
@@ -83,7 +86,7 @@ TOLERANCE = {"pos": 1e-3, "vel": 3e-3, "quat": 5e-4, "omega": 1e-2}
 """Largest difference from the CPU reference over 2 s of flight, by state: metres, m/s, quaternion components,
 rad/s. Why these: docs/benchmarks.md, "On a GPU"."""
 RATE_WORLDS = (1024, 4096, 16384, 65536)
-QUICK = {"graph_worlds": 16, "sync_worlds": 16, "sync_steps": 8, "rate_worlds": (16, 64)}
+QUICK = {"graph_worlds": 16, "sync_worlds": 16, "sync_steps": 96, "rate_worlds": (16, 64)}
 """Sizes of ``--quick``."""
 FULL = {"graph_worlds": 64, "sync_worlds": None, "sync_steps": 24, "rate_worlds": RATE_WORLDS}
 """Sizes of a real run (``sync_worlds`` None: each stage's own)."""
@@ -219,12 +222,22 @@ def _stage_trainer(name: str, device: str, worlds: int | None, scratch: Path) ->
                         log=lambda _: None)
 
 
+def sync_free(trainer: StageTrainer) -> None:
+    """Put ``trainer``'s training env and its pool opponents on the path without host synchronisations (their
+    ``sync_free``, the default off a CPU)."""
+    env = trainer.env
+    for part in env.parts.values() if isinstance(env, MixedRaceEnv) else [env]:
+        part.sync_free = True
+        if isinstance(part.opponent_policy, PoolOpponents):
+            part.opponent_policy.sync_free = True
+
+
 def count_syncs(trainer: StageTrainer, steps: int) -> dict[str, Any]:
     """Host synchronisations in each of ``steps`` env steps of a training rollout (the policy acting and PPO
-    storing the step left out), with the most frequent call sites."""
+    storing the step left out), with the most frequent call sites and the learner episodes that ended (so resets)."""
     alg, env = trainer.runner.alg, trainer.vec_env
     alg.train_mode()
-    obs, per_step, sites = env.get_observations().to(trainer.device), [], Counter()
+    obs, per_step, sites, ended = env.get_observations().to(trainer.device), [], Counter(), 0
     with torch.inference_mode():
         for _ in range(steps):
             actions = alg.act(obs)
@@ -232,23 +245,31 @@ def count_syncs(trainer: StageTrainer, steps: int) -> dict[str, Any]:
                 obs, rewards, dones, extras = env.step(actions.to(env.device))
             per_step.append(syncs.total)
             sites.update(syncs.sites)
+            ended += int(dones.sum())
             alg.process_env_step(obs, rewards, dones, extras)
+            if alg.storage.step == alg.storage.num_transitions_per_env:  # a full rollout: stored, never learnt from
+                alg.storage.clear()
     top = [{"call": call, "site": site, "per_step": count / steps} for (call, site), count in sites.most_common(5)]
     return {"per_step_mean": sum(per_step) / steps, "per_step_max": max(per_step), "steps": steps,
-            "worlds": trainer.stage.worlds, "top_sites": top}
+            "worlds": trainer.stage.worlds, "ended_episodes": ended, "top_sites": top}
 
 
 def host_syncs(device: str, *, worlds: int | None = None, steps: int = 24) -> dict[str, Any]:
-    """Host synchronisations per training env step of the solo, 1v1 and 2v2 stages (reported)."""
-    stages = {}
+    """Host synchronisations per training env step of the solo, 1v1 and 2v2 stages, on the device's own path and on
+    the path without them (the same on a GPU); pass: none on the latter."""
+    stages, free = {}, {}
     for name in ("solo", "1v1", "2v2"):
         with tempfile.TemporaryDirectory() as scratch:
             stages[name] = count_syncs(_stage_trainer(name, device, worlds, Path(scratch)), steps)
-    summary = "per env step " + ", ".join(f"{name} {s['per_step_mean']:.1f} (max {s['per_step_max']})"
-                                          for name, s in stages.items())
-    top = stages["2v2"]["top_sites"][:3]
-    summary += "; 2v2's most frequent: " + ", ".join(f"{t['call']} at {t['site']} ({t['per_step']:.1f})" for t in top)
-    return {"status": "info", "summary": summary, "stages": stages}
+        with tempfile.TemporaryDirectory() as scratch:
+            trainer = _stage_trainer(name, device, worlds, Path(scratch))
+            sync_free(trainer)
+            free[name] = count_syncs(trainer, steps)
+    ok = all(s["per_step_max"] == 0 for s in free.values())
+    summary = "per env step, sync-free path: " + ", ".join(f"{n} {s['per_step_mean']:.1f}" for n, s in free.items())
+    if device.startswith("cpu"):
+        summary += "; the CPU's own path: " + ", ".join(f"{n} {s['per_step_mean']:.1f}" for n, s in stages.items())
+    return {"status": "pass" if ok else "fail", "summary": summary, "stages": stages, "sync_free": free}
 
 
 def out_of_memory(exc: BaseException) -> bool:

@@ -3,8 +3,10 @@
 On a CUDA device these calls copy a value to the host or size an output by the data, so the host stops until the GPU
 has caught up: reading a value (``item``, ``tolist``, ``bool``/``int``/``float`` of a tensor, ``.cpu()``), finding
 indices (``nonzero``, one-argument ``where``, ``argwhere``), outputs sized by the data (``masked_select``,
-``unique``, ``bincount``, ``repeat_interleave`` by a tensor) and indexing with a bool mask (``x[mask]``,
-``x[mask] = v``). On a CPU nothing waits, so a CPU test counts them to pin the code path a CUDA run takes.
+``unique``, ``bincount``, ``repeat_interleave`` by a tensor), indexing with a bool mask (``x[mask]``,
+``x[mask] = v``) and uploads of host data (``torch.tensor``/``torch.as_tensor`` of a list, number or array with a
+``device``: a blocking copy waits for the device's queue). On a CPU nothing waits, so a CPU test counts them to pin the
+code path a CUDA run takes.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from typing import Any
 import torch
 from torch.overrides import TorchFunctionMode
 
-__all__ = ["HostSyncCounter", "is_host_sync"]
+__all__ = ["HostSyncCounter", "is_host_sync", "put_rows"]
 
 _PACKAGE = str(Path(__file__).resolve().parents[1]) + os.sep
 """The spiral package's folder: call sites are counted in its files by default."""
@@ -48,6 +50,8 @@ def is_host_sync(name: str, args: tuple[Any, ...], kwargs: dict[str, Any]) -> bo
     """Whether the torch function or tensor method ``name`` called with ``args``/``kwargs`` waits for the device."""
     if name in _READS or name in _SIZED_BY_DATA:
         return True
+    if name in ("tensor", "as_tensor"):  # host data placed on a device named by the caller
+        return kwargs.get("device") is not None and not (args and isinstance(args[0], torch.Tensor))
     if name in ("__getitem__", "__setitem__", "index_put_", "index_put"):
         return _mask_index(args)
     if name == "where":
@@ -95,3 +99,15 @@ class HostSyncCounter(TorchFunctionMode):
             return "?"
         f = frames[-1]
         return f"{f.filename.removeprefix(_PACKAGE)}:{f.lineno}"
+
+
+def put_rows(dst: torch.Tensor, values: torch.Tensor, rows: torch.Tensor, index: torch.Tensor | None) -> None:
+    """Write ``values`` into the rows of ``dst`` that the bool mask ``rows`` selects (along the first dimension).
+
+    With ``index`` (``rows``' indices, from ``nonzero``), ``values`` holds the selected rows only, in order; without,
+    it holds a value for every row and is kept where ``rows`` is set: more work, but no host synchronisation.
+    """
+    if index is not None:
+        dst[index] = values
+    else:
+        dst.copy_(torch.where(rows.view(-1, *[1] * (dst.dim() - 1)), values, dst))

@@ -17,6 +17,7 @@ from spiral.config.env import PassageStartsCfg
 from spiral.config.track import TrackSpec
 from spiral.env.starts import Starts
 from spiral.env.state import RaceState
+from spiral.env.track_tensors import TrackTensors
 
 __all__ = ["PassageBuffer", "PassageStarts", "clear_of_gates", "closest_pair", "passage_share"]
 
@@ -28,7 +29,8 @@ def passage_share(cfg: PassageStartsCfg, fraction: float) -> float:
     return cfg.share_start + (cfg.share_end - cfg.share_start) * fraction
 
 
-def clear_of_gates(pos: torch.Tensor, track: TrackSpec, radius: float, *, margin: float = 0.05) -> torch.Tensor:
+def clear_of_gates(pos: torch.Tensor, track: TrackSpec | TrackTensors, radius: float, *,
+                   margin: float = 0.05) -> torch.Tensor:
     """Whether a sphere of ``radius`` at each position (..., 3) keeps ``margin`` from every gate's frame and from the
     arena's bounds.
 
@@ -38,16 +40,12 @@ def clear_of_gates(pos: torch.Tensor, track: TrackSpec, radius: float, *, margin
     ``margin`` to ``r`` on every side.
     """
     r = radius + margin
-    centers = torch.tensor(track.gate_centers(), dtype=pos.dtype, device=pos.device)
-    rot = torch.tensor(track.gate_rotations(), dtype=pos.dtype, device=pos.device)  # columns: normal, y, z
-    half = torch.tensor([track.gate_opening(i) / 2 for i in range(len(track.gates))], dtype=pos.dtype,
-                        device=pos.device)
-    bar = torch.tensor([track.gate_bar(i) for i in range(len(track.gates))], dtype=pos.dtype, device=pos.device)
-    local = torch.einsum("gij,...gi->...gj", rot, pos[..., None, :] - centers)
+    geometry = TrackTensors.of(track, pos.device)
+    centers, rot, half, bar = geometry.gate_centers, geometry.gate_rotations, geometry.gate_half, geometry.gate_bar
+    local = torch.einsum("gij,...gi->...gj", rot, pos[..., None, :] - centers)  # rot's columns: normal, y, z
     in_plane = local[..., 1:].abs().amax(dim=-1)
     touches = (local[..., 0].abs() < bar / 2 + r) & (in_plane > half - r) & (in_plane < half + bar + r)
-    lo = torch.tensor(track.bounds.min, dtype=pos.dtype, device=pos.device) + r
-    hi = torch.tensor(track.bounds.max, dtype=pos.dtype, device=pos.device) - r
+    lo, hi = geometry.bounds[0] + r, geometry.bounds[1] - r
     inside = ((pos >= lo) & (pos <= hi)).all(dim=-1)
     return inside & ~touches.any(dim=-1)
 
@@ -116,6 +114,8 @@ class PassageStarts:
                  device: torch.device) -> None:
         self.cfg = cfg if training else None
         self.track, self.radius, self.share = track, radius, 0.0 if self.cfg is None else self.cfg.share_start
+        self.geometry = TrackTensors.of(track, device)
+        """The track's gates and bounds on the buffer's device, for the checks of a draw."""
         self.buffer = None if self.cfg is None else PassageBuffer(len(track.gates), self.cfg.capacity, device=device)
 
     @classmethod
@@ -149,7 +149,7 @@ class PassageStarts:
         pos, vel, yaw, gate, ok = self.buffer.sample(pack, drones, generator, pos_noise=self.cfg.pos_noise,
                                                      vel_noise=self.cfg.vel_noise)
         use = torch.rand(world_count, generator=generator, device=device) < self.share
-        use &= ok & clear_of_gates(pos, self.track, self.radius).all(dim=1)
+        use &= ok & clear_of_gates(pos, self.geometry, self.radius).all(dim=1)
         if self.cfg.pack > 0:
             use &= ~pack | (closest_pair(pos) >= self.track.start.min_separation)
         w, v = use[:, None, None], use[:, None]

@@ -11,18 +11,21 @@ import warp as wp
 from tensordict import TensorDict
 
 from spiral.config.env import EnvCfg, ObsCfg
+from spiral.core.host_syncs import put_rows
 from spiral.core.policy import OpponentPolicy, RecordingOpponent, ResettingOpponent
-from spiral.core.scenario import team_slots
+from spiral.core.scenario import race_teams, team_slots
 from spiral.env.actions import ActionMap
 from spiral.env.events import RaceEvents, lap_splits, race_result
 from spiral.env.observations import Observer, ObsSource
 from spiral.env.passages import PassageStarts
 from spiral.env.rewards import compute_rewards
 from spiral.env.setting import RaceSetting
+from spiral.env.slots import per_row
 from spiral.env.starts import Starts, draw_starts
 from spiral.env.state import RaceState
+from spiral.env.track_tensors import TrackTensors
 
-__all__ = ["EpisodeEnds", "RaceEnv"]
+__all__ = ["EpisodeEnds", "RaceEnv", "restart_worlds"]
 
 
 @dataclass(frozen=True)
@@ -43,17 +46,47 @@ def observed_tensors(state: RaceState) -> ObsSource:
                      gate_forward=state.gate_forward, other_slots=state.other_slots)
 
 
-def _per_row(worlds: torch.Tensor, rows: int) -> torch.Tensor:
-    """A per-world mask (W,) repeated for each of a world's ``rows`` rows (W·rows,), world-major."""
-    return worlds[:, None].expand(-1, rows).reshape(-1)
-
-
-def _draw_starts(env: RaceEnv, world_count: int) -> Starts:
+def draw_env_starts(env: RaceEnv, world_count: int, *, checked: bool = True) -> Starts:
     """Starts of ``world_count`` worlds of ``env`` (passage starts among them in training), drawn with its generator
-    on the generator's device (:func:`~spiral.env.state.draw_device`) and moved to the env's."""
-    starts = draw_starts(env.track, env.cfg.episode, world_count, env.drones_per_world, env.generator,
-                         training=env.training, device=env.generator.device)
+    on the generator's device (:func:`~spiral.env.state.draw_device`) and moved to the env's; ``checked``: the box
+    draw's (:func:`~spiral.env.starts.sample_box_starts`)."""
+    starts = draw_starts(env.track_geometry, env.cfg.episode, world_count, env.drones_per_world, env.generator,
+                         training=env.training, device=env.generator.device, checked=checked)
     return env.passages.apply(starts, env.generator).to(env.device)
+
+
+def contests(env: RaceState) -> bool:
+    """Whether the drones that race in ``env`` are of more than one team: a start-box race has a winner to find."""
+    driven = env.learner_slots + (env.opponent_slots if env.opponent_policy is not None else [])
+    teams = race_teams(env.drones_per_world)
+    return len({teams[s] for s in driven}) > 1
+
+
+def restart_worlds(env: RaceEnv, worlds: torch.Tensor, *, every_world: bool = False) -> None:
+    """Draw new starts for the worlds of ``env`` in the bool mask ``worlds`` and reset them in the simulator: drawn
+    for those worlds only, in world order (so a reset of every world draws what it always did), or with
+    ``every_world`` for every world and kept where the mask is set, without a host read (``env.sync_free``)."""
+    d, generator = env.drones_per_world, env.generator
+    idx = None if every_world else worlds.nonzero().squeeze(1)
+    count = env.world_count if idx is None else idx.numel()
+    starts = draw_env_starts(env, count, checked=idx is not None)
+    buf, t = env.start_buffers, wp.to_torch
+    t(buf["mask"]).copy_(worlds.int())
+    for name in ("pos", "vel", "yaw", "gate"):
+        value = getattr(starts, name)
+        put_rows(t(buf[name]).view(-1, d, *value.shape[2:]), value, worlds, idx)
+    env.world.reset(buf["mask"], buf["pos"], buf["yaw"], init_vel=buf["vel"], init_next_gate=buf["gate"])
+    env.reset_drone_buffers(per_row(worlds, d))
+    if any(o is not None and o.builder.cfg.priority for o in (env.observer, env.opponent_observer)):
+        drawn = torch.rand(count, d, generator=generator, device=generator.device)
+        put_rows(env.priority.view(-1, d), drawn.to(env.device), worlds, idx)
+    put_rows(env.contested, starts.box & contests(env), worlds, idx)
+    episode = env.cfg.episode
+    if env.training and episode.start_cut_prob > 0:
+        cut = starts.box & (torch.rand(count, generator=generator, device=generator.device) < episode.start_cut_prob)
+        put_rows(env.cut_time, torch.where(cut, episode.start_cut_s, math.inf), worlds, idx)
+    if isinstance(env.opponent_policy, ResettingOpponent):
+        env.opponent_policy.reset(worlds)
 
 
 class RaceEnv(RaceState):
@@ -80,6 +113,12 @@ class RaceEnv(RaceState):
         self.opponent_observer: Observer | None = None
         """The opponent slots' own observer when their policy reads another observation layout (cross-play)."""
         self.passages = PassageStarts.of(self, setting.airframe.radius)
+        self.track_geometry = TrackTensors.of(self.track, self.generator.device)
+        """The track's geometry where starts are drawn, so that a draw copies nothing from the host."""
+        self.sync_free = self.device.type != "cpu"
+        """Auto-resets without a host synchronisation (the default off a CPU): every step draws starts for every
+        world and keeps those of the ended ones, instead of finding the ended worlds and drawing for them alone
+        (the cheaper way on a CPU). Either way is a valid training run; they draw different starts."""
         self.reset()
 
     def set_opponent_policy(self, policy: OpponentPolicy | None, *, obs: ObsCfg | None = None) -> None:
@@ -177,7 +216,7 @@ class RaceEnv(RaceState):
         terminated = (ev.crashed_now | ev.finished_now)[self.learner_idx]
         time_up = self.world_time() >= torch.clamp(self.cut_time, max=self.time_limit) - 1e-6
         worlds = terminated.view(self.world_count, -1).any(dim=1) | time_up | (self.world_nonfinite != 0)
-        time_outs = _per_row(worlds, len(self.learner_slots)) & ~terminated
+        time_outs = per_row(worlds, len(self.learner_slots)) & ~terminated
         dones = terminated | time_outs
         self.episode_length_buf += 1
         self._count_ended(dones)
@@ -188,11 +227,11 @@ class RaceEnv(RaceState):
         :meth:`before_auto_reset`."""
         if isinstance(self.opponent_policy, RecordingOpponent):
             self.opponent_policy.record(ends.worlds, self.learner_won())
-        if self.training and ends.worlds.any():
-            self.stats["nonfinite_resets"] += (self.world_nonfinite != 0).sum()
+        if self.training and (self.sync_free or ends.worlds.any()):
+            self.stats["nonfinite_resets"] += ((self.world_nonfinite != 0) & ends.worlds).sum()
             self.before_auto_reset(ends.worlds)
-            self._reset_worlds(ends.worlds)
-            self.episode_length_buf.masked_fill_(_per_row(ends.worlds, len(self.learner_slots)), 0)
+            restart_worlds(self, ends.worlds, every_world=self.sync_free)
+            self.episode_length_buf.masked_fill_(per_row(ends.worlds, len(self.learner_slots)), 0)
         else:
             self._fresh = torch.zeros_like(self.finished)
 
@@ -212,33 +251,9 @@ class RaceEnv(RaceState):
 
     def reset(self) -> TensorDict:
         """Reset every world and return the learner observations."""
-        self._reset_worlds(torch.ones(self.world_count, dtype=torch.bool, device=self.device))
+        restart_worlds(self, torch.ones(self.world_count, dtype=torch.bool, device=self.device))
         self.episode_length_buf.zero_()
         return self.get_observations()
-
-    def _reset_worlds(self, worlds: torch.Tensor) -> None:
-        """Draw new starts for the worlds in the bool mask ``worlds`` (for those only, in world order, so a reset of
-        every world draws what it always did) and reset them in the simulator."""
-        d, idx = self.drones_per_world, worlds.nonzero().squeeze(1)
-        starts = _draw_starts(self, idx.numel())
-        buf, t = self._wp_starts, wp.to_torch
-        t(buf["mask"]).copy_(worlds.int())
-        for name in ("pos", "vel", "yaw", "gate"):
-            t(buf[name]).view(-1, d, *getattr(starts, name).shape[2:])[idx] = getattr(starts, name)
-        self.world.reset(buf["mask"], buf["pos"], buf["yaw"], init_vel=buf["vel"], init_next_gate=buf["gate"])
-        drones = _per_row(worlds, d)
-        self._reset_drone_buffers(drones)
-        if any(o is not None and o.builder.cfg.priority for o in (self.observer, self.opponent_observer)):
-            drawn = torch.rand(idx.numel() * d, generator=self.generator, device=self.generator.device)
-            self.priority[drones] = drawn.to(self.device)
-        driven = self.learner_slots + (self.opponent_slots if self.opponent_policy is not None else [])
-        self.contested[idx] = starts.box & (len({int(self.race_team[s]) for s in driven}) > 1)
-        if self.training and self.cfg.episode.start_cut_prob > 0:
-            cut = starts.box & (torch.rand(idx.numel(), generator=self.generator, device=self.generator.device)
-                                < self.cfg.episode.start_cut_prob)
-            self.cut_time[idx] = torch.where(cut, self.cfg.episode.start_cut_s, math.inf)
-        if isinstance(self.opponent_policy, ResettingOpponent):
-            self.opponent_policy.reset(worlds)
 
     # Observations
 

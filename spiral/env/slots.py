@@ -9,7 +9,7 @@ import torch
 
 from spiral.core.scenario import race_teams
 
-__all__ = ["Slots", "slot_map"]
+__all__ = ["Slots", "per_row", "slot_map"]
 
 
 @dataclass(frozen=True)
@@ -49,3 +49,8 @@ def slot_map(world_count: int, drones_per_world: int, learner_slots: Sequence[in
         slot_team=slot_team, race_team=torch.tensor(race_teams(d), dtype=torch.long, device=device),
         other_slots=other,
     )
+
+
+def per_row(worlds: torch.Tensor, rows: int) -> torch.Tensor:
+    """A per-world mask (W,) repeated for each of a world's ``rows`` rows (W·rows,), world-major."""
+    return worlds[:, None].expand(-1, rows).reshape(-1)

@@ -10,14 +10,17 @@ import torch
 from spiral.config.env import EpisodeCfg
 from spiral.config.track import TrackSpec
 from spiral.core.errors import UsageError
+from spiral.env.track_tensors import TrackTensors
 
-__all__ = ["FILE_GAP", "FILE_JITTER", "Starts", "draw_starts", "sample_box_starts", "sample_file_starts",
-           "sample_track_starts"]
+__all__ = ["FILE_GAP", "FILE_JITTER", "UNCHECKED_ROUNDS", "Starts", "draw_starts", "sample_box_starts",
+           "sample_file_starts", "sample_track_starts"]
 
 FILE_GAP = (0.4, 1.0)
 """Range of the distance [m] along the track between consecutive drones of a file start."""
 FILE_JITTER = 0.05
 """Standard deviation [m] of the random offset of each drone of a file start from its place on the line."""
+UNCHECKED_ROUNDS = 3
+"""Placement rounds of an unchecked box draw (:func:`sample_box_starts`), which never reads a flag back."""
 
 
 def _place_sequentially(
@@ -40,44 +43,47 @@ def _place_sequentially(
 
 
 def sample_box_starts(
-    track: TrackSpec, world_count: int, drones: int, generator: torch.Generator, *, device: torch.device,
-    candidates: int = 256,
+    track: TrackSpec | TrackTensors, world_count: int, drones: int, generator: torch.Generator, *, device: torch.device,
+    candidates: int = 256, checked: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Positions (W, D, 3) uniform in the start box with the minimum separation, and yaws (W, D).
 
     Drones are placed one after another: each takes the first of ``candidates`` uniform draws that keeps the
     separation from the drones already placed; a world that gets stuck starts over. The result depends only on
-    the generator's state. Raises ``ValueError`` when the box cannot hold the drones.
+    the generator's state. ``checked``: retry until every world is placed and raise ``UsageError`` when the box
+    cannot hold the drones (reads a flag back every round); else :data:`UNCHECKED_ROUNDS` rounds, never read back (a
+    world stuck in all of them, which a box that passed a checked draw makes vanishingly rare, keeps a drone at its
+    first candidate).
     """
-    lo = torch.tensor(track.start.center, device=device) - torch.tensor(track.start.size, device=device) / 2
-    size = torch.tensor(track.start.size, device=device)
+    geometry = TrackTensors.of(track, device)
+    track, (lo, size) = geometry.spec, geometry.box
     pos = torch.zeros(world_count, drones, 3, device=device)
     todo = torch.ones(world_count, dtype=torch.bool, device=device)
-    for _ in range(50):  # worlds whose sequential placement got stuck start over
-        pos, stuck = _place_sequentially(lo, size, pos, todo, drones, track.start.min_separation, generator,
-                                         candidates)
-        todo = stuck
-        if not todo.any():
+    for _ in range(50 if checked else UNCHECKED_ROUNDS):  # worlds whose sequential placement got stuck start over
+        pos, todo = _place_sequentially(lo, size, pos, todo, drones, track.start.min_separation, generator,
+                                        candidates)
+        if checked and not todo.any():
             break
     else:
-        raise UsageError(f"start box of track {track.name!r} cannot hold {drones} drones "
-                         f"{track.start.min_separation} m apart")
+        if checked:
+            raise UsageError(f"start box of track {track.name!r} cannot hold {drones} drones "
+                             f"{track.start.min_separation} m apart")
     yaw = torch.full((world_count, drones), math.radians(track.start.yaw_deg), device=device)
     return pos, yaw
 
 
-def _random_segments(track: TrackSpec, shape: tuple[int, ...], generator: torch.Generator,
+def _random_segments(track: TrackSpec | TrackTensors, shape: tuple[int, ...], generator: torch.Generator,
                      device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """A uniformly drawn next gate per entry of ``shape``, the centre of the gate before it (where the segment
     starts) and the segment's vector to the next gate's centre."""
-    centers = torch.tensor(track.gate_centers(), dtype=torch.float32, device=device)
+    centers = TrackTensors.of(track, device).gate_centers
     target = torch.randint(0, centers.shape[0], shape, generator=generator, device=device)
     origin = centers[(target - 1) % centers.shape[0]]
     return target, origin, centers[target] - origin
 
 
 def sample_track_starts(
-    track: TrackSpec, world_count: int, drones: int, generator: torch.Generator, *, max_speed: float,
+    track: TrackSpec | TrackTensors, world_count: int, drones: int, generator: torch.Generator, *, max_speed: float,
     device: torch.device,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Random points on the centreline segments between consecutive gates, heading for the segment's end gate.
@@ -97,7 +103,7 @@ def sample_track_starts(
 
 
 def sample_file_starts(
-    track: TrackSpec, world_count: int, drones: int, generator: torch.Generator, *, max_speed: float,
+    track: TrackSpec | TrackTensors, world_count: int, drones: int, generator: torch.Generator, *, max_speed: float,
     device: torch.device,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The drones of each world in single file on one centreline segment between consecutive gates.
@@ -146,16 +152,17 @@ class Starts:
         return Starts(*(getattr(self, f.name).to(device) for f in fields(self)))
 
 
-def draw_starts(track: TrackSpec, episode: EpisodeCfg, world_count: int, drones: int, generator: torch.Generator, *,
-                training: bool, device: torch.device) -> Starts:
+def draw_starts(track: TrackSpec | TrackTensors, episode: EpisodeCfg, world_count: int, drones: int,
+                generator: torch.Generator, *, training: bool, device: torch.device, checked: bool = True) -> Starts:
     """Starts in the start box, and in training a share ``episode.track_start_prob`` of worlds along the track and,
     with several drones, a share ``episode.file_start_prob`` in single file (taking precedence over the other two).
     Evaluation starts every world where ``episode.eval_starts`` says.
 
     The draws depend only on the generator's state: box placements for every world first, then track starts and
     the choice between them (training with track starts only), then file starts and theirs (only when used).
+    ``checked``: the box draw's (:func:`sample_box_starts`).
     """
-    pos, yaw = sample_box_starts(track, world_count, drones, generator, device=device)
+    pos, yaw = sample_box_starts(track, world_count, drones, generator, device=device, checked=checked)
     state = (pos, torch.zeros_like(pos), yaw, torch.zeros(world_count, drones, dtype=torch.int32, device=device))
     box = torch.ones(world_count, dtype=torch.bool, device=device)
     if not training and episode.eval_starts != "box":  # a robustness check: every world starts off the box

@@ -114,7 +114,7 @@ class RaceState:
         """Race time at which each world's episode is cut short (``episode.start_cut_prob``), else inf [s]."""
         self.contested = torch.zeros(w, dtype=torch.bool, device=dev)
         """Start-box race against opponents whose winner is not known yet."""
-        self._wp_starts = {name: wp.zeros(size, dtype=dtype, device=self.world.device) for name, size, dtype in (
+        self.start_buffers = {name: wp.zeros(size, dtype=dtype, device=self.world.device) for name, size, dtype in (
             ("mask", w, wp.int32), ("pos", n, wp.vec3), ("vel", n, wp.vec3), ("yaw", n, wp.float32),
             ("gate", n, wp.int32))}
         """Warp buffers of the start states a reset hands the simulator."""
@@ -124,7 +124,7 @@ class RaceState:
         """Drive the opponent slots with ``policy`` from the next reset on (``None``: the slots are absent)."""
         self.opponent_policy = policy
 
-    def _reset_drone_buffers(self, drones: torch.Tensor) -> None:
+    def reset_drone_buffers(self, drones: torch.Tensor) -> None:
         """Start the race afresh for the drones in the bool mask ``drones``; opponent slots without a policy are out."""
         for buf in (self.last_action, self.lap_time, self.lap_start, self.crash_kind, *self.term_sums.values()):
             buf.masked_fill_(drones.view(-1, *[1] * (buf.dim() - 1)), 0)

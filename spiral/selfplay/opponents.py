@@ -10,6 +10,7 @@ import torch
 from tensordict import TensorDict
 
 from spiral.core.checkpoint import FrozenPolicy, load_policy
+from spiral.core.host_syncs import put_rows
 from spiral.selfplay.matchmaking import Matchmaker
 
 __all__ = ["OpponentDraws", "PoolOpponents", "StageOpponents"]
@@ -67,20 +68,31 @@ class PoolOpponents:
         """Factor on each opponent's position-target actions for the episode (``pace``; its yaw is untouched)."""
         self.blind_world = torch.zeros(world_count, dtype=torch.bool, device=matchmaker.races.device)
         """Worlds whose opponents do not see the other drones (``blind``)."""
+        self.sync_free = matchmaker.races.device.type != "cpu"
+        """Route rows to members without a host synchronisation (the default off a CPU): every member's network runs
+        on every row and each row keeps its member's actions, and resets draw for every world; on a CPU, cheaper to
+        find each member's rows and the reset worlds on the host."""
         self.reset(torch.ones(world_count, dtype=torch.bool, device=matchmaker.races.device))
 
     @torch.no_grad()
     def __call__(self, obs: TensorDict) -> torch.Tensor:
         """Actions of every opponent drone."""
+        if self.draws.blind > 0:
+            obs = self._blinded(obs)
+        actions = self._every_member(obs) if self.sync_free else self._by_member(obs)
+        if self.draws.pace > 0:  # on the action range the env keeps: a policy's mean may lie beyond it
+            actions[:, :3] = actions[:, :3].clamp(-1.0, 1.0) * self.action_scale.view(-1, 1)
+        if self.draws.offset > 0:
+            actions[:, :3] += self.action_offset.view(-1, 3)
+        return actions
+
+    def _by_member(self, obs: TensorDict) -> torch.Tensor:
+        """Actions with each network run on its own worlds' rows only (rows found on the host)."""
         member_of_row = self.assignment.repeat_interleave(self.per_world)
         mirror_row = self.mirror.repeat_interleave(self.per_world)
         actions = torch.zeros(obs.batch_size[0], 4, device=member_of_row.device)
-        if self.draws.blind > 0:
-            obs = self._blinded(obs)
         if mirror_row.any():
-            if self.live is None:
-                raise RuntimeError("mirror worlds need the learner's policy: set PoolOpponents.live")
-            actions[mirror_row] = self.live(obs[mirror_row])
+            actions[mirror_row] = self._live()(obs[mirror_row])
         # each member's rows in ascending order (a stable sort by member), so that each network sees the same
         # batch as it would through a mask of its rows
         pooled = torch.nonzero(~mirror_row).squeeze(1)
@@ -91,28 +103,45 @@ class PoolOpponents:
         acted = [self.policies[m].actions(policy_obs[rows]) for m, rows in enumerate(order.split(counts)) if len(rows)]
         if acted:
             actions[order] = torch.cat(acted)
-        if self.draws.pace > 0:  # on the action range the env keeps: a policy's mean may lie beyond it
-            actions[:, :3] = actions[:, :3].clamp(-1.0, 1.0) * self.action_scale.view(-1, 1)
-        if self.draws.offset > 0:
-            actions[:, :3] += self.action_offset.view(-1, 3)
         return actions
 
+    def _every_member(self, obs: TensorDict) -> torch.Tensor:
+        """Actions with every network run on every row, each row keeping its member's (no host synchronisation)."""
+        member_of_row = self.assignment.repeat_interleave(self.per_world)
+        actions = torch.zeros(obs.batch_size[0], 4, device=member_of_row.device)
+        for m, policy in enumerate(self.policies):
+            actions = torch.where((member_of_row == m)[:, None], policy.actions(obs["policy"]), actions)
+        if self.draws.p_self > 0:
+            mirror_row = self.mirror.repeat_interleave(self.per_world)
+            actions = torch.where(mirror_row[:, None], self._live()(obs), actions)
+        return actions
+
+    def _live(self) -> Callable[[TensorDict], torch.Tensor]:
+        """The learner's current policy, for mirror worlds."""
+        if self.live is None:
+            raise RuntimeError("mirror worlds need the learner's policy: set PoolOpponents.live")
+        return self.live
+
     def reset(self, worlds: torch.Tensor) -> None:
-        """Draw new members (or mirror races) for the worlds in the bool mask ``worlds``."""
-        count = int(worlds.sum())
-        if count:
-            self.assignment[worlds] = self.matchmaker.draw(count, self.generator)
-            u = torch.rand(count, generator=self.generator, device=self.mirror.device)
-            self.mirror[worlds] = u < self.draws.p_self
-            if self.draws.offset > 0:
-                shift = torch.rand(count, self.per_world, 3, generator=self.generator, device=self.mirror.device)
-                self.action_offset[worlds] = (2.0 * shift - 1.0) * self.draws.offset
-            if self.draws.pace > 0:
-                slow = torch.rand(count, self.per_world, 1, generator=self.generator, device=self.mirror.device)
-                self.action_scale[worlds] = 1.0 - slow * self.draws.pace
-            if self.draws.blind > 0:
-                u = torch.rand(count, generator=self.generator, device=self.mirror.device)
-                self.blind_world[worlds] = u < self.draws.blind
+        """Draw new members (or mirror races) for the worlds in the bool mask ``worlds``: for those worlds only, or
+        without a host synchronisation (:attr:`sync_free`) for every world, kept where the mask is set."""
+        idx = None if self.sync_free else worlds.nonzero().squeeze(1)
+        count = len(worlds) if idx is None else idx.numel()
+        if count == 0:
+            return
+        device = self.mirror.device
+        put_rows(self.assignment, self.matchmaker.draw(count, self.generator), worlds, idx)
+        put_rows(self.mirror, torch.rand(count, generator=self.generator, device=device) < self.draws.p_self, worlds,
+                 idx)
+        if self.draws.offset > 0:
+            shift = torch.rand(count, self.per_world, 3, generator=self.generator, device=device)
+            put_rows(self.action_offset, (2.0 * shift - 1.0) * self.draws.offset, worlds, idx)
+        if self.draws.pace > 0:
+            slow = torch.rand(count, self.per_world, 1, generator=self.generator, device=device)
+            put_rows(self.action_scale, 1.0 - slow * self.draws.pace, worlds, idx)
+        if self.draws.blind > 0:
+            u = torch.rand(count, generator=self.generator, device=device)
+            put_rows(self.blind_world, u < self.draws.blind, worlds, idx)
 
     def _blinded(self, obs: TensorDict) -> TensorDict:
         """``obs`` with the unseen entries of the blind worlds' rows zeroed."""

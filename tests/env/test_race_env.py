@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from spiral.env import run_races
+from spiral.env.race_env import restart_worlds
 from tests.env.helpers import CF2X, make_env, place
 
 
@@ -117,7 +118,7 @@ def test_resetting_some_worlds_draws_starts_for_them_only_and_a_full_reset_draws
     fresh = make_env(oval2, worlds=4, drones=2, learners=(0,))
     torch.testing.assert_close(env.pos, fresh.pos)
     env.pos[:] = 5.0
-    env._reset_worlds(torch.tensor([False, True, False, True]))
+    restart_worlds(env, torch.tensor([False, True, False, True]))
     pos = env.pos.view(4, 2, 3)
     kept = pos[[0, 2]]  # set by the test and kept
     torch.testing.assert_close(kept, torch.full_like(kept, 5.0))

@@ -140,3 +140,56 @@ def test_an_evaluation_envs_placements_are_the_cpu_draws_of_its_seed(circuit6, e
                            device=CPU)
     torch.testing.assert_close(env.pos.view(5, 2, 3), expected.pos, rtol=0, atol=0)
     torch.testing.assert_close(env.vel.view(5, 2, 3), expected.vel, rtol=0, atol=0)
+
+
+def test_an_unchecked_box_draw_places_what_a_checked_one_does_without_a_host_read(circuit6):
+    """Without the check (a draw of the sync-free reset) the box placements are those of the checked draw whenever no
+    world got stuck, keep the minimum separation, and no flag is read back."""
+    from spiral.core.host_syncs import HostSyncCounter
+    from spiral.env.track_tensors import TrackTensors
+
+    geometry = TrackTensors.of(circuit6, CPU)
+    checked, _ = starts_module.sample_box_starts(circuit6, 500, 4, torch.Generator().manual_seed(2), device=CPU)
+    with HostSyncCounter() as syncs:
+        free, yaw = starts_module.sample_box_starts(geometry, 500, 4, torch.Generator().manual_seed(2), device=CPU,
+                                                    checked=False)
+    assert syncs.total == 0
+    torch.testing.assert_close(free, checked, rtol=0, atol=0)
+    gaps = torch.cdist(free, free) + torch.eye(4) * 1e3
+    assert gaps.min() >= circuit6.start.min_separation
+    assert torch.allclose(yaw, torch.full_like(yaw, math.radians(circuit6.start.yaw_deg)))
+
+
+def test_track_tensors_hold_the_tracks_geometry_and_are_built_once_per_device(circuit6):
+    from spiral.env.track_tensors import TrackTensors
+
+    geometry = TrackTensors.of(circuit6, "cpu")
+    assert TrackTensors.of(geometry, CPU) is geometry
+    torch.testing.assert_close(geometry.gate_centers, torch.tensor(circuit6.gate_centers(), dtype=torch.float32))
+    lo, size = geometry.box
+    torch.testing.assert_close(lo + size / 2, torch.tensor(circuit6.start.center))
+    assert geometry.gate_half.shape == geometry.gate_bar.shape == (len(circuit6.gates),)
+
+
+def test_a_sync_free_reset_starts_the_ended_worlds_afresh_and_leaves_the_others(circuit6):
+    """A reset of every world's draw kept where the mask is set: the running worlds keep their state to the bit, the
+    ended ones start in the box, and nothing is read back from the device."""
+    from spiral.core.host_syncs import HostSyncCounter
+    from spiral.env.race_env import restart_worlds
+    from tests.env.helpers import make_env
+
+    env = make_env(circuit6, worlds=6, drones=2, learners=(0, 1))
+    env.sync_free = True
+    for _ in range(5):
+        env.step(torch.zeros(env.num_envs, 4))
+    ended = torch.tensor([True, False, False, True, False, True])
+    rows = ended.repeat_interleave(2)
+    before = env.pos.clone(), env.vel.clone(), env.episode_length_buf.clone()
+    with HostSyncCounter() as syncs:
+        restart_worlds(env, ended, every_world=True)
+    assert syncs.total == 0
+    assert torch.equal(env.pos[~rows], before[0][~rows])  # exact: rows the reset leaves alone are not written
+    assert torch.equal(env.vel[~rows], before[1][~rows])  # exact: as above
+    lo, size = env.track_geometry.box
+    assert ((env.pos[rows] >= lo) & (env.pos[rows] <= lo + size)).all()
+    assert (env.vel[rows] == 0).all() and (env.next_gate[rows] == 0).all()

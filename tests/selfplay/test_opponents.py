@@ -11,6 +11,7 @@ from tensordict import TensorDict
 
 from spiral.config import SelfPlayCfg, SimCfg, StageSpec
 from spiral.core.checkpoint import FrozenPolicy
+from spiral.core.host_syncs import HostSyncCounter
 from spiral.env import RaceSetting
 from spiral.selfplay import Matchmaker, OpponentDraws, PoolOpponents, StageSources, run_stage
 from spiral.train import StageStart, StageTrainer, load_policy
@@ -242,3 +243,36 @@ def test_blind_opponents_read_rows_without_the_unseen_entries_for_their_episode(
     opponents.reset(torch.arange(worlds) < worlds // 2)
     assert torch.equal(opponents.blind_world[worlds // 2:], drawn[worlds // 2:])  # exact: booleans
     assert not torch.equal(opponents.blind_world[: worlds // 2], drawn[: worlds // 2])  # exact: booleans
+
+
+def test_opponents_without_host_syncs_act_and_draw_as_the_routed_ones(solo_policy):
+    """The sync-free path (every member on every row, draws for every world) gives each row its member's actions
+    and, at a reset, redraws only the masked worlds, with no host synchronisation."""
+    members = [solo_policy, load_policy_copy(solo_policy, scale=0.5), load_policy_copy(solo_policy, scale=2.0)]
+    draws = OpponentDraws(p_self=0.3, offset=0.1, pace=0.2)
+
+    def pool(*, sync_free: bool) -> PoolOpponents:
+        opponents = PoolOpponents(members, Matchmaker(3, latest=2, p_latest=0.2), world_count=200, per_world=2,
+                                  generator=torch.Generator().manual_seed(5), draws=draws)
+        opponents.sync_free = sync_free
+        opponents.live = lambda obs: torch.full((obs.batch_size[0], 4), 0.25)
+        return opponents
+
+    routed, free = pool(sync_free=False), pool(sync_free=True)
+    free.assignment, free.mirror = routed.assignment.clone(), routed.mirror.clone()
+    free.action_offset, free.action_scale = routed.action_offset.clone(), routed.action_scale.clone()
+    dim = solo_policy.obs_layout["obs_dim"]
+    obs = TensorDict({"policy": torch.randn(400, dim), "critic": torch.randn(400, dim)}, batch_size=[400])
+    with HostSyncCounter() as syncs:
+        actions = free(obs)
+    assert syncs.total == 0
+    torch.testing.assert_close(actions, routed(obs), atol=1e-6, rtol=1e-5)
+    worlds = torch.arange(200) % 3 == 0
+    before = free.assignment.clone(), free.action_offset.clone()
+    with HostSyncCounter() as syncs:
+        free.reset(worlds)
+    assert syncs.total == 0
+    assert torch.equal(free.assignment[~worlds], before[0][~worlds])  # exact: member indices (integers)
+    assert torch.equal(free.action_offset[~worlds], before[1][~worlds])  # exact: worlds not reset are not written
+    assert not torch.equal(free.action_offset[worlds], before[1][worlds])  # exact: every reset world draws anew
+    assert set(free.assignment[worlds].tolist()) == {0, 1, 2}
