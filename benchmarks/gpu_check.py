@@ -88,7 +88,7 @@ rad/s. Why these: docs/benchmarks.md, "On a GPU"."""
 RATE_WORLDS = (1024, 4096, 16384, 65536)
 QUICK = {"graph_worlds": 16, "sync_worlds": 16, "sync_steps": 96, "rate_worlds": (16, 64)}
 """Sizes of ``--quick``."""
-FULL = {"graph_worlds": 64, "sync_worlds": None, "sync_steps": 24, "rate_worlds": RATE_WORLDS}
+FULL = {"graph_worlds": 64, "sync_worlds": None, "sync_steps": 48, "rate_worlds": RATE_WORLDS}
 """Sizes of a real run (``sync_worlds`` None: each stage's own)."""
 
 
@@ -222,14 +222,14 @@ def _stage_trainer(name: str, device: str, worlds: int | None, scratch: Path) ->
                         log=lambda _: None)
 
 
-def sync_free(trainer: StageTrainer) -> None:
+def set_sync_free(trainer: StageTrainer, on: bool = True) -> None:
     """Put ``trainer``'s training env and its pool opponents on the path without host synchronisations (their
-    ``sync_free``, the default off a CPU)."""
+    ``sync_free``, the default off a CPU), or (``on`` false) on the CPU's path."""
     env = trainer.env
     for part in env.parts.values() if isinstance(env, MixedRaceEnv) else [env]:
-        part.sync_free = True
+        part.sync_free = on
         if isinstance(part.opponent_policy, PoolOpponents):
-            part.opponent_policy.sync_free = True
+            part.opponent_policy.sync_free = on
 
 
 def count_syncs(trainer: StageTrainer, steps: int) -> dict[str, Any]:
@@ -263,7 +263,7 @@ def host_syncs(device: str, *, worlds: int | None = None, steps: int = 24) -> di
             stages[name] = count_syncs(_stage_trainer(name, device, worlds, Path(scratch)), steps)
         with tempfile.TemporaryDirectory() as scratch:
             trainer = _stage_trainer(name, device, worlds, Path(scratch))
-            sync_free(trainer)
+            set_sync_free(trainer)
             free[name] = count_syncs(trainer, steps)
     ok = all(s["per_step_max"] == 0 for s in free.values())
     summary = "per env step, sync-free path: " + ", ".join(f"{n} {s['per_step_mean']:.1f}" for n, s in free.items())
