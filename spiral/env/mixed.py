@@ -73,12 +73,26 @@ class MixedRaceEnv:
 
     def step(self, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
         """One control step of every part; the same returns as :meth:`RaceEnv.step`, rows in part order."""
-        out = [env.step(a) for env, a in zip(self.parts.values(), actions.split(self._sizes), strict=True)]
+        joint = self._joint_opponent_actions()
+        out = [env.step(a, joint.get(name))
+               for (name, env), a in zip(self.parts.items(), actions.split(self._sizes), strict=True)]
         obs = torch.cat([o[0] for o in out])
         rewards = torch.cat([o[1] for o in out])
         dones = torch.cat([o[2] for o in out])
         time_outs = torch.cat([o[3]["time_outs"] for o in out])
         return obs, rewards, dones, {"time_outs": time_outs}
+
+    def _joint_opponent_actions(self) -> dict[str, torch.Tensor]:
+        """The opponents' actions of the parts whose opponent policies can act together (``act_together``: pool
+        opponents on the sync-free path, sharing one pool), in one pass; none when fewer than two parts can."""
+        parts = {name: env for name, env in self.parts.items()
+                 if env.opponent_idx.numel() and getattr(env.opponent_policy, "sync_free", False)
+                 and hasattr(env.opponent_policy, "act_together")}
+        if len(parts) < 2:
+            return {}
+        policies = [env.opponent_policy for env in parts.values()]
+        actions = policies[0].act_together(policies, [env.opponent_observations() for env in parts.values()])
+        return dict(zip(parts, actions, strict=True))
 
     def take_stats(self) -> dict[str, float]:
         """Sums over the learner episodes of every part ended since the last call."""

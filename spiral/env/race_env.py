@@ -138,13 +138,15 @@ class RaceEnv(RaceState):
 
     # Step: the hooks in their order
 
-    def step(self, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
+    def step(self, actions: torch.Tensor, opponent_actions: torch.Tensor | None = None
+             ) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
         """Apply learner ``actions`` (num_envs, 4), advance one control step, reset ended worlds, observe.
+        ``opponent_actions``: the opponent rows' actions when acted for elsewhere (a mixed stage's joint pass).
 
         Returns:
             Learner observations, rewards (num_envs,), dones (num_envs,) and extras with ``time_outs``.
         """
-        self.apply_actions(actions)
+        self.apply_actions(actions, opponent_actions)
         gate, dist_before = self.simulate()
         events = self.race_events(gate, dist_before)
         rewards = self.rewards(events)
@@ -153,15 +155,16 @@ class RaceEnv(RaceState):
         obs = self.get_observations()
         return obs, rewards[self.learner_idx], ends.dones, {"time_outs": ends.time_outs}
 
-    def apply_actions(self, actions: torch.Tensor) -> None:
-        """Apply action: the learner's ``actions`` (num_envs, 4) and the opponent policy's (on the last observations)
-        become the PID targets of the drones still racing."""
+    def apply_actions(self, actions: torch.Tensor, opponent_actions: torch.Tensor | None = None) -> None:
+        """Apply action: the learner's ``actions`` (num_envs, 4) and the opponent policy's (on the last observations,
+        unless ``opponent_actions`` gives them) become the PID targets of the drones still racing."""
         commanded = torch.zeros(self.drone_count, 4, device=self.device)
         commanded[self.learner_idx] = actions.to(self.device)
-        if self.opponent_policy is not None and self.opponent_idx.numel():
+        if opponent_actions is None and self.opponent_policy is not None and self.opponent_idx.numel():
             with torch.no_grad():
-                opp = self.opponent_policy((self.opponent_observer or self.observer).rows(self.opponent_idx))
-            commanded[self.opponent_idx] = opp.to(self.device)
+                opponent_actions = self.opponent_policy(self.opponent_observations())
+        if opponent_actions is not None:
+            commanded[self.opponent_idx] = opponent_actions.to(self.device)
         self.commanded = commanded
         all_actions = commanded.clamp(-1.0, 1.0)
         racing = ~(self.out.bool())
@@ -265,6 +268,10 @@ class RaceEnv(RaceState):
     def current_observations(self) -> TensorDict:
         """The learner observations of the last step or reset (no new history entry)."""
         return self.observer.rows(self.learner_idx)
+
+    def opponent_observations(self) -> TensorDict:
+        """What the opponent policy reads: the opponent rows of the last observation, in its layout."""
+        return (self.opponent_observer or self.observer).rows(self.opponent_idx)
 
     def peek_observations(self) -> torch.Tensor:
         """Observation rows of every drone (N, obs_dim) for the current state, as if it were observed now, without

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -77,9 +77,35 @@ class PoolOpponents:
     @torch.no_grad()
     def __call__(self, obs: TensorDict) -> torch.Tensor:
         """Actions of every opponent drone."""
+        if self.sync_free:
+            return PoolOpponents.act_together([self], [obs])[0]
         if self.draws.blind > 0:
             obs = self._blinded(obs)
-        actions = self._every_member(obs) if self.sync_free else self._by_member(obs)
+        return self._finish(self._by_member(obs))
+
+    @staticmethod
+    @torch.no_grad()
+    def act_together(pools: Sequence[PoolOpponents], obs: Sequence[TensorDict]) -> list[torch.Tensor]:
+        """The actions of the opponents of several pools that share one list of members (the parts of a mixed stage),
+        each pool's on its ``obs``, in one pass without a host synchronisation: every member's network runs once on
+        the rows of every pool, and each row keeps its own member's actions."""
+        if any(p.policies is not pools[0].policies for p in pools):
+            raise ValueError("act_together: the pools race different members")
+        obs = [p._blinded(o) if p.draws.blind > 0 else o for p, o in zip(pools, obs, strict=True)]
+        rows = torch.cat([o["policy"] for o in obs])
+        member_of_row = torch.cat([p.assignment.repeat_interleave(p.per_world) for p in pools])
+        actions = torch.zeros(rows.shape[0], 4, device=rows.device)
+        for m, policy in enumerate(pools[0].policies):
+            actions = torch.where((member_of_row == m)[:, None], policy.actions(rows), actions)
+        out = []
+        for pool, o, a in zip(pools, obs, actions.split([o.batch_size[0] for o in obs]), strict=True):
+            if pool.draws.p_self > 0:
+                a = torch.where(pool.mirror.repeat_interleave(pool.per_world)[:, None], pool._live()(o), a)
+            out.append(pool._finish(a))
+        return out
+
+    def _finish(self, actions: torch.Tensor) -> torch.Tensor:
+        """``actions`` with the episode's pace and offset of each opponent applied (in place)."""
         if self.draws.pace > 0:  # on the action range the env keeps: a policy's mean may lie beyond it
             actions[:, :3] = actions[:, :3].clamp(-1.0, 1.0) * self.action_scale.view(-1, 1)
         if self.draws.offset > 0:
@@ -103,17 +129,6 @@ class PoolOpponents:
         acted = [self.policies[m].actions(policy_obs[rows]) for m, rows in enumerate(order.split(counts)) if len(rows)]
         if acted:
             actions[order] = torch.cat(acted)
-        return actions
-
-    def _every_member(self, obs: TensorDict) -> torch.Tensor:
-        """Actions with every network run on every row, each row keeping its member's (no host synchronisation)."""
-        member_of_row = self.assignment.repeat_interleave(self.per_world)
-        actions = torch.zeros(obs.batch_size[0], 4, device=member_of_row.device)
-        for m, policy in enumerate(self.policies):
-            actions = torch.where((member_of_row == m)[:, None], policy.actions(obs["policy"]), actions)
-        if self.draws.p_self > 0:
-            mirror_row = self.mirror.repeat_interleave(self.per_world)
-            actions = torch.where(mirror_row[:, None], self._live()(obs), actions)
         return actions
 
     def _live(self) -> Callable[[TensorDict], torch.Tensor]:

@@ -9,7 +9,7 @@ import torch
 from pydantic import ValidationError
 from tensordict import TensorDict
 
-from spiral.config import SelfPlayCfg, SimCfg, StageSpec
+from spiral.config import ObsCfg, SelfPlayCfg, SimCfg, StageSpec
 from spiral.core.checkpoint import FrozenPolicy
 from spiral.core.host_syncs import HostSyncCounter
 from spiral.env import RaceSetting
@@ -276,3 +276,61 @@ def test_opponents_without_host_syncs_act_and_draw_as_the_routed_ones(solo_polic
     assert torch.equal(free.action_offset[~worlds], before[1][~worlds])  # exact: worlds not reset are not written
     assert not torch.equal(free.action_offset[worlds], before[1][worlds])  # exact: every reset world draws anew
     assert set(free.assignment[worlds].tolist()) == {0, 1, 2}
+
+
+def test_the_parts_of_a_mixed_stage_act_their_pool_opponents_in_one_pass(solo_policy):
+    """Pools sharing one list of members (a 1v1 and a 2v2 part) act together: each member's network runs once over
+    both parts' rows, and every row gets the actions its own pool gives it alone (mirror rows, offsets included)."""
+    calls = []
+    members = counted_members(solo_policy, calls)
+    matchmaker, generator = Matchmaker(2, latest=1, p_latest=0.3), torch.Generator().manual_seed(7)
+    pools = [PoolOpponents(members, matchmaker, world_count=worlds, per_world=per_world, generator=generator,
+                           draws=OpponentDraws(p_self=0.4, offset=0.1)) for worlds, per_world in ((30, 1), (20, 2))]
+    dim = solo_policy.obs_layout["obs_dim"]
+    obs = [TensorDict({"policy": torch.randn(n, dim), "critic": torch.randn(n, dim)}, batch_size=[n]) for n in (30, 40)]
+    for pool in pools:
+        pool.sync_free = True
+        pool.live = lambda o: torch.full((o.batch_size[0], 4), 0.25)
+    alone = [pool(o) for pool, o in zip(pools, obs, strict=True)]
+    calls.clear()
+    with HostSyncCounter() as syncs:
+        together = PoolOpponents.act_together(pools, obs)
+    assert syncs.total == 0 and calls == [70, 70]
+    for a, b in zip(together, alone, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-5)
+    with pytest.raises(ValueError, match="different members"):
+        PoolOpponents.act_together([pools[0], PoolOpponents(list(members), matchmaker, world_count=2, per_world=1,
+                                                            generator=generator)], obs)
+
+
+def counted_members(policy: FrozenPolicy, calls: list[int]) -> list[FrozenPolicy]:
+    """Two members (``policy``'s copies, the second with its last layer halved) that append the rows of each of their
+    calls to ``calls``."""
+    members = [load_policy_copy(policy, scale=1.0), load_policy_copy(policy, scale=0.5)]
+    for m in members:
+        m.actions = (lambda act: lambda rows: calls.append(rows.shape[0]) or act(rows))(m.actions)
+    return members
+
+
+def test_a_mixed_env_on_the_sync_free_path_steps_its_parts_opponents_in_one_pass(line2, solo_policy):
+    """A 1v1 and a 2v2 part racing one pool: each env step runs each member once over both parts' opponent rows."""
+    from spiral.env.mixed import MixedRaceEnv
+    from tests.env.helpers import make_env
+
+    calls = []
+    members = counted_members(solo_policy, calls)
+    obs_cfg = ObsCfg(**COMMON["env"]["obs"])  # the layout solo_policy reads
+    parts = {"1v1": make_env(line2, worlds=3, drones=2, learners=(0,), obs=obs_cfg),
+             "2v2": make_env(line2, worlds=2, drones=4, learners=(0, 1), obs=obs_cfg)}
+    mixed = MixedRaceEnv(parts)
+    matchmaker, generator = Matchmaker(2, latest=1, p_latest=0.5), torch.Generator().manual_seed(1)
+    for env in parts.values():
+        pool = PoolOpponents(members, matchmaker, world_count=env.world_count, per_world=len(env.opponent_slots),
+                             generator=generator)
+        env.set_opponent_policy(pool)
+        env.sync_free = pool.sync_free = True
+    mixed.reset()
+    calls.clear()
+    with HostSyncCounter() as syncs:
+        mixed.step(torch.zeros(mixed.num_envs, 4))
+    assert syncs.total == 0 and calls == [3 + 2 * 2, 3 + 2 * 2]
