@@ -115,10 +115,6 @@ class RaceEnv(RaceState):
         self.passages = PassageStarts.of(self, setting.airframe.radius)
         self.track_geometry = TrackTensors.of(self.track, self.generator.device)
         """The track's geometry where starts are drawn, so that a draw copies nothing from the host."""
-        self.sync_free = self.device.type != "cpu"
-        """Auto-resets without a host synchronisation (the default off a CPU): every step draws starts for every
-        world and keeps those of the ended ones, instead of finding the ended worlds and drawing for them alone
-        (the cheaper way on a CPU). Either way is a valid training run; they draw different starts."""
         self.reset()
 
     def set_opponent_policy(self, policy: OpponentPolicy | None, *, obs: ObsCfg | None = None) -> None:

@@ -70,6 +70,11 @@ class RaceState:
         """Training with ``episode.contact_margin``: drones closer than this collide [m]."""
         self.generator = torch.Generator(device=draw_device(self.device, training=training)).manual_seed(seed)
         self.opponent_policy: OpponentPolicy | None = None
+        self.sync_free = self.device.type != "cpu"
+        """Steps without a host synchronisation (the default off a CPU): every auto-reset draws starts for every
+        world and keeps those of the ended ones (:func:`~spiral.env.race_env.restart_worlds`), and no shortcut reads
+        a flag back; on a CPU, where a read costs nothing, the env finds the ended worlds and draws for them alone.
+        The two paths are valid training runs of different draws."""
         self._bind_views()
         self._alloc_buffers()
 
@@ -195,7 +200,7 @@ class RaceState:
     def _contact_fault(self, ev: RaceEvents) -> torch.Tensor:
         """Each drone's share of the fault for a drone–drone contact this step (:func:`contact_fault`)."""
         contact = ev.crashed_now & ((self.step_collision & COLLISION_KINDS["drone"]) != 0)
-        if not bool(contact.any()):
+        if not self.sync_free and not bool(contact.any()):  # a shortcut where reading the flag costs nothing
             return torch.zeros_like(ev.dist_before)
         pos_before, vel_before = self.before
         return contact_fault(self.pos, pos_before, vel_before, ev.racing, contact, world_count=self.world_count,
@@ -217,10 +222,10 @@ class RaceState:
         gap = nearest_distance(self.pos, (~candidates).to(torch.int32), world_count=self.world_count,
                                drones_per_world=self.drones_per_world)
         near = candidates & (gap < self.margin_distance)
-        if near.any():
-            self.step_collision[near] |= COLLISION_KINDS["drone"]
-            self.crash_time[near] = self.world_time().repeat_interleave(self.drones_per_world)[near]
-            self.out[near] = 1
+        self.step_collision |= near.to(self.step_collision.dtype) * COLLISION_KINDS["drone"]
+        self.crash_time.copy_(torch.where(near, self.world_time().repeat_interleave(self.drones_per_world),
+                                          self.crash_time))
+        self.out.masked_fill_(near, 1)
 
     def world_time(self) -> torch.Tensor:
         """Simulated time of each world since its reset [s]."""

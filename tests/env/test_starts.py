@@ -170,26 +170,3 @@ def test_track_tensors_hold_the_tracks_geometry_and_are_built_once_per_device(ci
     torch.testing.assert_close(lo + size / 2, torch.tensor(circuit6.start.center))
     assert geometry.gate_half.shape == geometry.gate_bar.shape == (len(circuit6.gates),)
 
-
-def test_a_sync_free_reset_starts_the_ended_worlds_afresh_and_leaves_the_others(circuit6):
-    """A reset of every world's draw kept where the mask is set: the running worlds keep their state to the bit, the
-    ended ones start in the box, and nothing is read back from the device."""
-    from spiral.core.host_syncs import HostSyncCounter
-    from spiral.env.race_env import restart_worlds
-    from tests.env.helpers import make_env
-
-    env = make_env(circuit6, worlds=6, drones=2, learners=(0, 1))
-    env.sync_free = True
-    for _ in range(5):
-        env.step(torch.zeros(env.num_envs, 4))
-    ended = torch.tensor([True, False, False, True, False, True])
-    rows = ended.repeat_interleave(2)
-    before = env.pos.clone(), env.vel.clone(), env.episode_length_buf.clone()
-    with HostSyncCounter() as syncs:
-        restart_worlds(env, ended, every_world=True)
-    assert syncs.total == 0
-    assert torch.equal(env.pos[~rows], before[0][~rows])  # exact: rows the reset leaves alone are not written
-    assert torch.equal(env.vel[~rows], before[1][~rows])  # exact: as above
-    lo, size = env.track_geometry.box
-    assert ((env.pos[rows] >= lo) & (env.pos[rows] <= lo + size)).all()
-    assert (env.vel[rows] == 0).all() and (env.next_gate[rows] == 0).all()
