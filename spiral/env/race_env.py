@@ -17,6 +17,7 @@ from spiral.core.scenario import race_teams, team_slots
 from spiral.env.actions import ActionMap
 from spiral.env.events import RaceEvents, lap_splits, race_result
 from spiral.env.observations import Observer, ObsSource
+from spiral.env.outcome import step_outcome
 from spiral.env.passages import PassageStarts
 from spiral.env.rewards import compute_rewards
 from spiral.env.setting import RaceSetting
@@ -173,7 +174,7 @@ class RaceEnv(RaceState):
     def simulate(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Simulate one control step; return the gate each drone targeted and its progress distance from before."""
         gate = self.next_gate.long().clone()
-        dist_before = self._gate_distance(gate)
+        dist_before = self.gate_distance(gate)
         self.note_before_step()
         self.world.step()
         return gate, dist_before
@@ -204,7 +205,7 @@ class RaceEnv(RaceState):
 
     def rewards(self, ev: RaceEvents) -> torch.Tensor:
         """Rewards: the weighted reward terms of every drone (N,); each term's episode sum is kept."""
-        rewards, terms = compute_rewards(self._step_outcome(ev), self.cfg.reward)
+        rewards, terms = compute_rewards(step_outcome(self, ev), self.cfg.reward)
         for name, value in terms.items():
             self.term_sums[name] += value
         return rewards

@@ -1,5 +1,6 @@
 """What a race env holds: the simulator with zero-copy views of its state, who drives each slot, each drone's race so
-far and the episode statistics (:class:`~spiral.env.RaceEnv` adds how it steps)."""
+far and the episode statistics (:class:`~spiral.env.RaceEnv` adds how it steps; :mod:`spiral.env.outcome` reads
+the step for the reward terms)."""
 
 from __future__ import annotations
 
@@ -14,16 +15,10 @@ from spiral.core.errors import UsageError
 from spiral.core.outcome import race_winner
 from spiral.core.policy import OpponentPolicy
 from spiral.env.events import (
-    RaceEvents,
-    closing_in,
-    contact_fault,
     gate_distance,
-    heading,
     nearest_distance,
-    nearest_is_behind,
-    overtakes,
 )
-from spiral.env.rewards import REWARD_TERMS, StepOutcome
+from spiral.env.rewards import REWARD_TERMS
 from spiral.env.setting import RaceSetting
 from spiral.env.slots import slot_map
 from spiral.env.stats import add_ended_episodes, empty_stats, read_stats, summarize_stats
@@ -144,39 +139,10 @@ class RaceState:
         self._fresh = drones
         """Drones whose observation history starts afresh at the next observation."""
 
-    def _gate_distance(self, gate: torch.Tensor) -> torch.Tensor:
+    def gate_distance(self, gate: torch.Tensor) -> torch.Tensor:
         """Progress distance of every drone to ``gate`` (:func:`~spiral.env.events.gate_distance`)."""
         kappa = self.cfg.reward.progress_lateral
         return gate_distance(self.pos, self.gate_center[gate], self.gate_forward[gate], kappa)
-
-    def _step_outcome(self, ev: RaceEvents) -> StepOutcome:
-        """The reward terms' view of the step; frozen drones make no progress."""
-        racing, zero = ev.racing, torch.zeros_like(ev.dist_before)
-        nearest = behind = None
-        to_gate = self.gate_center[self.next_gate.long()] - self.pos
-        reward, w, d = self.cfg.reward, self.world_count, self.drones_per_world
-        if reward.proximity > 0:
-            nearest = nearest_distance(self.pos, self.out, world_count=w, drones_per_world=d)
-            if reward.proximity_leader < 1:  # who leads matters only when the leader pays less
-                behind = nearest_is_behind(self.pos, self.out, to_gate, world_count=w, drones_per_world=d)
-        return StepOutcome(
-            dist_before=torch.where(racing, ev.dist_before, zero),
-            dist_after=torch.where(racing, self._gate_distance(ev.gate), zero),
-            gates_passed=torch.where(racing, self.step_passes, torch.zeros_like(self.step_passes)),
-            crashed_now=ev.crashed_now,
-            heading=heading(self.quat),
-            to_gate=to_gate,
-            lap_time=ev.lap_split,
-            nearest=nearest,
-            nearest_behind=behind,
-            race_result=ev.race_result,
-            contact_fault=self._contact_fault(ev) if reward.contact > 0 else None,
-            closing=closing_in(self.pos, self.vel, self.out, distance=reward.closing_distance, world_count=w,
-                               drones_per_world=d, miss=reward.closing_miss,
-                               neighbours=reward.closing_neighbours) if reward.closing > 0 else None,
-            intervention=torch.where(racing, self.intervention, 0.0) if self.cfg.shield is not None else None,
-            overtakes=self._overtakes(ev) if reward.overtake > 0 else None,
-        )
 
     def note_before_step(self) -> None:
         """Keep what reward terms compare after the step: positions, velocities (``contact``), places (``overtake``)."""
@@ -189,22 +155,6 @@ class RaceState:
         """Where each drone is in the race: gates passed and distance to the next gate's centre [m] (N,) each."""
         to_gate = self.gate_center[self.next_gate.long()] - self.pos
         return self.gates_passed.clone(), to_gate.norm(dim=-1)
-
-    def _overtakes(self, ev: RaceEvents) -> torch.Tensor:
-        """Places each drone gained on the other team in the step, in contested races (:func:`overtakes`)."""
-        contested = self.contested.repeat_interleave(self.drones_per_world)
-        counted = ev.racing & ~ev.crashed_now & ~ev.finished_now & contested
-        return overtakes(self.place_before, self.track_place(), counted, self.race_team,
-                         world_count=self.world_count, drones_per_world=self.drones_per_world)
-
-    def _contact_fault(self, ev: RaceEvents) -> torch.Tensor:
-        """Each drone's share of the fault for a drone–drone contact this step (:func:`contact_fault`)."""
-        contact = ev.crashed_now & ((self.step_collision & COLLISION_KINDS["drone"]) != 0)
-        if not self.sync_free and not bool(contact.any()):  # a shortcut where reading the flag costs nothing
-            return torch.zeros_like(ev.dist_before)
-        pos_before, vel_before = self.before
-        return contact_fault(self.pos, pos_before, vel_before, ev.racing, contact, world_count=self.world_count,
-                             drones_per_world=self.drones_per_world)
 
     def learner_won(self) -> torch.Tensor:
         """Per world, whether the learner's team won the race against the opponent slots (bool, (W,))."""
