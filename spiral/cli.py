@@ -233,6 +233,26 @@ def run(
 
 @app.command()
 @handles_errors
+def sweep(
+    pipeline: Path,
+    seeds: Annotated[str, typer.Option("--seeds", help="Comma-separated pipeline seeds, one run each (e.g. 0,1)")],
+    device: Device = None,
+    runs_dir: RunsDir = Path("runs"),
+    checkpoints_dir: CkptDir = Path("checkpoints"),
+    jobs: Annotated[int, typer.Option("--jobs", "-j", min=1, help="Steps of a run side by side (as spiral run)")] = 1,
+    overrides: Overrides = None,
+) -> None:
+    """Run a pipeline once per seed with the same --set settings, each in its own run folder, and table their
+    headline figures with the spread across seeds (runs/sweeps/<variant>/summary.md)."""
+    from spiral.pipeline.sweep import parse_seeds, run_sweep
+
+    summary = run_sweep(pipeline, parse_seeds(seeds), overrides or (), runs_dir=runs_dir,
+                        checkpoints_dir=checkpoints_dir, device=device, jobs=jobs)
+    typer.echo(f"wrote {summary}")
+
+
+@app.command()
+@handles_errors
 def status(pipeline: Path, json_out: JsonOut = None, runs_dir: RunsDir = Path("runs"),
            checkpoints_dir: CkptDir = Path("checkpoints"),
            accept_code_changes: Annotated[bool, typer.Option(

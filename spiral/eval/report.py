@@ -26,6 +26,7 @@ from spiral.config.track import TrackSpec
 from spiral.core.errors import UsageError
 from spiral.eval.bound import LapBound, lap_time_bound
 from spiral.eval.evaluate import SE_IBR, EvalLayout, check_sides
+from spiral.eval.headline import headline_figures
 from spiral.eval.plots import TradeoffPoint, plot_learning_curves, plot_speed_vs_reliability, plot_track
 from spiral.eval.racing_section import Racing, race_planner_duels, race_racing, racing_markdown
 from spiral.eval.robustness import Robustness, filter_rows, race_learned, race_se_ibr, robustness_markdown
@@ -112,7 +113,8 @@ class ReportOptions:
 
 def build_report(run: RunRecord, track: TrackSpec, out_dir: Path, options: ReportOptions = ReportOptions(), *,
                  log: Callable[[str], None] = print) -> Path:
-    """Write ``results.md``, ``results.csv``, ``bound.json`` and the figures for ``run`` (a pipeline's run, as its
+    """Write ``results.md``, ``results.csv``, ``headline.json`` (:mod:`spiral.eval.headline`), ``bound.json`` and the
+    figures for ``run`` (a pipeline's run, as its
     steps declared it; ``track`` its track) into ``out_dir`` (created; the evaluations run here are cached in
     ``out_dir/evals``), as ``options`` say; ``log`` takes progress messages. Returns the path of ``results.md``."""
     out_dir, o = Path(out_dir), options
@@ -133,6 +135,8 @@ def build_report(run: RunRecord, track: TrackSpec, out_dir: Path, options: Repor
                      replace(o, runs=runs, seed=seed))
     text = _with_racing(_with_robustness(text, rb, o.sides), raced, o.sides)
     (out_dir / "results.md").write_text(text)
+    headline = headline_figures(table, held, raced)
+    (out_dir / "headline.json").write_text(json.dumps(headline, indent=1, sort_keys=True) + "\n")
     return out_dir / "results.md"
 
 

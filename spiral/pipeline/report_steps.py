@@ -197,5 +197,6 @@ def _report_fn(plan: PlanView):
         with one_torch_thread():  # all is raced by the steps before; anything left races as they race it
             results = build_report(_run(plan, ctx), plan.track, ctx.step_dir, _report_options(plan), log=ctx.log)
         ctx.log(f"report: {results}")
-        return {"results": results, "csv": results.with_name("results.csv")}, {}
+        return {"results": results, "csv": results.with_name("results.csv"),
+                "headline": results.with_name("headline.json")}, {}
     return run
