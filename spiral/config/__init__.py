@@ -12,7 +12,6 @@ from spiral.config.env import (
     PassageStartsCfg,
     RewardCfg,
     SeparationCfg,
-    ShieldCfg,
 )
 from spiral.config.errors import SpecError
 from spiral.config.load import KINDS, load_pipeline, load_spec, load_track
@@ -45,7 +44,6 @@ __all__ = [
     "SelectionCfg",
     "SelfPlayCfg",
     "SeparationCfg",
-    "ShieldCfg",
     "SimCfg",
     "SpecError",
     "StageSpec",

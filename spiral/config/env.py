@@ -8,8 +8,7 @@ from pydantic import Field, model_validator
 
 from spiral.config.base import NonNegFloat, PosFloat, PosInt, StrictModel
 
-__all__ = ["ActionCfg", "EnvCfg", "EpisodeCfg", "ObsCfg", "PassageStartsCfg", "RewardCfg", "SeparationCfg",
-           "ShieldCfg"]
+__all__ = ["ActionCfg", "EnvCfg", "EpisodeCfg", "ObsCfg", "PassageStartsCfg", "RewardCfg", "SeparationCfg"]
 
 
 class ObsCfg(StrictModel):
@@ -57,35 +56,6 @@ class SeparationCfg(StrictModel):
     distance: PosFloat = Field(default=0.25, description="Predicted distance below which a target is shifted [m]")
     horizon_s: NonNegFloat = Field(default=0.4, description="Look-ahead for the closest approach [s]")
     gain: PosFloat = Field(default=1.5, description="Target shift at zero predicted distance [m]")
-
-
-class ShieldCfg(StrictModel):
-    """A separation filter used in training only, faded out over the stage (not in the paper).
-
-    It shifts position targets like ``action.separation`` (same rule, on every drone of a training world), with
-    its gain scaled by a factor that falls linearly from 1 at ``fade_start`` to 0 at ``fade_end`` (fractions of
-    the stage's iterations). Evaluation, promotion and deployment never use it. With ``reward.intervention`` > 0 a
-    drone also pays for the shift the shield at full gain asks for, faded or not, so the policy learns to fly
-    where the shield has nothing to do.
-    """
-
-    filter: SeparationCfg = Field(default_factory=SeparationCfg, description="The filter at full gain")
-    fade_start: float = Field(default=0.0, ge=0, le=1, description="Stage fraction where the gain starts to fall")
-    fade_end: float = Field(default=0.5, ge=0, le=1, description="Stage fraction from which the shield is off")
-
-    @model_validator(mode="after")
-    def _fade_order(self) -> ShieldCfg:
-        if self.fade_end < self.fade_start:
-            raise ValueError(f"fade_end: {self.fade_end} is before fade_start {self.fade_start}")
-        return self
-
-    def scale(self, progress: float) -> float:
-        """Gain factor at ``progress`` (fraction of the stage's iterations done) in [0, 1]."""
-        if progress >= self.fade_end:
-            return 0.0
-        if progress <= self.fade_start:
-            return 1.0
-        return (self.fade_end - progress) / (self.fade_end - self.fade_start)
 
 
 class ActionCfg(StrictModel):
@@ -169,11 +139,6 @@ class RewardCfg(StrictModel):
         description="How many of the drone's nearest racing drones the closing penalty charges it for, each pair on "
         "its own terms, summed: 1 the nearest only; in a 2v2 race 3 counts the opponents beside a drone whose team "
         "mate is nearer",
-    )
-    intervention: NonNegFloat = Field(
-        default=0.0,
-        description="Weight of the per-step cost of the target shift [m] the training shield at full gain asks for "
-        "(env.shield; not in the paper)",
     )
     win: NonNegFloat = Field(
         default=0.0,
@@ -262,9 +227,6 @@ class EnvCfg(StrictModel):
     action: ActionCfg = Field(default_factory=ActionCfg)
     reward: RewardCfg = Field(default_factory=RewardCfg)
     episode: EpisodeCfg = Field(default_factory=EpisodeCfg)
-    shield: ShieldCfg | None = Field(
-        default=None, description="Training-only separation filter, faded out over the stage (none in the paper)"
-    )
     critic: Literal["policy", "race"] = Field(
         default="policy",
         description="Inputs of the value function: the policy's observation, or also every other drone of the world "
@@ -280,10 +242,4 @@ class EnvCfg(StrictModel):
     def _forfeit_needs_outcome(self) -> EnvCfg:
         if self.reward.forfeit and self.reward.win == 0:
             raise ValueError("reward.forfeit: charges the race outcome term, but reward.win is 0")
-        return self
-
-    @model_validator(mode="after")
-    def _intervention_needs_shield(self) -> EnvCfg:
-        if self.reward.intervention > 0 and self.shield is None:
-            raise ValueError("reward.intervention: charges the training shield's shift, but env.shield is not set")
         return self

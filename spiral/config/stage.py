@@ -223,7 +223,7 @@ class StageSpec(StrictModel):
         if "selfplay" in self.model_fields_set:
             raise ValueError("selfplay: a solo stage races no opponents")
         nonsense = {"env.reward.win": self.env.reward.win > 0, "env.reward.proximity": self.env.reward.proximity > 0,
-                    "env.critic": self.env.critic == "race", "env.shield": self.env.shield is not None}
+                    "env.critic": self.env.critic == "race"}
         bad = [name for name, set_ in nonsense.items() if set_]
         if bad:
             raise ValueError(f"{bad[0]}: a solo stage has no other drone for it to act on")

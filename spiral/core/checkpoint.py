@@ -37,6 +37,9 @@ FORMAT = "spiral-checkpoint-2"
 
 _FORMAT_1 = "spiral-checkpoint-1"
 _FORMAT_1_LAYOUT = {"teammates": False, "priority": False, "closest_approach": False, "approach_horizon_s": 0.5}
+REMOVED_ENV_OPTIONS: dict[tuple[str, ...], Any] = {("shield",): None, ("reward", "intervention"): 0.0}
+"""Env options of earlier versions, by their path in the env settings, with the value that left them off (the training
+shield and its reward term, never in a shipped pipeline): a checkpoint saved with them off reads as today's."""
 """Observation options that a format-1 checkpoint's ``obs_layout`` left out when they were off, with the values they
 then had; format 2 stores every option."""
 
@@ -98,17 +101,39 @@ def load_checkpoint(path: Path, *, map_location: str = "cpu") -> dict[str, Any]:
         raise CheckpointError(f"{path}: cannot be read by torch: {exc}") from exc
     if not isinstance(data, dict) or data.get("spiral", {}).get("format") not in (FORMAT, _FORMAT_1):
         raise CheckpointError(f"{path}: not a spiral checkpoint")
-    data["spiral"] = upgrade_meta(data["spiral"])
+    try:
+        data["spiral"] = upgrade_meta(data["spiral"])
+    except ValueError as exc:
+        raise CheckpointError(f"{path}: {exc}") from exc
     return data
 
 
 def upgrade_meta(meta: dict[str, Any]) -> dict[str, Any]:
-    """A checkpoint's spiral metadata in this version's format: a format-1 layout gains the options it left out."""
+    """A checkpoint's spiral metadata in this version's format: a format-1 layout gains the options it left out, and
+    the env settings lose the :data:`REMOVED_ENV_OPTIONS` (``ValueError`` if one was on)."""
+    if "env" in meta:
+        meta = {**meta, "env": _without_removed(meta["env"])}
     if meta.get("format") != _FORMAT_1:
         return meta
     layout = meta["obs_layout"]
     return {**meta, "format": FORMAT, "obs_layout": {**layout, **{k: v for k, v in _FORMAT_1_LAYOUT.items()
                                                                    if k not in layout}}}
+
+
+def _without_removed(env: dict[str, Any]) -> dict[str, Any]:
+    """``env`` (settings as saved) without the removed options, each checked to be off."""
+    env = {key: dict(value) if isinstance(value, dict) else value for key, value in env.items()}
+    for path, off in REMOVED_ENV_OPTIONS.items():
+        *parents, name = path
+        block = env
+        for key in parents:
+            block = block.get(key, {})
+        if name in block:
+            if block[name] != off:
+                raise ValueError(f"env.{'.'.join(path)}: this checkpoint was trained with an option that no longer "
+                                 f"exists ({block.pop(name)!r}); train it again with this version")
+            del block[name]
+    return env
 
 
 def list_checkpoints(ckpt_dir: Path) -> list[tuple[int, Path]]:

@@ -1,5 +1,4 @@
-"""How actions in [−1, 1] become PID targets: the relative or absolute mapping, the separation filter and the
-training shield."""
+"""How actions in [−1, 1] become PID targets: the relative or absolute mapping and the separation filter."""
 
 from __future__ import annotations
 
@@ -23,34 +22,24 @@ class ActionMap:
 
     ``action.mode`` relative: an offset from the drone (``pos_scale``, ``yaw_scale_deg`` at 1); absolute: a point
     of the arena's bounds and a yaw in [−π, π]. Then ``action.separation`` shifts the position targets of every
-    drone, or of one race team's (``action.separation_team``; part of the flight stack), and in training the shield
-    (``cfg.shield``) shifts them by its filter at a gain that fades over the stage.
+    drone, or of one race team's (``action.separation_team``; part of the flight stack).
     """
 
-    def __init__(self, cfg: EnvCfg, track: TrackSpec, *, world_count: int, drones_per_world: int, training: bool,
+    def __init__(self, cfg: EnvCfg, track: TrackSpec, *, world_count: int, drones_per_world: int,
                  device: torch.device) -> None:
         self.cfg = cfg.action
-        self.shield = cfg.shield if training else None
-        """The training shield (never in a non-resetting, evaluation env)."""
         self.world_count, self.drones_per_world = world_count, drones_per_world
         self.lo = torch.tensor(track.bounds.min, device=device)
         self.hi = torch.tensor(track.bounds.max, device=device)
-        self.shield_scale = 1.0 if self.shield is not None else 0.0
-        """Gain factor of the training shield."""
         team = self.cfg.separation_team
         self.filtered = None if team == "all" else torch.tensor(
             [t == "ab".index(team) for t in race_teams(drones_per_world)], device=device).repeat(world_count)[:, None]
         """Which drones (N, 1) the separation filter shifts; None: all."""
 
-    def set_training_progress(self, fraction: float) -> None:
-        """Fade the shield by the stage's progress (fraction of its iterations)."""
-        if self.shield is not None:
-            self.shield_scale = self.shield.scale(fraction)
-
     def targets(self, actions: torch.Tensor, pos: torch.Tensor, vel: torch.Tensor, yaw: torch.Tensor,
-                racing: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """PID targets (N, 4: position, yaw) of every drone, and the length of the shield's target shift at full
-        gain [m] (None without a shield). ``racing`` (N,) drones push each other apart; the others do not."""
+                racing: torch.Tensor) -> torch.Tensor:
+        """PID targets (N, 4: position, yaw) of every drone; ``racing`` (N,) drones push each other apart under the
+        separation filter, the others do not."""
         a = self.cfg
         if a.mode == "relative":
             target = pos + a.pos_scale * actions[:, :3]
@@ -61,12 +50,7 @@ class ActionMap:
         if a.separation is not None:
             shift = self._shift(pos, vel, racing, a.separation)
             target = target + (shift if self.filtered is None else shift * self.filtered)
-        intervention = None
-        if self.shield is not None:
-            shift = self._shift(pos, vel, racing, self.shield.filter)
-            intervention = shift.norm(dim=-1)
-            target = target + self.shield_scale * shift
-        return torch.cat([target, yaw[:, None]], dim=-1), intervention
+        return torch.cat([target, yaw[:, None]], dim=-1)
 
     def _shift(self, pos: torch.Tensor, vel: torch.Tensor, racing: torch.Tensor, cfg: SeparationCfg) -> torch.Tensor:
         """Target shift (N, 3) of every drone away from the others by the separation rule ``cfg``."""

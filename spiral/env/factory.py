@@ -99,7 +99,7 @@ class RaceOptions:
     seed: int = 0
     """Seed of the start placements."""
     training: bool = True
-    """Training mode: a world resets in ``step`` when its race ends, from training starts (with the shield, start
+    """Training mode: a world resets in ``step`` when its race ends, from training starts (with the start
     cuts and contact margin of ``env``); False is evaluation mode: every world races once from
     ``episode.eval_starts`` and drones that are done stay frozen."""
 

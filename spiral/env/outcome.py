@@ -46,7 +46,6 @@ def step_outcome(state: RaceState, ev: RaceEvents) -> StepOutcome:
         closing=closing_in(state.pos, state.vel, state.out, distance=reward.closing_distance, world_count=w,
                            drones_per_world=d, miss=reward.closing_miss,
                            neighbours=reward.closing_neighbours) if reward.closing > 0 else None,
-        intervention=torch.where(racing, state.intervention, 0.0) if state.cfg.shield is not None else None,
         overtakes=_overtakes(state, ev) if reward.overtake > 0 else None,
     )
 

@@ -97,7 +97,7 @@ class RaceEnv(RaceState):
     from an injected :class:`~spiral.core.policy.OpponentPolicy`, or are absent without one. A world resets when one
     of its learner drones crashes or finishes, at its time limit, or on a non-finite state (``nonfinite_resets``);
     learner drones cut short by another's end get ``time_outs``. ``training=False`` is evaluation mode (starts from
-    ``episode.eval_starts``, no shield, start cuts or contact margin): every world races once, done drones stay
+    ``episode.eval_starts``, no start cuts or contact margin): every world races once, done drones stay
     frozen. :meth:`step` runs apply action → simulate → race events → rewards → dones → reset → observe."""
 
     def __init__(self, setting: RaceSetting, cfg: EnvCfg, *, world_count: int, drones_per_world: int,
@@ -106,7 +106,7 @@ class RaceEnv(RaceState):
         super().__init__(setting, cfg, world_count=world_count, drones_per_world=drones_per_world,
                          learner_slots=learner_slots, device=device, seed=seed, training=training)
         self.action_map = ActionMap(cfg, setting.track, world_count=world_count, drones_per_world=drones_per_world,
-                                    training=training, device=self.device)
+                                    device=self.device)
         self._obs_source = observed_tensors(self)
         self.observer = Observer(cfg, self._obs_source, device=self.device)
         self.obs_builder = self.observer.builder
@@ -130,7 +130,6 @@ class RaceEnv(RaceState):
 
     def set_training_progress(self, fraction: float) -> None:
         """Tell the env how far its training stage is (fraction of its iterations): schedules follow it."""
-        self.action_map.set_training_progress(fraction)
         self.passages.set_training_progress(fraction)
 
     # Step: the hooks in their order
@@ -165,9 +164,7 @@ class RaceEnv(RaceState):
         self.commanded = commanded
         all_actions = commanded.clamp(-1.0, 1.0)
         racing = ~(self.out.bool())
-        target, shift = self.action_map.targets(all_actions, self.pos, self.vel, self.rpy[:, 2], racing)
-        if shift is not None:
-            self.intervention = shift
+        target = self.action_map.targets(all_actions, self.pos, self.vel, self.rpy[:, 2], racing)
         self.cmd.copy_(torch.where(racing[:, None], target, self.cmd))
         self.last_action = all_actions
 

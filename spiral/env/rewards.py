@@ -42,8 +42,6 @@ class StepOutcome:
     closing: torch.Tensor | None = None
     """How fast the drone closes in on its nearest racing drone, by its share and nearness after the step
     (:func:`~spiral.env.events.closing_in`) [m/s]."""
-    intervention: torch.Tensor | None = None
-    """Length of the target shift the training shield at full gain asked for this step [m]."""
     overtakes: torch.Tensor | None = None
     """Places gained on the other team's racing drones during the step, less places lost
     (:func:`~spiral.env.events.overtakes`)."""
@@ -96,13 +94,6 @@ def _reward_closing(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
     return -o.closing
 
 
-def _reward_intervention(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
-    """−|shift| per step: the training shield's target shift at full gain, whether or not it still acts."""
-    if o.intervention is None:
-        return torch.zeros_like(o.dist_before)
-    return -o.intervention
-
-
 def _reward_overtake(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
     """+1 per opponent passed, −1 per opponent that passed the drone, in flight (not in the paper)."""
     if o.overtakes is None:
@@ -131,7 +122,6 @@ REWARD_TERMS = {
     "proximity": _reward_proximity,
     "contact": _reward_contact,
     "closing": _reward_closing,
-    "intervention": _reward_intervention,
     "lap": _reward_lap,
     "win": _reward_win,
     "overtake": _reward_overtake,
@@ -139,7 +129,7 @@ REWARD_TERMS = {
 """Reward term functions by the name of their weight in ``RewardCfg``."""
 
 
-SUMMED_AT_ONCE = ("progress", "gate", "collision", "alignment", "proximity", "intervention", "lap", "win")
+SUMMED_AT_ONCE = ("progress", "gate", "collision", "alignment", "proximity", "lap", "win")
 """Terms summed in one reduction, as when the shipped checkpoints were trained. Terms added since are added to its
 result one at a time: a reduction over more rows groups its additions otherwise (for some drone counts), so a new
 term at weight 0 would change the totals in their last bits and training would not repeat bit for bit."""

@@ -101,8 +101,6 @@ class RaceState:
         """Race time at which each drone's current lap began (its start or its last lap's end) [s]."""
         self.priority = torch.zeros(n, device=dev)
         """Random priority of each drone for the race, drawn at its start (observed with ``obs.priority``)."""
-        self.intervention = torch.zeros(n, device=dev)
-        """Length of the training shield's target shift at full gain in the last step [m]."""
         self.crash_kind = torch.zeros(n, dtype=torch.int32, device=dev)
         self.before = (self.pos.clone(), self.vel.clone())
         """Positions and velocities before the last control step (kept only with ``reward.contact``)."""

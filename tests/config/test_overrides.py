@@ -28,14 +28,14 @@ def test_an_override_value_is_parsed_as_yaml():
 def test_a_nested_field_set_on_the_command_line_reaches_only_the_stage_it_names():
     """`stages.1v1.iterations` sets the 1v1 stage's budget (found by name, not position), a missing table on the way
     is created, and the other stages and the file's own data stay as they were."""
-    spec, _ = load_pipeline(FULL, ["stages.1v1.iterations=600", "stages.2v2.env.shield.fade_end=0.4"])
+    spec, _ = load_pipeline(FULL, ["stages.1v1.iterations=600", "stages.2v2.env.action.separation.distance=0.4"])
     plain, _ = load_pipeline(FULL)
     stages, before = {s.name: s for s in spec.stages}, {s.name: s for s in plain.stages}
     assert stages["1v1"].iterations == 600 and before["1v1"].iterations == 1200
     assert stages["1v1-noselfplay"].iterations == before["1v1-noselfplay"].iterations
-    assert stages["2v2"].env.shield.fade_end == pytest.approx(0.4)
-    assert stages["2v2"].env.shield.fade_start == pytest.approx(0.0)  # the block's default
-    assert before["2v2"].env.shield is None
+    assert stages["2v2"].env.action.separation.distance == pytest.approx(0.4)
+    assert stages["2v2"].env.action.separation.horizon_s == pytest.approx(0.4)  # the block's default
+    assert before["2v2"].env.action.separation is None
     data = {"stages": [{"name": "solo", "iterations": 3}]}
     assert apply_overrides(data, ["stages.solo.iterations=4"], source="p.yaml")["stages"][0]["iterations"] == 4
     assert data["stages"][0]["iterations"] == 3

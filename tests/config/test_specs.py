@@ -186,8 +186,7 @@ def test_the_shipped_pipeline_mixes_2v2_worlds_into_spirals_1v1_stage_but_not_th
     ({"env": {"reward": {"win": 3.0}}}, "env.reward.win"),
     ({"env": {"reward": {"proximity": 0.1}}}, "env.reward.proximity"),
     ({"env": {"critic": "race"}}, "env.critic"),
-    ({"env": {"shield": {}}}, "env.shield"),
-], ids=["selfplay", "outcome", "proximity", "race-critic", "shield"])
+], ids=["selfplay", "outcome", "proximity", "race-critic"])
 def test_a_solo_stage_refuses_options_that_act_on_other_drones(tmp_path, options, field):
     """Options that need other drones make no sense in a solo stage: the error names the stage and the field."""
     path = tmp_path / "p.yaml"
@@ -286,7 +285,6 @@ def test_the_paper_pipeline_observes_the_papers_814_inputs_and_rewards_its_four_
         assert set(weights) == paper_terms, stage.name
         assert stage.env.episode.track_start_prob == 0 and stage.env.episode.passage_starts is None, stage.name
         assert stage.env.action.separation is None, stage.name
-        assert stage.env.shield is None, stage.name
         assert not stage.mix, stage.name
     for stage in (s for s in stages if s.selfplay.mode == "pool" and s.scenario != "solo"):
         assert stage.selfplay.p_latest == 1 and stage.selfplay.p_self == 0, stage.name

@@ -1,4 +1,4 @@
-"""The checkpoint file: checksummed round trips, refused damage, and format-1 files read as today's format."""
+"""The checkpoint file: checksummed round trips, refused damage, format-1 files and removed options read as today's."""
 
 from __future__ import annotations
 
@@ -41,3 +41,18 @@ def test_a_format_1_layout_gains_the_options_it_left_out_when_they_were_off(tmp_
     save_checkpoint(tmp_path / "old.pt", {"w": torch.zeros(1)}, {"format": "spiral-checkpoint-1", "obs_layout": old})
     meta = load_checkpoint(tmp_path / "old.pt")["spiral"]
     assert meta["format"] == FORMAT and meta["obs_layout"] == full
+
+
+def test_env_settings_of_removed_options_read_as_today_when_off_and_are_refused_when_on(tmp_path):
+    """A checkpoint saved with the training shield and its reward term off (as the shipped ones were) loads with env
+    settings that today's EnvCfg accepts; one trained with the shield on is refused naming the option and the file."""
+    from spiral.config.env import EnvCfg
+
+    env = EnvCfg().model_dump()
+    old = {**env, "shield": None, "reward": {**env["reward"], "intervention": 0.0}}
+    save_checkpoint(tmp_path / "off.pt", {"w": torch.zeros(1)}, {"obs_layout": _layout(ObsCfg()), "env": old})
+    assert EnvCfg.model_validate(load_checkpoint(tmp_path / "off.pt")["spiral"]["env"]) == EnvCfg()
+    on = {**old, "shield": {"fade_end": 0.5}}
+    save_checkpoint(tmp_path / "on.pt", {"w": torch.zeros(1)}, {"obs_layout": _layout(ObsCfg()), "env": on})
+    with pytest.raises(CheckpointError, match=r"on\.pt: env\.shield: this checkpoint was trained with an option"):
+        load_checkpoint(tmp_path / "on.pt")

@@ -60,10 +60,10 @@ def test_a_one_team_filter_shifts_only_that_teams_targets_and_still_avoids_every
     """2v2, at rest: drone 0 (team A) 0.1 m from drone 2 (team B), drone 1 (A) 0.1 m from drone 3 (B); zero actions.
     Each shifted drone's target moves 0.9 m away from its neighbour of the other team, the others' stay put."""
     cfg = EnvCfg(action={"separation": FILTER, "separation_team": team})
-    actions = ActionMap(cfg, line2, world_count=2, drones_per_world=4, training=False, device=torch.device("cpu"))
+    actions = ActionMap(cfg, line2, world_count=2, drones_per_world=4, device=torch.device("cpu"))
     pos = torch.tensor([[0.0, 0.0, 1.0], [0.0, 1.0, 1.0], [0.1, 0.0, 1.0], [0.1, 1.0, 1.0]]).repeat(2, 1)
     racing = torch.ones(8, dtype=torch.bool)
-    target, _ = actions.targets(torch.zeros(8, 4), pos, torch.zeros(8, 3), torch.zeros(8), racing)
+    target = actions.targets(torch.zeros(8, 4), pos, torch.zeros(8, 3), torch.zeros(8), racing)
     away = torch.tensor([[-0.9, 0.0, 0.0], [-0.9, 0.0, 0.0], [0.9, 0.0, 0.0], [0.9, 0.0, 0.0]])
     expected = pos.view(2, 4, 3) + away * torch.tensor([float(i in shifted) for i in range(4)])[:, None]
     torch.testing.assert_close(target[:, :3], expected.view(8, 3))
