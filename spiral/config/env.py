@@ -106,12 +106,6 @@ class RewardCfg(StrictModel):
         "other drone (not in the paper; 0 leaves the paper's reward)",
     )
     proximity_distance: PosFloat = Field(default=0.5, description="Distance where the proximity penalty starts [m]")
-    proximity_leader: float = Field(
-        default=1.0, ge=0, le=1,
-        description="Share of the proximity penalty paid by a drone whose nearest drone is behind it (offset away from "
-        "its next gate): 1 both drones pay, 0 only the one behind, which is to make room (racing's rule for the "
-        "overtaking car)",
-    )
     contact: NonNegFloat = Field(
         default=0.0,
         description="Weight of a further penalty for a drone-drone contact, shared by fault: each of the two drones "
@@ -128,18 +122,6 @@ class RewardCfg(StrictModel):
         "paper's reward)",
     )
     closing_distance: PosFloat = Field(default=1.0, description="Distance where the closing penalty starts [m]")
-    closing_miss: NonNegFloat = Field(
-        default=0.0,
-        description="With a value > 0 the closing penalty charges collision courses only: it is further scaled by "
-        "max(0, 1 − m/closing_miss), m the distance at which the two drones, held at their velocities, would pass "
-        "each other [m]; a drone that overtakes wide of the one ahead pays nothing. 0 charges every closing in",
-    )
-    closing_neighbours: int = Field(
-        default=1, ge=1, le=3,
-        description="How many of the drone's nearest racing drones the closing penalty charges it for, each pair on "
-        "its own terms, summed: 1 the nearest only; in a 2v2 race 3 counts the opponents beside a drone whose team "
-        "mate is nearer",
-    )
     win: NonNegFloat = Field(
         default=0.0,
         description="Weight of the race outcome, at the step a drone first completes the lap: +1 to its team's "
@@ -152,11 +134,6 @@ class RewardCfg(StrictModel):
         "passes a drone of the other team, −1 at the step one passes it (places by gates passed, then distance to "
         "the next gate; drones that crash or finish are not passed). It pays for the place when it changes hands "
         "instead of at the line, as the race outcome does (not in the paper; 0 leaves the paper's reward)",
-    )
-    forfeit: bool = Field(
-        default=False,
-        description="Charge a drone that crashes while its race is undecided the loss (-1 x win) at once: a crash "
-        "forfeits the race, so crashing never spares a drone the loss of finishing behind (not in the paper)",
     )
 
 
@@ -238,8 +215,3 @@ class EnvCfg(StrictModel):
         """These settings with evaluation races starting where ``starts`` says (``episode.eval_starts``)."""
         return self.model_copy(update={"episode": self.episode.model_copy(update={"eval_starts": starts})})
 
-    @model_validator(mode="after")
-    def _forfeit_needs_outcome(self) -> EnvCfg:
-        if self.reward.forfeit and self.reward.win == 0:
-            raise ValueError("reward.forfeit: charges the race outcome term, but reward.win is 0")
-        return self

@@ -11,8 +11,8 @@ from spiral.core.outcome import race_winner
 from spiral.env.observations import nearest_others, relative_to_others
 
 __all__ = ["RaceEvents", "at_nearest", "at_neighbours", "closing_in", "contact_fault", "contact_partners",
-           "fault_share", "gate_distance", "heading", "lap_splits", "nearest_distance", "nearest_is_behind",
-           "overtakes", "race_result"]
+           "fault_share", "gate_distance", "heading", "lap_splits", "nearest_distance", "overtakes",
+           "race_result"]
 
 
 @dataclass(frozen=True)
@@ -81,16 +81,6 @@ def nearest_distance(pos: torch.Tensor, out: torch.Tensor, *, world_count: int, 
     return dist.masked_fill(gone, float("inf")).amin(dim=-1).flatten()
 
 
-def nearest_is_behind(pos: torch.Tensor, out: torch.Tensor, to_gate: torch.Tensor, *, world_count: int,
-                      drones_per_world: int) -> torch.Tensor:
-    """Whether each drone's nearest other racing drone is behind it: offset away from its next gate (``to_gate``,
-    (N, 3)); False where there is none."""
-    w, d = world_count, drones_per_world
-    index, found = nearest_others(pos.view(w, d, 3), (out == 0).view(w, d), count=1)
-    offset = at_nearest(pos, index) - pos
-    return (found.flatten() & ((offset * to_gate).sum(-1) < 0))
-
-
 def contact_partners(pos: torch.Tensor, pos_before: torch.Tensor, racing: torch.Tensor, *, world_count: int,
                      drones_per_world: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The other drone of each drone's contact in a step: the nearest one (at ``pos``, after the step) of those
@@ -114,7 +104,7 @@ def contact_fault(pos: torch.Tensor, pos_before: torch.Tensor, vel_before: torch
 
 
 def closing_in(pos: torch.Tensor, vel: torch.Tensor, out: torch.Tensor, *, distance: float, world_count: int,
-               drones_per_world: int, miss: float = 0.0, neighbours: int = 1) -> torch.Tensor:
+               drones_per_world: int) -> torch.Tensor:
     """How fast each racing drone closes in on its nearest racing drone, times its share and the nearness (N,)
     [m/s]; 0 for the drones without a racing neighbour and for those out of the race.
 
@@ -122,16 +112,10 @@ def closing_in(pos: torch.Tensor, vel: torch.Tensor, out: torch.Tensor, *, dista
     it is its :func:`fault_share`, and it counts in full at contact and not at all from ``distance`` away:
     r · share · max(0, 1 − d / distance). A drone that runs up on a slower one ahead takes all of it, the one
     ahead none; two drones converging alike half each.
-
-    With ``miss`` > 0 only a collision course counts: held straight, the two relative to each other pass at their
-    closest by m = |offset − w t*| (w = v − v_other, t* = (w·offset)/|w|² while they close in), and the value is
-    further scaled by max(0, 1 − m / miss). A drone that overtakes wide of the one ahead pays nothing.
-
-    With ``neighbours`` > 1 the value is the sum of the same over that many nearest racing drones (those there are).
     """
     racing = out == 0
     index, found = nearest_others(pos.view(world_count, drones_per_world, 3),
-                                  racing.view(world_count, drones_per_world), count=neighbours)
+                                  racing.view(world_count, drones_per_world), count=1)
     offset = at_neighbours(pos, index) - pos[:, None]  # (N, k, 3)
     other_vel = at_neighbours(vel, index)
     rel = vel[:, None] - other_vel
@@ -139,12 +123,7 @@ def closing_in(pos: torch.Tensor, vel: torch.Tensor, out: torch.Tensor, *, dista
     rate = (rel * offset).sum(-1).clamp(min=0.0) / dist.clamp(min=1e-9)
     near = (1.0 - dist / distance).clamp(min=0.0)
     value = rate * fault_share(offset, vel[:, None], other_vel) * near
-    if miss > 0:
-        speed2 = (rel * rel).sum(-1, keepdim=True).clamp(min=1e-9)
-        t_closest = (rel * offset).sum(-1, keepdim=True).clamp(min=0.0) / speed2
-        passing = (offset - rel * t_closest).norm(dim=-1)
-        value = value * (1.0 - passing / miss).clamp(min=0.0)
-    counted = found.view(-1, neighbours) & racing[:, None]
+    counted = found.view(-1, 1) & racing[:, None]
     return torch.where(counted, value, torch.zeros_like(value)).sum(-1)
 
 
@@ -198,22 +177,18 @@ def fault_share(offset: torch.Tensor, vel: torch.Tensor, other_vel: torch.Tensor
 
 
 def race_result(finished_now: torch.Tensor, lap_time: torch.Tensor, racing: torch.Tensor, contested: torch.Tensor,
-                race_team: torch.Tensor, teams: Sequence[Sequence[int]], *,
-                forfeited: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                race_team: torch.Tensor, teams: Sequence[Sequence[int]]) -> tuple[torch.Tensor, torch.Tensor]:
     """+1 / −1 per racing drone of the winning / losing race team in the ``contested`` worlds decided this step
     (N,), and which worlds were decided (W,).
 
     The winner (:func:`~spiral.core.outcome.race_winner`) is the team of the step's earliest finisher (lap times
     are interpolated within the step); drones already out (crashed, finished, absent) are not paid, nor anyone when
-    two teams finish at exactly the same time. ``forfeited`` drones (N,; ``reward.forfeit``: those that crashed this
-    step) of still contested worlds get −1 as well: a crash forfeits the race.
+    two teams finish at exactly the same time.
     """
     w, d = contested.shape[0], race_team.shape[0]
     fin = finished_now.view(w, d)
     decided = contested & fin.any(dim=1)
     result = torch.zeros(w, d, device=contested.device)
-    if forfeited is not None:
-        result = -(contested[:, None] & forfeited.view(w, d)).float()
     winner = race_winner(fin, lap_time.view(w, d), teams)  # for every world: its pay is masked, its count not read
     same_team = race_team[None, :] == winner[:, None]
     paid = decided[:, None] & (winner >= 0)[:, None] & racing.view(w, d)

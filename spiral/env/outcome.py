@@ -11,7 +11,6 @@ from spiral.env.events import (
     contact_fault,
     heading,
     nearest_distance,
-    nearest_is_behind,
     overtakes,
 )
 from spiral.env.rewards import StepOutcome
@@ -24,13 +23,11 @@ __all__ = ["step_outcome"]
 def step_outcome(state: RaceState, ev: RaceEvents) -> StepOutcome:
     """The reward terms' view of the step of ``state``'s env; frozen drones make no progress."""
     racing, zero = ev.racing, torch.zeros_like(ev.dist_before)
-    nearest = behind = None
+    nearest = None
     to_gate = state.gate_center[state.next_gate.long()] - state.pos
     reward, w, d = state.cfg.reward, state.world_count, state.drones_per_world
     if reward.proximity > 0:
         nearest = nearest_distance(state.pos, state.out, world_count=w, drones_per_world=d)
-        if reward.proximity_leader < 1:  # who leads matters only when the leader pays less
-            behind = nearest_is_behind(state.pos, state.out, to_gate, world_count=w, drones_per_world=d)
     return StepOutcome(
         dist_before=torch.where(racing, ev.dist_before, zero),
         dist_after=torch.where(racing, state.gate_distance(ev.gate), zero),
@@ -40,12 +37,10 @@ def step_outcome(state: RaceState, ev: RaceEvents) -> StepOutcome:
         to_gate=to_gate,
         lap_time=ev.lap_split,
         nearest=nearest,
-        nearest_behind=behind,
         race_result=ev.race_result,
         contact_fault=_contact_fault(state, ev) if reward.contact > 0 else None,
         closing=closing_in(state.pos, state.vel, state.out, distance=reward.closing_distance, world_count=w,
-                           drones_per_world=d, miss=reward.closing_miss,
-                           neighbours=reward.closing_neighbours) if reward.closing > 0 else None,
+                           drones_per_world=d) if reward.closing > 0 else None,
         overtakes=_overtakes(state, ev) if reward.overtake > 0 else None,
     )
 

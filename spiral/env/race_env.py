@@ -178,8 +178,7 @@ class RaceEnv(RaceState):
 
     def race_events(self, gate: torch.Tensor, dist_before: torch.Tensor) -> RaceEvents:
         """Race events: a collision ends a drone's race, its last lap finishes it (frozen, no longer an obstacle),
-        each lap's split is taken; a contested race is decided by its first finisher (``reward.forfeit``: a crash
-        forfeits it)."""
+        each lap's split is taken; a contested race is decided by its first finisher."""
         racing = ~(self.crashed | self.finished | self.absent)
         self.collide_near_misses(racing)
         crashed_now = racing & (self.step_collision != 0)
@@ -195,8 +194,7 @@ class RaceEnv(RaceState):
         result = None
         if self.cfg.reward.win > 0:
             result, decided = race_result(finished_now, self.lap_time, racing & ~crashed_now, self.contested,
-                                          self.race_team, team_slots(self.drones_per_world),
-                                          forfeited=crashed_now if self.cfg.reward.forfeit else None)
+                                          self.race_team, team_slots(self.drones_per_world))
             self.contested &= ~decided
         return RaceEvents(racing, crashed_now, finished_now, gate, dist_before, result, split)
 

@@ -32,9 +32,6 @@ class StepOutcome:
     """Duration of the lap a drone completed during the step, else 0 [s]; over one lap the race time."""
     nearest: torch.Tensor | None = None
     """Distance to the nearest other drone still racing after the step, inf when there is none [m]."""
-    nearest_behind: torch.Tensor | None = None
-    """Whether that drone is behind this one: its offset points away from this drone's next gate (bool); None when
-    leader and follower pay alike (``proximity_leader`` 1)."""
     race_result: torch.Tensor | None = None
     """+1 / −1 for the winning / losing team's drones at the step their race is decided, else 0."""
     contact_fault: torch.Tensor | None = None
@@ -69,14 +66,10 @@ def _reward_alignment(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
 
 
 def _reward_proximity(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
-    """−max(0, 1 − d / d_safe) per step, d the distance to the nearest other racing drone (not in the paper); a
-    drone that leads it (the nearest drone is behind) pays the share ``proximity_leader`` of it."""
+    """−max(0, 1 − d / d_safe) per step, d the distance to the nearest other racing drone (not in the paper)."""
     if o.nearest is None:
         return torch.zeros_like(o.dist_before)
-    penalty = -(1.0 - o.nearest / cfg.proximity_distance).clamp(min=0.0)
-    if o.nearest_behind is None:  # every drone pays in full
-        return penalty
-    return torch.where(o.nearest_behind, cfg.proximity_leader * penalty, penalty)
+    return -(1.0 - o.nearest / cfg.proximity_distance).clamp(min=0.0)
 
 
 def _reward_contact(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:

@@ -67,22 +67,6 @@ def test_proximity_penalty_grows_linearly_inside_the_safe_distance(oval2):
     assert float(solo.term_sums["proximity"][0]) == pytest.approx(0.0, abs=1e-12)  # clamped to 0
 
 
-def test_proximity_leader_share_charges_the_drone_behind_in_full_and_the_leader_its_share(oval2):
-    """In line towards gate 0 (east, at x = 0), 0.2 m apart: the drone behind (west) pays −w·0.6, the one in front
-    pays the share ``proximity_leader`` of it; abreast both pay in full."""
-    reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, proximity=0.1, proximity_distance=0.5,
-                       proximity_leader=0.25)
-    env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), training=False, reward=reward)
-    env.reset()
-    hold = torch.zeros(2, 4)
-    place(env, [[-1.7, -1.0, 1.0], [-1.5, -1.0, 1.0]])  # drone 1 leads towards the gate
-    _, rewards, _, _ = env.step(hold)
-    assert rewards.tolist() == pytest.approx([-0.06, -0.015], abs=2e-3)
-    place(env, [[-1.5, -1.1, 1.0], [-1.5, -0.9, 1.0]])  # abreast: neither is behind the other
-    _, rewards, _, _ = env.step(hold)
-    assert rewards.tolist() == pytest.approx([-0.06, -0.06], abs=2e-3)
-
-
 @pytest.mark.parametrize(("v0", "v1", "expected"), [(3.0, 1.0, [-4.0, 0.0]), (2.0, -2.0, [-2.0, -2.0])])
 def test_contact_penalty_charges_the_drone_that_runs_into_another_by_its_share_of_the_closing_speed(
         oval2, v0, v1, expected):

@@ -135,14 +135,14 @@ def test_a_new_option_left_at_its_default_keeps_the_fingerprint_and_a_set_one_ch
 
     class RewardWithNewTerm(BaseModel):
         progress: float = 1.0
-        proximity_leader: float = 1.0
+        new_term: float = 1.0
 
     def fp(reward: BaseModel):
         return fingerprint("train:1v1", {"stage": reward, "seed": 0}, [], source="same")
 
     before, after = fp(Reward(progress=2.0)), fp(RewardWithNewTerm(progress=2.0))
     assert (before.full, before.spec) == (after.full, after.spec)
-    assert fp(RewardWithNewTerm(progress=2.0, proximity_leader=0.0)).spec != before.spec
+    assert fp(RewardWithNewTerm(progress=2.0, new_term=0.0)).spec != before.spec
     assert fp(RewardWithNewTerm(progress=1.0)).spec == fp(RewardWithNewTerm()).spec  # a default set explicitly
 
 
