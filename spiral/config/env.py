@@ -106,20 +106,12 @@ class RewardCfg(StrictModel):
         "other drone (not in the paper; 0 leaves the paper's reward)",
     )
     proximity_distance: PosFloat = Field(default=0.5, description="Distance where the proximity penalty starts [m]")
-    contact: NonNegFloat = Field(
-        default=0.0,
-        description="Weight of a further penalty for a drone-drone contact, shared by fault: each of the two drones "
-        "pays the share of the closing speed it flew into the other one step before (the drone that runs into a "
-        "slower one ahead pays all of it, two drones converging alike half each); 0 leaves the paper's reward "
-        "(not in the paper)",
-    )
     closing: NonNegFloat = Field(
         default=0.0,
         description="Weight of a per-step penalty for closing in on the nearest other racing drone: the rate r at "
-        "which the two close in [m/s] times the drone's share of it (as for `contact`: the share of the closing "
-        "speed it flies into the other) times max(0, 1 − d/closing_distance); the drone that runs up on a slower "
-        "one ahead pays, the one ahead does not, whether or not it makes room (not in the paper; 0 leaves the "
-        "paper's reward)",
+        "which the two close in [m/s] times the drone's share of it (the share of the closing speed it flies into "
+        "the other) times max(0, 1 − d/closing_distance); the drone that runs up on a slower one ahead pays, the "
+        "one ahead does not, whether or not it makes room (not in the paper; 0 leaves the paper's reward)",
     )
     closing_distance: PosFloat = Field(default=1.0, description="Distance where the closing penalty starts [m]")
     win: NonNegFloat = Field(
@@ -127,13 +119,6 @@ class RewardCfg(StrictModel):
         description="Weight of the race outcome, at the step a drone first completes the lap: +1 to its team's "
         "drones, -1 to the other team's drones still racing (start-box races against opponents only; not in the "
         "paper; 0 leaves the paper's reward)",
-    )
-    overtake: NonNegFloat = Field(
-        default=0.0,
-        description="Weight of the race position term, in start-box races against opponents: +1 at the step a drone "
-        "passes a drone of the other team, −1 at the step one passes it (places by gates passed, then distance to "
-        "the next gate; drones that crash or finish are not passed). It pays for the place when it changes hands "
-        "instead of at the line, as the race outcome does (not in the paper; 0 leaves the paper's reward)",
     )
 
 
@@ -183,13 +168,6 @@ class EpisodeCfg(StrictModel):
         "that more of the samples come from the start, where the drones race as a pack",
     )
     start_cut_s: PosFloat = Field(default=1.5, description="Race time after which a cut episode ends [s]")
-    contact_margin: NonNegFloat = Field(
-        default=0.0,
-        description="Training only: two racing drones whose centres are closer than the airframe's contact distance "
-        "(twice its collision radius) plus this margin after a control step collide there (both crash, drone-drone "
-        "kind), so that the learner keeps that much more room from other drones; evaluation races (selection, "
-        "promotion, `spiral eval`) count touching spheres only [m]; 0: off (not in the paper)",
-    )
     eval_starts: Literal["box", "track", "file"] = Field(
         default="box",
         description="Where evaluation races start: in the start box (the protocol), every drone at its own random "

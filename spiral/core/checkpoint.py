@@ -39,7 +39,8 @@ _FORMAT_1 = "spiral-checkpoint-1"
 _FORMAT_1_LAYOUT = {"teammates": False, "priority": False, "closest_approach": False, "approach_horizon_s": 0.5}
 REMOVED_ENV_OPTIONS: dict[tuple[str, ...], Any] = {
     ("shield",): None, ("reward", "intervention"): 0.0, ("reward", "proximity_leader"): 1.0,
-    ("reward", "closing_miss"): 0.0, ("reward", "closing_neighbours"): 1, ("reward", "forfeit"): False}
+    ("reward", "closing_miss"): 0.0, ("reward", "closing_neighbours"): 1, ("reward", "forfeit"): False,
+    ("reward", "contact"): 0.0, ("reward", "overtake"): 0.0, ("episode", "contact_margin"): 0.0}
 """Env options of earlier versions, by their path in the env settings, with the value that left them off (tried, never
 in a shipped pipeline): a checkpoint saved with them off reads as today's."""
 """Observation options that a format-1 checkpoint's ``obs_layout`` left out when they were off, with the values they

@@ -10,7 +10,7 @@ import torch
 from spiral.core.outcome import race_winner
 from spiral.env.observations import nearest_others, relative_to_others
 
-__all__ = ["RaceEvents", "at_nearest", "at_neighbours", "closing_in", "contact_fault", "contact_partners",
+__all__ = ["RaceEvents", "at_nearest", "at_neighbours", "closing_in", "contact_partners",
            "fault_share", "gate_distance", "heading", "lap_splits", "nearest_distance", "overtakes",
            "race_result"]
 
@@ -89,18 +89,6 @@ def contact_partners(pos: torch.Tensor, pos_before: torch.Tensor, racing: torch.
     w, d = world_count, drones_per_world
     index, found = nearest_others(pos.view(w, d, 3), racing.view(w, d), count=1)
     return index, found, relative_to_others(pos_before, index, found).view(-1, 3)
-
-
-def contact_fault(pos: torch.Tensor, pos_before: torch.Tensor, vel_before: torch.Tensor, racing: torch.Tensor,
-                  contact: torch.Tensor, *, world_count: int, drones_per_world: int) -> torch.Tensor:
-    """Each contact drone's share of the fault for its drone-drone contact (N,), 0 for the others.
-
-    The other drone is the one :func:`contact_partners` finds; the share is :func:`fault_share`'s.
-    """
-    index, found, offset = contact_partners(pos, pos_before, racing, world_count=world_count,
-                                           drones_per_world=drones_per_world)
-    share = fault_share(offset, vel_before, at_nearest(vel_before, index))
-    return torch.where(contact & found.flatten(), share, torch.zeros_like(share))
 
 
 def closing_in(pos: torch.Tensor, vel: torch.Tensor, out: torch.Tensor, *, distance: float, world_count: int,

@@ -172,7 +172,6 @@ class RaceEnv(RaceState):
         """Simulate one control step; return the gate each drone targeted and its progress distance from before."""
         gate = self.next_gate.long().clone()
         dist_before = self.gate_distance(gate)
-        self.note_before_step()
         self.world.step()
         return gate, dist_before
 
@@ -180,7 +179,6 @@ class RaceEnv(RaceState):
         """Race events: a collision ends a drone's race, its last lap finishes it (frozen, no longer an obstacle),
         each lap's split is taken; a contested race is decided by its first finisher."""
         racing = ~(self.crashed | self.finished | self.absent)
-        self.collide_near_misses(racing)
         crashed_now = racing & (self.step_collision != 0)
         self.crashed |= crashed_now
         self.crash_kind = torch.where(crashed_now, self.step_collision, self.crash_kind)

@@ -34,14 +34,9 @@ class StepOutcome:
     """Distance to the nearest other drone still racing after the step, inf when there is none [m]."""
     race_result: torch.Tensor | None = None
     """+1 / −1 for the winning / losing team's drones at the step their race is decided, else 0."""
-    contact_fault: torch.Tensor | None = None
-    """Share of the fault for a drone-drone contact during the step, 0 for drones without one."""
     closing: torch.Tensor | None = None
     """How fast the drone closes in on its nearest racing drone, by its share and nearness after the step
     (:func:`~spiral.env.events.closing_in`) [m/s]."""
-    overtakes: torch.Tensor | None = None
-    """Places gained on the other team's racing drones during the step, less places lost
-    (:func:`~spiral.env.events.overtakes`)."""
 
 
 def _reward_progress(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
@@ -72,26 +67,12 @@ def _reward_proximity(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
     return -(1.0 - o.nearest / cfg.proximity_distance).clamp(min=0.0)
 
 
-def _reward_contact(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
-    """−share once, at the step of a drone–drone contact: the drone's share of the fault for it (not in the paper)."""
-    if o.contact_fault is None:
-        return torch.zeros_like(o.dist_before)
-    return -o.contact_fault
-
-
 def _reward_closing(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
     """−(closing rate · share · nearness) per step: closing in on the nearest drone, charged to the drone that
     flies into the other (not in the paper)."""
     if o.closing is None:
         return torch.zeros_like(o.dist_before)
     return -o.closing
-
-
-def _reward_overtake(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
-    """+1 per opponent passed, −1 per opponent that passed the drone, in flight (not in the paper)."""
-    if o.overtakes is None:
-        return torch.zeros_like(o.dist_before)
-    return o.overtakes
 
 
 def _reward_lap(o: StepOutcome, cfg: RewardCfg) -> torch.Tensor:
@@ -113,11 +94,9 @@ REWARD_TERMS = {
     "collision": _reward_collision,
     "alignment": _reward_alignment,
     "proximity": _reward_proximity,
-    "contact": _reward_contact,
     "closing": _reward_closing,
     "lap": _reward_lap,
     "win": _reward_win,
-    "overtake": _reward_overtake,
 }
 """Reward term functions by the name of their weight in ``RewardCfg``."""
 

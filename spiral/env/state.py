@@ -16,14 +16,12 @@ from spiral.core.outcome import race_winner
 from spiral.core.policy import OpponentPolicy
 from spiral.env.events import (
     gate_distance,
-    nearest_distance,
 )
 from spiral.env.rewards import REWARD_TERMS
 from spiral.env.setting import RaceSetting
 from spiral.env.slots import slot_map
 from spiral.env.stats import add_ended_episodes, empty_stats, read_stats, summarize_stats
 from spiral.sim import World
-from spiral.sim.state import COLLISION_KINDS
 
 __all__ = ["RaceState", "draw_device"]
 
@@ -61,8 +59,6 @@ class RaceState:
         self.time_limit = cfg.episode.time_limit_s or self.track.time_limit_s
         self.max_episode_length = math.ceil(self.time_limit / self.dt)
         self.passes_needed = len(setting.track.gates) * self.track.laps + 1
-        self.margin_distance = 2.0 * setting.airframe.radius + cfg.episode.contact_margin
-        """Training with ``episode.contact_margin``: drones closer than this collide [m]."""
         self.generator = torch.Generator(device=draw_device(self.device, training=training)).manual_seed(seed)
         self.opponent_policy: OpponentPolicy | None = None
         self.sync_free = self.device.type != "cpu"
@@ -102,10 +98,6 @@ class RaceState:
         self.priority = torch.zeros(n, device=dev)
         """Random priority of each drone for the race, drawn at its start (observed with ``obs.priority``)."""
         self.crash_kind = torch.zeros(n, dtype=torch.int32, device=dev)
-        self.before = (self.pos.clone(), self.vel.clone())
-        """Positions and velocities before the last control step (kept only with ``reward.contact``)."""
-        self.place_before = (self.gates_passed.clone(), torch.zeros(n, device=dev))
-        """:meth:`track_place` before the last control step (kept only with ``reward.overtake``)."""
         self.episode_length_buf = torch.zeros(self.num_envs, dtype=torch.long, device=dev)
         self.term_sums = {name: torch.zeros(n, device=dev) for name in REWARD_TERMS}
         self.cut_time = torch.full((w,), math.inf, device=dev)
@@ -142,13 +134,6 @@ class RaceState:
         kappa = self.cfg.reward.progress_lateral
         return gate_distance(self.pos, self.gate_center[gate], self.gate_forward[gate], kappa)
 
-    def note_before_step(self) -> None:
-        """Keep what reward terms compare after the step: positions, velocities (``contact``), places (``overtake``)."""
-        if self.cfg.reward.contact > 0:
-            self.before = (self.pos.clone(), self.vel.clone())
-        if self.cfg.reward.overtake > 0:
-            self.place_before = self.track_place()
-
     def track_place(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Where each drone is in the race: gates passed and distance to the next gate's centre [m] (N,) each."""
         to_gate = self.gate_center[self.next_gate.long()] - self.pos
@@ -159,21 +144,6 @@ class RaceState:
         w, d = self.world_count, self.drones_per_world
         teams = [self.learner_slots, self.opponent_slots]
         return race_winner(self.finished.view(w, d), self.lap_time.view(w, d), teams) == 0
-
-    def collide_near_misses(self, racing: torch.Tensor) -> None:
-        """Training with ``episode.contact_margin``: ``racing`` drones without a collision in this step that are
-        within :attr:`margin_distance` of another such drone collide now (drone-drone kind), as if their spheres had
-        touched."""
-        if not (self.training and self.cfg.episode.contact_margin > 0):
-            return
-        candidates = racing & (self.step_collision == 0)
-        gap = nearest_distance(self.pos, (~candidates).to(torch.int32), world_count=self.world_count,
-                               drones_per_world=self.drones_per_world)
-        near = candidates & (gap < self.margin_distance)
-        self.step_collision |= near.to(self.step_collision.dtype) * COLLISION_KINDS["drone"]
-        self.crash_time.copy_(torch.where(near, self.world_time().repeat_interleave(self.drones_per_world),
-                                          self.crash_time))
-        self.out.masked_fill_(near, 1)
 
     def world_time(self) -> torch.Tensor:
         """Simulated time of each world since its reset [s]."""

@@ -1,4 +1,4 @@
-"""Race events: lap splits, closing in, overtakes, contact fault, and the race outcome (first finisher)."""
+"""Race events: lap splits, closing in, overtakes, and the race outcome (first finisher)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from spiral.config import RewardCfg
-from spiral.env.events import closing_in, contact_fault, lap_splits, overtakes
+from spiral.env.events import closing_in, lap_splits, overtakes
 from tests.env.helpers import make_env, place, waypoint_policy
 
 
@@ -43,21 +43,6 @@ def test_overtakes_count_places_changing_hands_between_teams_only():
     # drone 0: opponents 2 and 3 ahead before, only 3 after: +1; drone 2 lost its place to it: -1; drone 1 had 3
     # ahead and 2 behind, before and after: 0; drone 3 led throughout: 0. Drone 6: +1, drone 4: -1.
     assert got.tolist() == pytest.approx([1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0, 0.0])
-
-
-def test_contact_fault_takes_the_closing_speed_along_the_offset_before_the_step():
-    """A drone closing at 2 m/s on one that flies away from it at 1 m/s takes it all; a drone crossing at right
-    angles shares with the one that flies into it by their closing speeds; drones without a contact pay nothing."""
-    pos_before = torch.tensor([[0.0, 0.0, 1.0], [0.3, 0.0, 1.0], [5.0, 0.0, 1.0], [5.0, 0.3, 1.0]])
-    vel_before = torch.tensor([[2.0, 0.0, 0.0], [1.0, 0.0, 0.0], [3.0, 1.0, 0.0], [0.0, -3.0, 0.0]])
-    pos = pos_before + 0.02 * vel_before
-    racing = torch.ones(4, dtype=torch.bool)
-    contact = torch.tensor([True, True, True, True])
-    share = contact_fault(pos, pos_before, vel_before, racing, contact, world_count=2, drones_per_world=2)
-    assert share.tolist() == pytest.approx([1.0, 0.0, 0.25, 0.75])
-    none = contact_fault(pos, pos_before, vel_before, racing, torch.zeros(4, dtype=torch.bool), world_count=2,
-                         drones_per_world=2)
-    assert none.tolist() == pytest.approx([0.0] * 4, abs=1e-12)  # masked to 0
 
 
 def test_lap_splits_close_a_lap_every_gates_passages_after_the_start_line():

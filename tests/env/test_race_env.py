@@ -10,7 +10,7 @@ import torch
 
 from spiral.env import run_races
 from spiral.env.race_env import restart_worlds
-from tests.env.helpers import CF2X, make_env, place
+from tests.env.helpers import make_env
 
 
 def test_only_start_box_races_against_opponents_are_contested(oval2):
@@ -28,28 +28,6 @@ def test_only_start_box_races_against_opponents_are_contested(oval2):
     assert not contested(0.0, opponents=False).any()
     solo = make_env(oval2, worlds=4, drones=1, learners=(0,))
     assert not solo.contested.any()
-
-
-@pytest.mark.parametrize("gap", [0.15, 0.25])
-def test_contact_margin_makes_drones_closer_than_it_collide_in_training_only(oval2, gap):
-    """Two hovering drones 0.15 m apart (their spheres, 0.12 m, do not touch) both end their episodes with a
-    drone-drone crash in a training env with a 0.05 m margin; neither does at 0.25 m, nor without the margin, nor in
-    an evaluation env."""
-    def ended(margin: float, *, training: bool = True) -> tuple:
-        env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), training=training,
-                       episode={"track_start_prob": 0.0, "contact_margin": margin})
-        env.reset()
-        place(env, [[-1.0, -1.0, 1.0], [-1.0, -1.0 + gap, 1.0]])
-        _, _, dones, extras = env.step(torch.zeros(2, 4))
-        if not training:
-            return tuple(env.crashed.tolist())
-        return (*dones.tolist(), float(env.stats["crash_drone"]), bool(extras["time_outs"].any()))
-
-    assert 2 * CF2X.radius == pytest.approx(0.12)
-    expected = (True, True, 2.0, False) if gap < 0.17 else (False, False, 0.0, False)
-    assert ended(0.05) == pytest.approx(expected)  # flags and a count
-    assert ended(0.0) == pytest.approx((False, False, 0.0, False))
-    assert ended(0.05, training=False) == (False, False)
 
 
 def test_crash_pays_the_penalty_once_and_ends_the_episode(oval2):
