@@ -53,11 +53,6 @@ class SelectionCfg(StrictModel):
         description="Decay d of the moving average of the policy's weights (θ̄ ← d·θ̄ + (1 − d)·θ after every PPO "
         "update) that selection and promotion race and best.pt keeps; 0: the current policy",
     )
-    success_tolerance: float = Field(
-        default=0.0, ge=0, le=1,
-        description="Stages kept by their self-match (no promotion): evaluations whose success is within this of "
-        "the highest seen count as equal and the faster lap wins among them; 0: success first, then lap",
-    )
     final: FinalPickCfg | None = Field(
         default=None,
         description="Multi-drone stages: after training, the policy the stage promoted that races best in "
@@ -85,11 +80,6 @@ class PromotionCfg(StrictModel):
         default=0.05, ge=0, le=1,
         description="Promote as well a learner whose self-match success beats the best's by at least this much "
         "while its head-to-head success is not below the best's by more than max_success_drop; null: never",
-    )
-    safer_min_win_rate: float = Field(
-        default=0.0, ge=0, le=1,
-        description="Least win rate over the best for a promotion as safer (a safer policy may not be clearly "
-        "slower); 0: any",
     )
     elo_k: float = Field(default=16.0, gt=0, description="Elo K-factor applied per evaluation (match score)")
     scenarios: bool = Field(
@@ -141,31 +131,13 @@ class SelfPlayCfg(StrictModel):
         "uniformly in [-x, x] per axis of the position target (action units): opponents fly other lines than "
         "their policy's own (robustness to strangers); 0: off",
     )
-    opponent_pace: float = Field(
-        default=0.0, ge=0, lt=1,
-        description="Largest slow-down of an opponent: its position-target actions are scaled for a whole episode "
-        "by a factor drawn per opponent uniformly in [1 - x, 1] (relative action mode: a nearer target, a slower "
-        "flight), so that the learner meets slower drones ahead of it and learns to pass them; 0: off",
-    )
     opponent_blind: float = Field(
         default=0.0, ge=0, le=1,
         description="Probability that a world's opponents fly blind for an episode: their observation shows no other "
         "drone, so they race their own line and never make room (mirror copies and pool members alike), and the "
         "learner has to follow or pass drones that ignore it; 0: off",
     )
-    init_snapshots: bool = Field(
-        default=False,
-        description="A new pool also starts with the periodic checkpoints that the initial policy's stage saved "
-        "before it (`ckpt/model_<it>.pt` beside it, earlier iterations only; pool mode): after a solo stage, earlier "
-        "and slower policies that fly the racing line and never make room, so that the learner meets drones it has "
-        "to follow or pass; false: the pool starts with the initial policy alone",
-    )
     p_latest: float = Field(default=0.5, ge=0, le=1, description="Probability of racing the latest best")
-    p_first: float = Field(
-        default=0.0, ge=0, le=1,
-        description="Probability of racing the pool's first member: the policy the first self-play stage started "
-        "from (in full.yaml the solo best, which ignores other drones)",
-    )
     sampling: Literal["uniform", "prioritized"] = Field(default="prioritized", description="Other draws")
     promotion: PromotionCfg = Field(default_factory=PromotionCfg)
 
@@ -173,14 +145,10 @@ class SelfPlayCfg(StrictModel):
     def _mirror_needs_pool(self) -> SelfPlayCfg:
         if self.mode == "frozen" and self.p_self > 0:
             raise ValueError("p_self: frozen opponents (PPO without self-play) cannot race the learner itself")
-        if self.mode == "frozen" and self.init_snapshots:
-            raise ValueError("init_snapshots: frozen opponents race one policy; earlier snapshots join a pool")
         if self.mode == "pool" and self.opponent_from is not None:
             raise ValueError("opponent_from: only frozen opponents come from one stage; pool opponents are the pool")
         if self.mirror_actions != "mean" and self.p_self == 0:
             raise ValueError(f"mirror_actions: {self.mirror_actions!r} is for mirror worlds, but p_self is 0")
-        if self.p_latest + self.p_first > 1:
-            raise ValueError(f"p_first: p_latest + p_first = {self.p_latest + self.p_first} exceeds 1")
         return self
 
 
@@ -230,19 +198,9 @@ class StageSpec(StrictModel):
         return self
 
     @model_validator(mode="after")
-    def _pace_needs_relative_targets(self) -> StageSpec:
-        if self.selfplay.opponent_pace > 0 and self.env.action.mode != "relative":
-            raise ValueError("selfplay.opponent_pace: scaling an opponent's actions slows it only in the relative "
-                             "action mode (env.action.mode); absolute targets would move towards the arena's centre")
-        return self
-
-    @model_validator(mode="after")
     def _promotion_counts_in_multi_drone_stages(self) -> StageSpec:
         if self.scenario == "solo":
             return self
-        if self.selection.success_tolerance > 0:
-            raise ValueError("selection.success_tolerance: a multi-drone stage keeps its best by promotion "
-                             "(selfplay.promotion), not by its self-match")
         owned = {"interval": "selfplay.promotion.interval", "races": "selfplay.promotion.races"}
         for name in (n for n in owned if getattr(self.selection, n) != SelectionCfg.model_fields[n].default):
             raise ValueError(f"selection.{name}: a multi-drone stage evaluates at each promotion, its self-match "

@@ -11,7 +11,7 @@ from typing import Any
 import torch
 
 from spiral.config.stage import StageSpec
-from spiral.core.checkpoint import CheckpointError, FrozenPolicy, list_checkpoints, load_checkpoint, load_policy
+from spiral.core.checkpoint import CheckpointError, FrozenPolicy, load_checkpoint, load_policy
 from spiral.core.errors import UsageError
 from spiral.core.scenario import SCENARIO_DRONES
 from spiral.core.seeds import stream_seed
@@ -92,7 +92,7 @@ def stage_opponents(stage: StageSpec, pool: Pool | None, init_checkpoint: Path, 
     if not members:
         raise UsageError(f"stage {stage.name!r}: no usable policy in the pool {pool.root if pool else None}")
     matchmaker = Matchmaker(len(members), latest=latest, p_latest=stage.selfplay.p_latest,
-                            p_first=stage.selfplay.p_first, mode=stage.selfplay.sampling, device=device)
+                            mode=stage.selfplay.sampling, device=device)
     return StageOpponents(members, matchmaker, _world_opponents(stage, members, matchmaker, generator), best_rating,
                           device)
 
@@ -116,7 +116,7 @@ def _world_opponents(stage: StageSpec, members: list[FrozenPolicy], matchmaker: 
     through one matchmaker and one generator."""
     sp = stage.selfplay
     p_self = 0.0 if sp.mirror_actions == "learner" else sp.p_self  # else: own parts
-    draws = OpponentDraws(p_self=p_self, offset=sp.opponent_offset, pace=sp.opponent_pace, blind=sp.opponent_blind,
+    draws = OpponentDraws(p_self=p_self, offset=sp.opponent_offset, blind=sp.opponent_blind,
                           unseen=other_drone_columns(stage.env.obs))
     return {
         part.name: PoolOpponents(members, matchmaker, world_count=part.worlds,
@@ -153,9 +153,6 @@ def _opponent_policies(stage: StageSpec, pool: Pool | None, init_meta: dict[str,
                                   "stage's")
         return [frozen], 0, INITIAL_RATING
     if not pool.members:
-        if stage.selfplay.init_snapshots:
-            for iteration, path, origin in _earlier_snapshots(stage, init_checkpoint, init_meta):
-                pool.add(path, stage=origin, iteration=iteration, evaluation={})
         pool.add(init_checkpoint, stage=stage.init_from or "init", iteration=0, evaluation={})
     policies = pool.load_policies(layout, device=device)
     ids = list(policies)
@@ -164,13 +161,3 @@ def _opponent_policies(stage: StageSpec, pool: Pool | None, init_meta: dict[str,
     latest = ids.index(pool.latest_best) if pool.latest_best in policies else len(ids) - 1
     return [policies[i] for i in ids], latest, pool.member(ids[latest]).rating
 
-
-def _earlier_snapshots(stage: StageSpec, init_checkpoint: Path, meta: dict[str, Any]) -> list[tuple[int, Path, str]]:
-    """``(iteration, path, stage)`` of the periodic checkpoints in ``ckpt/`` beside ``init_checkpoint`` (whose spiral
-    metadata is ``meta``) from before its iteration, oldest first (``selfplay.init_snapshots``)."""
-    folder = init_checkpoint.parent / "ckpt"
-    found = sorted((it, path) for it, path in list_checkpoints(folder) if it < meta["iteration"])
-    if not found:
-        raise UsageError(f"stage {stage.name!r}: selfplay.init_snapshots: no periodic checkpoint before iteration "
-                         f"{meta['iteration']} of {init_checkpoint} in {folder}")
-    return [(it, path, meta.get("stage", "init")) for it, path in found]

@@ -7,8 +7,6 @@ from typing import Literal
 
 import torch
 
-from spiral.core.errors import UsageError
-
 __all__ = ["Matchmaker"]
 
 
@@ -19,11 +17,9 @@ class Matchmaker:
     rate against it, so the pool's hardest members are met more often (prioritised fictitious self-play).
     """
 
-    def __init__(self, member_count: int, *, latest: int, p_latest: float, p_first: float = 0.0,
+    def __init__(self, member_count: int, *, latest: int, p_latest: float,
                  mode: Literal["uniform", "prioritized"] = "prioritized", device: torch.device | str = "cpu") -> None:
-        if p_latest + p_first > 1.0:
-            raise UsageError(f"p_latest + p_first = {p_latest + p_first} exceeds 1")
-        self.latest, self.p_latest, self.p_first, self.mode = latest, p_latest, p_first, mode
+        self.latest, self.p_latest, self.mode = latest, p_latest, mode
         self.races = torch.zeros(member_count, device=device)
         self.losses = torch.zeros(member_count, device=device)
 
@@ -37,7 +33,6 @@ class Matchmaker:
         device = self.races.device
         u = torch.rand(count, generator=generator, device=device)
         sampled = torch.multinomial(self.weights(), count, replacement=True, generator=generator)
-        sampled = torch.where(u < self.p_latest + self.p_first, torch.zeros_like(sampled), sampled)
         return torch.where(u < self.p_latest, torch.full_like(sampled, self.latest), sampled)
 
     def add_member(self) -> None:

@@ -22,16 +22,13 @@ class OpponentDraws:
 
     With ``p_self > 0`` the world races copies of the learner's current policy instead (mirror self-play) with that
     probability. With ``offset > 0`` every opponent adds a constant offset, drawn uniformly in [-offset, offset] per
-    axis, to its position-target actions: it flies another line. With ``pace > 0`` every opponent first clips its
-    position-target actions to [-1, 1] and scales them by a factor drawn uniformly in [1 - pace, 1]: in the relative
-    action mode it aims nearer and flies slower. With ``blind > 0`` the world's opponents fly blind with that
-    probability: the observation entries in the bool mask ``unseen`` (obs_dim,), those about other drones, are
+    axis, to its position-target actions: it flies another line. With ``blind > 0`` the world's opponents fly blind
+    with that probability: the observation entries in the bool mask ``unseen`` (obs_dim,), those about other drones, are
     zeroed before their policy reads them, so they race as if alone and never make room.
     """
 
     p_self: float = 0.0
     offset: float = 0.0
-    pace: float = 0.0
     blind: float = 0.0
     unseen: torch.Tensor | None = None
 
@@ -64,8 +61,6 @@ class PoolOpponents:
         """Worlds whose opponents are the learner's current policy."""
         self.action_offset = torch.zeros(world_count, per_world, 3, device=matchmaker.races.device)
         """Constant offset of each opponent's position-target actions for the episode (its yaw is untouched)."""
-        self.action_scale = torch.ones(world_count, per_world, 1, device=matchmaker.races.device)
-        """Factor on each opponent's position-target actions for the episode (``pace``; its yaw is untouched)."""
         self.blind_world = torch.zeros(world_count, dtype=torch.bool, device=matchmaker.races.device)
         """Worlds whose opponents do not see the other drones (``blind``)."""
         self.sync_free = matchmaker.races.device.type != "cpu"
@@ -105,9 +100,7 @@ class PoolOpponents:
         return out
 
     def _finish(self, actions: torch.Tensor) -> torch.Tensor:
-        """``actions`` with the episode's pace and offset of each opponent applied (in place)."""
-        if self.draws.pace > 0:  # on the action range the env keeps: a policy's mean may lie beyond it
-            actions[:, :3] = actions[:, :3].clamp(-1.0, 1.0) * self.action_scale.view(-1, 1)
+        """``actions`` with the episode's offset of each opponent applied (in place)."""
         if self.draws.offset > 0:
             actions[:, :3] += self.action_offset.view(-1, 3)
         return actions
@@ -151,9 +144,6 @@ class PoolOpponents:
         if self.draws.offset > 0:
             shift = torch.rand(count, self.per_world, 3, generator=self.generator, device=device)
             put_rows(self.action_offset, (2.0 * shift - 1.0) * self.draws.offset, worlds, idx)
-        if self.draws.pace > 0:
-            slow = torch.rand(count, self.per_world, 1, generator=self.generator, device=device)
-            put_rows(self.action_scale, 1.0 - slow * self.draws.pace, worlds, idx)
         if self.draws.blind > 0:
             u = torch.rand(count, generator=self.generator, device=device)
             put_rows(self.blind_world, u < self.draws.blind, worlds, idx)

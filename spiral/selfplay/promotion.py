@@ -70,8 +70,8 @@ def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[floa
     by more than ``max_success_drop`` (and, given ``self_match = (learner, best)`` self-match success ratios and
     ``cfg.self_match``, self-match success not below the best's by more than that either). Safer (with
     ``cfg.self_match`` and ``cfg.self_match_gain``): self-match success at least ``self_match_gain`` above the
-    best's over at least ``min_races`` races, head-to-head success not below the best's by more than
-    ``max_success_drop`` and win rate at least ``safer_min_win_rate``. Either way, given ``scenarios`` (key →
+    best's over at least ``min_races`` races and head-to-head success not below the best's by more than
+    ``max_success_drop``. Either way, given ``scenarios`` (key →
     (learner, best) success ratios in the other self-matches of :func:`self_match_envs`), none of them more than
     ``max_success_drop`` below the best's.
     """
@@ -83,8 +83,7 @@ def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[floa
     if not cfg.self_match or self_match is None:
         return faster
     own, best = self_match
-    safer = (cfg.self_match_gain is not None and enough and as_safe and own >= best + cfg.self_match_gain
-             and result.win_rate >= cfg.safer_min_win_rate)
+    safer = cfg.self_match_gain is not None and enough and as_safe and own >= best + cfg.self_match_gain
     return (faster and own >= best - cfg.max_success_drop) or safer
 
 

@@ -170,10 +170,9 @@ class StageTrainer:
         return path
 
     def select_by_solo_eval(self, it: int) -> dict[str, float]:
-        """Default selection: keep the checkpoint with the best self-match success, then lap time (with
-        ``selection.success_tolerance``: the shortest lap within it of the highest success; :meth:`EvalScore.keep`)."""
+        """Default selection: keep the checkpoint with the best self-match success, then lap time."""
         score = self.selection.evaluate(it)
-        self.best = self.best.keep(score, self.stage.selection.success_tolerance)
+        self.best = max(self.best, score)
         if self.best.iteration == score.iteration or not (self.run_dir / "best.pt").exists():
             self.save_best(it, score)
         lap = score.lap_time

@@ -4,7 +4,7 @@ raced from seeded start-box placements, scored by success, then lap time."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import torch
 from rsl_rl.runners import OnPolicyRunner
@@ -25,49 +25,21 @@ class EvalScore:
     success: float
     neg_lap_time: float
     iteration: int = field(compare=False, default=-1)
-    top_success: float | None = field(compare=False, default=None)
-    """The highest success of the stage's evaluations so far, where a success tolerance let this best trail it."""
 
     @property
     def lap_time(self) -> float | None:
         """Mean lap time of the successful races [s]."""
         return None if math.isinf(self.neg_lap_time) else -self.neg_lap_time
 
-    @property
-    def top(self) -> float:
-        """The highest success seen so far (this score's own unless it trails a better one)."""
-        return self.success if self.top_success is None else self.top_success
-
     def to_json(self) -> dict[str, float | int | None]:
-        """``success``, ``lap_time`` (None without a finished lap) and ``iteration``, as checkpoints store them;
-        ``top_success`` too when the best trails the highest success seen."""
-        data: dict[str, float | int | None] = {"success": self.success, "lap_time": self.lap_time,
-                                               "iteration": self.iteration}
-        if self.top > self.success:
-            data["top_success"] = self.top
-        return data
+        """``success``, ``lap_time`` (None without a finished lap) and ``iteration``, as checkpoints store them."""
+        return {"success": self.success, "lap_time": self.lap_time, "iteration": self.iteration}
 
     @classmethod
     def from_json(cls, data: dict) -> EvalScore:
         """The score :meth:`to_json` wrote."""
         lap = data.get("lap_time")
-        return cls(data["success"], -lap if lap is not None else -math.inf, data["iteration"],
-                   data.get("top_success"))
-
-    def keep(self, score: EvalScore, tolerance: float = 0.0) -> EvalScore:
-        """The best after ``score``'s evaluation, this being the best so far.
-
-        With ``tolerance`` 0: the higher success, then the shorter lap. Otherwise successes within ``tolerance`` of
-        the highest seen count as equal and the shorter lap wins among them, so a best never trails the highest
-        success by more than ``tolerance`` (the evaluation's noise: with 64 races, 0.05 is about three races).
-        """
-        if tolerance == 0.0:
-            return score if score > self else self
-        top = max(self.top, score.success)
-        floor = top - tolerance
-        if self.success < floor or (score.success >= floor and score.neg_lap_time > self.neg_lap_time):
-            return replace(score, top_success=top)
-        return replace(self, top_success=top)
+        return cls(data["success"], -lap if lap is not None else -math.inf, data["iteration"])
 
 
 class Selection:

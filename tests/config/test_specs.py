@@ -233,7 +233,6 @@ def test_the_shipped_pipeline_races_se_ibr_in_its_tables():
 
 
 @pytest.mark.parametrize(("options", "field"), [
-    ({"selection": {"success_tolerance": 0.05}}, r"selection\.success_tolerance"),
     ({"selection": {"interval": 5}}, r"selection\.interval.*selfplay\.promotion\.interval"),
     ({"selection": {"races": 8}}, r"selection\.races.*selfplay\.promotion\.races"),
     ({"selfplay": {"promotion": {"races": 16, "min_races": 32}}}, r"promotion\.min_races: 32 is more than the 16"),

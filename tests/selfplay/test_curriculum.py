@@ -4,7 +4,6 @@ init snapshots and blind opponents across a stage's scenarios."""
 from __future__ import annotations
 
 import json
-import shutil
 
 import pytest
 import torch
@@ -100,44 +99,6 @@ def test_frozen_opponents_run_the_opponent_checkpoint_not_the_initial_policy(lin
         run_stage(RaceSetting(line2, CF2X, SimCfg()), pooled, tmp_path / "pooled",
                   sources=StageSources(pool_dir=tmp_path / "p", init_checkpoint=tmp_path / "a" / "best.pt",
                                        opponent_checkpoint=tmp_path / "b" / "best.pt"), progress=False)
-
-
-def test_init_snapshots_start_a_new_pool_with_the_init_stages_earlier_checkpoints(line2, tmp_path):
-    """``selfplay.init_snapshots``: the periodic checkpoints saved before the initial policy's iteration join a new
-    pool oldest first, then the initial policy as its latest best; a carried-over pool is left as it is, and an init
-    policy without earlier checkpoints beside it is an error naming the folder."""
-    solo = StageSpec.model_validate({"name": "solo", "iterations": 4, **SOLO})
-    run_stage(RaceSetting(line2, CF2X, SimCfg()), solo, tmp_path / "solo",
-              sources=StageSources(pool_dir=tmp_path / "unused"), progress=False)
-    init = tmp_path / "solo" / "best.pt"
-    best_iteration = json.loads(init.with_suffix(".json").read_text())["iteration"]
-    assert best_iteration >= 1  # the stage saved a checkpoint at every iteration (save_interval 1)
-    duel = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 1, **COMMON,
-                                     "selfplay": {"p_self": 0.5, "init_snapshots": True}})
-    run_stage(RaceSetting(line2, CF2X, SimCfg()), duel, tmp_path / "duel",
-              sources=StageSources(pool_dir=tmp_path / "pool", init_checkpoint=init), progress=False)
-    pool = Pool(tmp_path / "pool")
-    first = pool.members[:best_iteration + 1]
-    assert [(m.stage, m.iteration) for m in first] == [("solo", i) for i in range(best_iteration)] + [("init", 0)]
-    assert pool.latest_best == pool.members[-1].id and {m.stage for m in pool.members[best_iteration + 1:]} <= {"1v1"}
-    for m in first[:-1]:  # byte copies of the stage's own checkpoints
-        assert m.sha256 == json.loads((tmp_path / "solo" / "ckpt" / f"model_{m.iteration}.json").read_text())["sha256"]
-    size = len(pool.members)
-    run_stage(RaceSetting(line2, CF2X, SimCfg()), duel.model_copy(update={"name": "again"}), tmp_path / "again",
-              sources=StageSources(pool_dir=tmp_path / "pool", init_checkpoint=init), progress=False)
-    assert [m.stage for m in Pool(tmp_path / "pool").members[:size]] == [m.stage for m in pool.members]
-    assert {m.stage for m in Pool(tmp_path / "pool").members[size:]} <= {"again"}  # promotions only, no snapshots
-    (tmp_path / "bare").mkdir()
-    for suffix in (".pt", ".json"):
-        shutil.copyfile(init.with_suffix(suffix), tmp_path / "bare" / f"best{suffix}")
-    missing = r"init_snapshots: no periodic checkpoint before iteration \d+ of .*bare/best\.pt in .*bare/ckpt"
-    with pytest.raises(ValueError, match=missing):
-        run_stage(RaceSetting(line2, CF2X, SimCfg()), duel, tmp_path / "duel2",
-                  sources=StageSources(pool_dir=tmp_path / "pool2", init_checkpoint=tmp_path / "bare" / "best.pt"),
-                  progress=False)
-    with pytest.raises(ValueError, match="init_snapshots"):
-        StageSpec.model_validate({"name": "nsp", "scenario": "1v1",
-                                  "selfplay": {"mode": "frozen", "init_snapshots": True}})
 
 
 def test_a_stage_with_blind_opponents_hides_what_its_layout_shows_of_other_drones(line2, tmp_path, monkeypatch):

@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from pydantic import ValidationError
 
-from spiral.config import SelfPlayCfg
 from spiral.selfplay import Matchmaker
 
 
@@ -19,21 +17,9 @@ def test_matchmaking_draws_the_latest_best_with_probability_p():
     assert freq[:3].tolist() == pytest.approx([0.125] * 3, abs=0.01)
 
 
-def test_matchmaking_keeps_a_share_for_the_pools_first_member():
-    """Draw the first member about q of the time on top of its share of the other draws, and refuse p + q > 1."""
-    mm = Matchmaker(4, latest=3, p_latest=0.3, p_first=0.2, mode="uniform")
-    draws = mm.draw(40_000, torch.Generator().manual_seed(2))
-    freq = torch.bincount(draws, minlength=4).float() / draws.numel()
-    assert freq.tolist() == pytest.approx([0.2 + 0.5 / 4, 0.125, 0.125, 0.3 + 0.5 / 4], abs=0.01)
-    with pytest.raises(ValueError, match="exceeds 1"):
-        Matchmaker(2, latest=1, p_latest=0.7, p_first=0.4)
-    with pytest.raises(ValidationError, match="p_first"):
-        SelfPlayCfg(p_latest=0.7, p_first=0.4)
-
-
-def test_matchmaking_without_a_first_member_share_draws_as_before():
-    """With p_first = 0 a seed gives the draws it gave before p_first existed (a uniform number for the latest
-    best, then a pool sample, per world), so earlier runs reproduce."""
+def test_matchmaking_draws_a_uniform_number_for_the_latest_best_then_a_pool_sample():
+    """A seed gives its draws in this order (a uniform number for the latest best, then a pool sample, per world),
+    so earlier runs reproduce."""
     g = torch.Generator().manual_seed(3)
     u = torch.rand(1000, generator=g)
     sampled = torch.multinomial(torch.full((5,), 0.2), 1000, replacement=True, generator=g)

@@ -1,4 +1,4 @@
-"""Pool opponents: their settings, batched inference, mirror worlds, per-episode offsets, pace and blind opponents."""
+"""Pool opponents: their settings, batched inference, mirror worlds, per-episode offsets and blind opponents."""
 
 from __future__ import annotations
 
@@ -33,19 +33,6 @@ def test_opponent_blind_is_a_probability_and_off_by_default():
     for bad in (-0.1, 1.5):
         with pytest.raises(ValidationError, match="opponent_blind"):
             SelfPlayCfg(opponent_blind=bad)
-
-
-def test_opponent_pace_lies_in_zero_to_one_and_needs_relative_targets():
-    """A pace below 0 or at 1 (an opponent that stops) names the field; absolute action targets refuse a pace."""
-    assert SelfPlayCfg(opponent_pace=0.3).opponent_pace == pytest.approx(0.3)
-    assert SelfPlayCfg().opponent_pace == pytest.approx(0.0)
-    for bad in (-0.1, 1.0):
-        with pytest.raises(ValidationError, match="opponent_pace"):
-            SelfPlayCfg(opponent_pace=bad)
-    spec = {"name": "1v1", "scenario": "1v1", "iterations": 1, "selfplay": {"opponent_pace": 0.3}}
-    assert StageSpec.model_validate(spec).selfplay.opponent_pace == pytest.approx(0.3)
-    with pytest.raises(ValidationError, match=r"selfplay\.opponent_pace"):
-        StageSpec.model_validate({**spec, "env": {"action": {"mode": "absolute"}}})
 
 
 @pytest.fixture(scope="module")
@@ -174,29 +161,6 @@ def test_opponent_offsets_hold_for_an_episode_and_are_redrawn_at_reset(solo_poli
     assert moved[:20].all() and not moved[20:].any()  # only the reset worlds (rows 0-19) draw new offsets
 
 
-def test_opponent_pace_scales_each_opponents_clipped_targets_for_an_episode(solo_policy):
-    """With pace 0.4 each opponent's position-target actions are its policy's, clipped to [-1, 1], times one factor
-    in [0.6, 1] per episode (its own, redrawn at reset); yaw is untouched."""
-    dim = solo_policy.obs_layout["obs_dim"]
-    obs = TensorDict({"policy": 5 * torch.randn(40, dim), "critic": torch.randn(40, dim)}, batch_size=[40])
-    plain = PoolOpponents([solo_policy], Matchmaker(1, latest=0, p_latest=0.5), world_count=20, per_world=2,
-                          generator=torch.Generator().manual_seed(0))
-    slow = PoolOpponents([solo_policy], Matchmaker(1, latest=0, p_latest=0.5), world_count=20, per_world=2,
-                         generator=torch.Generator().manual_seed(0), draws=OpponentDraws(pace=0.4))
-    base = plain(obs)
-    clipped = base[:, :3].clamp(-1.0, 1.0)
-    factor = slow(obs)[:, :3] / clipped
-    assert torch.allclose(factor, factor[:, :1].expand(-1, 3), atol=1e-5)  # one factor per opponent
-    factor = factor[:, 0]
-    assert factor.min() >= 0.6 - 1e-6 and factor.max() <= 1.0 + 1e-6 and factor.max() - factor.min() > 0.2
-    assert len(set(factor.tolist())) == 40
-    torch.testing.assert_close(slow(obs)[:, 3], base[:, 3])  # the yaw column
-    torch.testing.assert_close(slow(obs), slow(obs))  # the same call twice: held for the episode
-    slow.reset(torch.arange(20) < 10)
-    changed = (slow(obs)[:, 0] / clipped[:, 0] - factor).abs() > 1e-6
-    assert changed[:20].all() and not changed[20:].any()  # only the reset worlds (rows 0-19) draw new factors
-
-
 def test_blind_opponents_read_rows_without_the_unseen_entries_for_their_episode():
     """With blind 0.5 about half the worlds' opponents (pool members and mirror copies alike) read their rows with
     the unseen entries zeroed, the others their rows as they are; a world keeps its draw until its reset, and the
@@ -249,7 +213,7 @@ def test_opponents_without_host_syncs_act_and_draw_as_the_routed_ones(solo_polic
     """The sync-free path (every member on every row, draws for every world) gives each row its member's actions
     and, at a reset, redraws only the masked worlds, with no host synchronisation."""
     members = [solo_policy, load_policy_copy(solo_policy, scale=0.5), load_policy_copy(solo_policy, scale=2.0)]
-    draws = OpponentDraws(p_self=0.3, offset=0.1, pace=0.2)
+    draws = OpponentDraws(p_self=0.3, offset=0.1)
 
     def pool(*, sync_free: bool) -> PoolOpponents:
         opponents = PoolOpponents(members, Matchmaker(3, latest=2, p_latest=0.2), world_count=200, per_world=2,
@@ -260,7 +224,7 @@ def test_opponents_without_host_syncs_act_and_draw_as_the_routed_ones(solo_polic
 
     routed, free = pool(sync_free=False), pool(sync_free=True)
     free.assignment, free.mirror = routed.assignment.clone(), routed.mirror.clone()
-    free.action_offset, free.action_scale = routed.action_offset.clone(), routed.action_scale.clone()
+    free.action_offset = routed.action_offset.clone()
     dim = solo_policy.obs_layout["obs_dim"]
     obs = TensorDict({"policy": torch.randn(400, dim), "critic": torch.randn(400, dim)}, batch_size=[400])
     with HostSyncCounter() as syncs:

@@ -1,5 +1,5 @@
-"""Which evaluation a solo stage keeps as its best: success first, or the faster lap within a success tolerance;
-paired races of two policies from the same placements."""
+"""Which evaluation a solo stage keeps as its best (success first, then the faster lap), and paired races of two
+policies from the same placements."""
 
 from __future__ import annotations
 
@@ -22,54 +22,37 @@ EVALS = [(99, 1.0, 5.14), (119, 1.0, 4.87), (139, 1.0, 4.57), (159, 1.0, 4.66), 
          (299, 0.969, 3.96)]
 
 
-def kept(evals, tolerance):
+def kept(evals):
     best = EvalScore(-1.0, -math.inf)
     for it, success, lap in evals:
-        best = best.keep(EvalScore(success, -lap, it), tolerance)
+        best = max(best, EvalScore(success, -lap, it))
     return best
 
 
-def test_without_tolerance_the_highest_success_wins_then_the_shorter_lap():
-    assert kept(EVALS, 0.0).iteration == 139
+def test_the_highest_success_wins_then_the_shorter_lap():
+    assert kept(EVALS).iteration == 139
 
 
-def test_with_tolerance_the_fastest_lap_within_it_of_the_highest_success_wins():
-    best = kept(EVALS, 0.05)
-    assert (best.iteration, best.success, best.lap_time, best.top) == pytest.approx((299, 0.969, 3.96, 1.0))
-    assert kept(EVALS, 0.02).iteration == 239  # 0.984 at 4.13 s is the fastest within 0.02 of 1.00
+def test_a_score_survives_a_checkpoint_round_trip():
+    best = kept(EVALS)
+    assert EvalScore.from_json(best.to_json()) == best
+    assert EvalScore.from_json({"success": 0.5, "lap_time": 4.0, "iteration": 3, "top_success": 0.6}).iteration == 3
 
 
-def test_a_best_never_trails_the_highest_success_by_more_than_the_tolerance():
-    """Each step is within 0.05 of the one before, but the 0.88 and 0.84 ones are more than 0.05 below 0.96."""
-    drifting = [(0, 0.96, 5.0), (1, 0.92, 4.8), (2, 0.88, 4.6), (3, 0.84, 4.4)]
-    best = kept(drifting, 0.05)
-    assert (best.iteration, best.top) == pytest.approx((1, 0.96))  # the kept score
-    assert kept([*drifting, (4, 1.0, 6.0)], 0.05).iteration == 4  # a higher success leaves the old best behind
-
-
-def test_the_highest_success_survives_a_checkpoint_round_trip():
-    best = kept(EVALS, 0.05)
-    data = best.to_json()
-    assert data["top_success"] == pytest.approx(1.0)
-    assert EvalScore.from_json(data).top == pytest.approx(1.0)  # through JSON
-    assert "top_success" not in kept(EVALS, 0.0).to_json()  # without tolerance the best is the top: nothing new
-
-
-def test_a_solo_stage_with_a_tolerance_writes_the_faster_best_pt(oval2, tmp_path):
-    """The trainer's default selector applies the stage's tolerance: best.pt ends as the 299 evaluation's policy."""
+def test_a_solo_stage_writes_its_best_evaluations_policy_as_best_pt(oval2, tmp_path):
+    """The trainer's default selector keeps the highest success, then the shorter lap: the 139 evaluation's."""
     stage = StageSpec.model_validate({
         "name": "tiny", "worlds": 4, "iterations": 1, "env": {"obs": {"history_len": 1}},
         "ppo": {"num_steps_per_env": 4, "actor_hidden_dims": [8], "critic_hidden_dims": [8]},
-        "selection": {"races": 2, "success_tolerance": 0.05}})
+        "selection": {"races": 2}})
     trainer = StageTrainer(RaceSetting(oval2, AIRFRAMES["cf2x"], SimCfg()), stage, tmp_path, progress=False)
     scores = iter(EvalScore(s, -lap, it) for it, s, lap in EVALS)
     trainer.selection.evaluate = lambda it: next(scores)
     for it, _, _ in EVALS:
         trainer.select_by_solo_eval(it)
     meta = load_checkpoint(tmp_path / "best.pt")["spiral"]
-    assert meta["eval"]["iteration"] == 299
-    assert meta["best"] == pytest.approx({"success": 0.969, "lap_time": 3.96, "iteration": 299,
-                                          "top_success": 1.0})  # the kept score, in the meta
+    assert meta["eval"]["iteration"] == 139
+    assert meta["best"] == pytest.approx({"success": 1.0, "lap_time": 4.57, "iteration": 139})
 
 
 def test_a_self_match_pair_scores_each_policy_on_its_own_races(oval2):
