@@ -36,12 +36,6 @@ class ObsCfg(StrictModel):
         "(1): a time-to-collision sensor (not in the paper)",
     )
     approach_horizon_s: PosFloat = Field(default=0.5, description="Look-ahead of the closest-approach inputs [s]")
-    priority: bool = Field(
-        default=False,
-        description="Add a random priority per drone, drawn uniformly in [0, 1) at every race start: the drone's "
-        "own and how much higher each of the 2 nearest drones' is, so copies of one deterministic policy can agree "
-        "who yields (not in the paper)",
-    )
 
 
 class SeparationCfg(StrictModel):

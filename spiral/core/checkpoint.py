@@ -40,9 +40,11 @@ _FORMAT_1_LAYOUT = {"teammates": False, "priority": False, "closest_approach": F
 REMOVED_ENV_OPTIONS: dict[tuple[str, ...], Any] = {
     ("shield",): None, ("reward", "intervention"): 0.0, ("reward", "proximity_leader"): 1.0,
     ("reward", "closing_miss"): 0.0, ("reward", "closing_neighbours"): 1, ("reward", "forfeit"): False,
-    ("reward", "contact"): 0.0, ("reward", "overtake"): 0.0, ("episode", "contact_margin"): 0.0}
+    ("reward", "contact"): 0.0, ("reward", "overtake"): 0.0, ("episode", "contact_margin"): 0.0,
+    ("obs", "priority"): False}
 """Env options of earlier versions, by their path in the env settings, with the value that left them off (tried, never
-in a shipped pipeline): a checkpoint saved with them off reads as today's."""
+in a shipped pipeline): a checkpoint saved with them off reads as today's. The observation's own (``obs.*``) leave its
+``obs_layout`` too."""
 """Observation options that a format-1 checkpoint's ``obs_layout`` left out when they were off, with the values they
 then had; format 2 stores every option."""
 
@@ -114,13 +116,15 @@ def load_checkpoint(path: Path, *, map_location: str = "cpu") -> dict[str, Any]:
 def upgrade_meta(meta: dict[str, Any]) -> dict[str, Any]:
     """A checkpoint's spiral metadata in this version's format: a format-1 layout gains the options it left out, and
     the env settings lose the :data:`REMOVED_ENV_OPTIONS` (``ValueError`` if one was on)."""
+    if meta.get("format") == _FORMAT_1:
+        layout = meta["obs_layout"]
+        meta = {**meta, "format": FORMAT, "obs_layout": {**layout, **{k: v for k, v in _FORMAT_1_LAYOUT.items()
+                                                                       if k not in layout}}}
+    if "obs_layout" in meta:
+        meta = {**meta, "obs_layout": _without_removed({"obs": meta["obs_layout"]})["obs"]}
     if "env" in meta:
         meta = {**meta, "env": _without_removed(meta["env"])}
-    if meta.get("format") != _FORMAT_1:
-        return meta
-    layout = meta["obs_layout"]
-    return {**meta, "format": FORMAT, "obs_layout": {**layout, **{k: v for k, v in _FORMAT_1_LAYOUT.items()
-                                                                   if k not in layout}}}
+    return meta
 
 
 def _without_removed(env: dict[str, Any]) -> dict[str, Any]:

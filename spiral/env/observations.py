@@ -3,7 +3,7 @@
 A drone's observation vector is its enabled terms of :data:`OBS_TERMS` concatenated in that order: ``ego`` (12:
 position, velocity, roll/pitch/yaw, body rates), ``presence`` (2: whether the 2 nearest drones exist), then the
 optional ``gate_normals`` (6), ``pid_integral`` (3), ``opponent_velocity`` (6), ``teammates`` (2),
-``closest_approach`` (8) and ``priority`` (3) (each switched on in ``ObsCfg``), and ``history`` (K entries of
+``closest_approach`` (8) (each switched on in ``ObsCfg``), and ``history`` (K entries of
 16, oldest first: :data:`HISTORY_FIELDS`). :meth:`ObservationBuilder.slices` says where each term sits; checkpoints
 store it, and the order and values never change for a given ``ObsCfg`` (trained policies depend on them).
 """
@@ -124,8 +124,6 @@ class ObsState:
     omega: torch.Tensor
     integral: torch.Tensor
     """The position controller's integral state (N, 3)."""
-    priority: torch.Tensor
-    """Random priority of each drone for its race (N,)."""
     race_team: torch.Tensor
     """Race team of each slot (D,)."""
     gate_forward: torch.Tensor
@@ -170,14 +168,6 @@ def _closest_approach(s: ObsState, cfg: ObsCfg) -> torch.Tensor:
     return torch.cat([miss, (t / horizon)[..., None]], dim=-1).view(-1, 8)
 
 
-def _priority(s: ObsState, cfg: ObsCfg) -> torch.Tensor:
-    """The drone's own priority, then how much higher the nearest and second nearest drone's is (0 when absent)."""
-    w, d, _ = s.near.idx.shape
-    prio = s.priority.view(w, d)
-    higher = (torch.gather(prio, 1, s.near.idx.view(w, -1)).view(s.near.idx.shape) - prio[:, :, None]) * s.near.mask
-    return torch.cat([s.priority[:, None], higher.view(-1, 2)], dim=-1)
-
-
 def _history(s: ObsState, cfg: ObsCfg) -> torch.Tensor:
     return s.history.flatten(1)
 
@@ -198,7 +188,6 @@ OBS_TERMS: dict[str, ObsTerm] = {
     "opponent_velocity": ObsTerm(lambda c: 6 * c.opponent_velocity, _opponent_velocity),
     "teammates": ObsTerm(lambda c: 2 * c.teammates, _teammates),
     "closest_approach": ObsTerm(lambda c: 8 * c.closest_approach, _closest_approach),
-    "priority": ObsTerm(lambda c: 3 * c.priority, _priority),
     "history": ObsTerm(lambda c: c.history_len * HISTORY_FEATURES, _history),
 }
 """Observation terms by name, in the order they are concatenated (the order is part of every trained policy)."""
@@ -279,15 +268,13 @@ OTHER_DRONE_TERMS = ("presence", "opponent_velocity", "teammates", "closest_appr
 
 def other_drone_columns(cfg: ObsCfg) -> torch.Tensor:
     """Bool mask (obs_dim,) of the observation entries about other drones: the terms of :data:`OTHER_DRONE_TERMS`,
-    the neighbours' part of ``priority`` and the ``opponents`` field of every history entry. Zeroing them shows a
+    and the ``opponents`` field of every history entry. Zeroing them shows a
     drone what it would observe with no other drone in its world."""
     builder = ObservationBuilder(cfg, 0, device=torch.device("cpu"))
     mask = torch.zeros(builder.obs_dim, dtype=torch.bool)
     for name, (start, stop) in builder.slices().items():
         if name in OTHER_DRONE_TERMS:
             mask[start:stop] = True
-        elif name == "priority":
-            mask[start + 1:stop] = True  # the drone's own priority stays
         elif name == "history":
             first, last = HISTORY_FIELDS["opponents"]
             entries = mask[start:stop].view(cfg.history_len, HISTORY_FEATURES)
@@ -309,7 +296,6 @@ class ObsSource:
     """Non-zero for drones out of the race (crashed, finished or absent)."""
     next_gate: torch.Tensor
     gates_passed: torch.Tensor
-    priority: torch.Tensor
     race_team: torch.Tensor
     """Race team of each slot (D,)."""
     gate_center: torch.Tensor
@@ -363,6 +349,6 @@ class Observer:
     def _build(self) -> torch.Tensor:
         v = self.source
         return self.builder.build(ObsState(
-            pos=v.pos, vel=v.vel, rpy=v.rpy, omega=v.omega, integral=v.integral, priority=v.priority,
+            pos=v.pos, vel=v.vel, rpy=v.rpy, omega=v.omega, integral=v.integral,
             race_team=v.race_team, gate_forward=v.gate_forward, near=self.near,
             history=self.builder.observed_history()))

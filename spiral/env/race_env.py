@@ -43,7 +43,7 @@ def observed_tensors(state: RaceState) -> ObsSource:
     """The tensors of ``state`` that the observations are made of, named one by one."""
     return ObsSource(pos=state.pos, vel=state.vel, rpy=state.rpy, omega=state.omega, integral=state.integral,
                      out=state.out, next_gate=state.next_gate, gates_passed=state.gates_passed,
-                     priority=state.priority, race_team=state.race_team, gate_center=state.gate_center,
+                     race_team=state.race_team, gate_center=state.gate_center,
                      gate_forward=state.gate_forward, other_slots=state.other_slots)
 
 
@@ -78,9 +78,6 @@ def restart_worlds(env: RaceEnv, worlds: torch.Tensor, *, every_world: bool = Fa
         put_rows(t(buf[name]).view(-1, d, *value.shape[2:]), value, worlds, idx)
     env.world.reset(buf["mask"], buf["pos"], buf["yaw"], init_vel=buf["vel"], init_next_gate=buf["gate"])
     env.reset_drone_buffers(per_row(worlds, d))
-    if any(o is not None and o.builder.cfg.priority for o in (env.observer, env.opponent_observer)):
-        drawn = torch.rand(count, d, generator=generator, device=generator.device)
-        put_rows(env.priority.view(-1, d), drawn.to(env.device), worlds, idx)
     put_rows(env.contested, starts.box & contests(env), worlds, idx)
     episode = env.cfg.episode
     if env.training and episode.start_cut_prob > 0:

@@ -95,8 +95,6 @@ class RaceState:
         self.lap_time = torch.zeros(n, device=dev)
         self.lap_start = torch.zeros(n, device=dev)
         """Race time at which each drone's current lap began (its start or its last lap's end) [s]."""
-        self.priority = torch.zeros(n, device=dev)
-        """Random priority of each drone for the race, drawn at its start (observed with ``obs.priority``)."""
         self.crash_kind = torch.zeros(n, dtype=torch.int32, device=dev)
         self.episode_length_buf = torch.zeros(self.num_envs, dtype=torch.long, device=dev)
         self.term_sums = {name: torch.zeros(n, device=dev) for name in REWARD_TERMS}

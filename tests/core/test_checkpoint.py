@@ -35,7 +35,7 @@ def test_a_format_1_layout_gains_the_options_it_left_out_when_they_were_off(tmp_
     """Format 1 dropped `teammates`, `priority` and `closest_approach` when off (and the horizon with the last): the
     loaded layout equals the one this version writes for the same options."""
     full = _layout(cfg)
-    dropped = [k for k in ("teammates", "priority", "closest_approach") if not full[k]]
+    dropped = [k for k in ("teammates", "closest_approach") if not full[k]]
     dropped += ["approach_horizon_s"] if not full["closest_approach"] else []
     old = {k: v for k, v in full.items() if k not in dropped}
     save_checkpoint(tmp_path / "old.pt", {"w": torch.zeros(1)}, {"format": "spiral-checkpoint-1", "obs_layout": old})
@@ -56,3 +56,6 @@ def test_env_settings_of_removed_options_read_as_today_when_off_and_are_refused_
     save_checkpoint(tmp_path / "on.pt", {"w": torch.zeros(1)}, {"obs_layout": _layout(ObsCfg()), "env": on})
     with pytest.raises(CheckpointError, match=r"on\.pt: env\.shield: this checkpoint was trained with an option"):
         load_checkpoint(tmp_path / "on.pt")
+    layout = {**_layout(ObsCfg()), "priority": False}  # an observation option removed since, stored off
+    save_checkpoint(tmp_path / "obs.pt", {"w": torch.zeros(1)}, {"obs_layout": layout})
+    assert load_checkpoint(tmp_path / "obs.pt")["spiral"]["obs_layout"] == _layout(ObsCfg())

@@ -27,13 +27,13 @@ def test_observation_dimension_matches_the_paper_layout(oval2):
 def test_observation_slices_name_every_term_in_its_fixed_order(oval2):
     """Lay the enabled terms end to end in the registry's order, history last, with the widths the options give."""
     every = ObsCfg(history_len=2, gate_normals=True, pid_integral=True, opponent_velocity=True, teammates=True,
-                   closest_approach=True, priority=True)
+                   closest_approach=True)
     env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), obs=every)
     slices = env.obs_builder.slices()
     assert list(slices) == list(OBS_TERMS)
     widths = {name: stop - start for name, (start, stop) in slices.items()}
     assert widths == {"ego": 12, "presence": 2, "gate_normals": 6, "pid_integral": 3, "opponent_velocity": 6,
-                      "teammates": 2, "closest_approach": 8, "priority": 3, "history": 2 * HISTORY_FEATURES}
+                      "teammates": 2, "closest_approach": 8, "history": 2 * HISTORY_FEATURES}
     assert [start for start, _ in slices.values()] == [0, *[stop for _, stop in list(slices.values())[:-1]]]
     assert slices["history"][1] == env.obs_dim
     assert HISTORY_FIELDS == {"opponents": (0, 6), "gates": (6, 12), "action": (12, 16)}
@@ -103,26 +103,6 @@ def test_the_layout_records_every_option_and_1v1_has_no_team_mate_to_flag(oval2)
     assert torch.all(term(env, "teammates") == 0)
 
 
-def test_priority_inputs_give_the_own_priority_and_how_much_higher_the_nearest_drones_are(oval2):
-    """Priorities are drawn in [0, 1) per drone at every race start; a drone observes its own, then the nearest
-    and the second nearest drone's minus its own (0 for a drone that left the race), after the other extras."""
-    obs_cfg = ObsCfg(history_len=1, teammates=True, priority=True)
-    env = make_env(oval2, worlds=1, drones=4, learners=(0, 1, 2, 3), obs=obs_cfg)
-    assert env.obs_dim == 12 + 2 + 2 + 3 + HISTORY_FEATURES
-    drawn = env.priority.clone()
-    assert ((drawn >= 0) & (drawn < 1)).all() and len(set(drawn.tolist())) == 4
-    env.priority[:] = torch.tensor([0.5, 0.9, 0.2, 0.6])
-    # Drone 0's nearest are 2, then 1; drone 3's are 2, then 0.
-    place(env, [[-1.0, -1.0, 1.0], [-1.0, -0.2, 1.0], [-1.0, -1.3, 1.0], [-1.0, -1.9, 1.0]])
-    prio = term(env, "priority")
-    torch.testing.assert_close(prio[0], torch.tensor([0.5, -0.3, 0.4]))
-    torch.testing.assert_close(prio[3], torch.tensor([0.6, -0.4, -0.1]))
-    env.out[2] = 1  # drone 2 leaves the race: drone 0's nearest are 1, then 3
-    torch.testing.assert_close(term(env, "priority")[0], torch.tensor([0.5, 0.4, 0.1]))
-    env.reset()
-    assert not torch.allclose(env.priority, torch.tensor([0.5, 0.9, 0.2, 0.6]))  # fresh draws
-
-
 def test_closest_approach_inputs_predict_where_and_when_the_nearest_drones_pass(oval2):
     """Drone 1 0.4 m ahead and 0.1 m aside, closing at 2 m/s: they pass 0.1 m apart at t* = 0.2 s, 0.4 of the 0.5 s
     horizon; each drone sees the other's offset at that moment. A drone that moves away is at its closest now."""
@@ -186,10 +166,9 @@ def test_opponents_with_their_own_layout_read_what_an_env_of_that_layout_shows_t
 
 def test_hiding_the_other_drone_columns_shows_what_a_drone_alone_observes(oval2):
     """Zeroing the columns ``other_drone_columns`` marks in a drone's rows of a 3-drone world gives the rows it
-    observes once the other drones have left the race: its ego state, gates, integral, own priority and actions
-    stay."""
+    observes once the other drones have left the race: its ego state, gates, integral and actions stay."""
     every = ObsCfg(history_len=2, gate_normals=True, pid_integral=True, opponent_velocity=True, teammates=True,
-                   closest_approach=True, priority=True)
+                   closest_approach=True)
     env = make_env(oval2, worlds=1, drones=3, learners=(0, 1, 2), obs=every)
     place(env, [[-1.0, -1.0, 1.0], [-1.0, -0.6, 1.1], [-0.7, -1.0, 1.0]])
     env.vel[:3] = torch.tensor([[1.0, 0.0, 0.0], [0.5, -0.5, 0.0], [0.0, 0.0, 0.3]])
@@ -199,8 +178,8 @@ def test_hiding_the_other_drone_columns_shows_what_a_drone_alone_observes(oval2)
     env.get_observations()
     alone = env.get_observations()["policy"][0]
     hidden = other_drone_columns(every)
-    assert int(hidden.sum()) == 2 + 6 + 2 + 8 + 2 + 2 * 6  # presence, velocities, mates, approach, priority, history
-    assert (with_others[hidden] != 0).sum() > 20 and not alone[hidden].any()
+    assert int(hidden.sum()) == 2 + 6 + 2 + 8 + 2 * 6  # presence, velocities, mates, approach, history
+    assert (with_others[hidden] != 0).sum() > 15 and not alone[hidden].any()
     torch.testing.assert_close(with_others.masked_fill(hidden, 0.0), alone)  # the same columns from the same state
 
 
