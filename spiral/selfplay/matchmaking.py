@@ -1,5 +1,4 @@
-"""Which pool member each training world races: the latest best with probability p, the pool's first member with
-probability q, else sampled from the pool."""
+"""Which pool member each training world races: the latest best with probability p, else sampled from the pool."""
 
 from __future__ import annotations
 
