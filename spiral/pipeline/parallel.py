@@ -28,6 +28,9 @@ from spiral.pipeline.step import PipelineError, Step
 __all__ = ["StepProcess", "run_parallel", "thread_share"]
 
 POLL_S = 0.2
+WORKER_RETRIES = 2
+"""Times a step whose worker was killed (by a signal: out of memory, a lost machine, a user) starts again, resuming
+from what it left (a training step from its newest checkpoint); a worker that exits with an error is not retried."""
 
 
 def thread_share(cores: int, jobs: int, alone: bool) -> int:
@@ -43,6 +46,13 @@ class StepProcess:
     process: subprocess.Popen
     relay: threading.Thread
     log_path: Path
+    retries: int = 0
+    """Times this step's worker was started again after being killed."""
+
+    @property
+    def killed(self) -> bool:
+        """Whether the worker ended by a signal rather than by exiting."""
+        return self.process.returncode is not None and self.process.returncode < 0
 
 
 def _relay(stream: IO[str], log_file: Path, prefix: str, log) -> None:
@@ -78,14 +88,17 @@ def run_parallel(runner, todo: list[Step], fresh: set[str], jobs: int, *, cores:
                 pending.remove(step)
             time.sleep(POLL_S)
             _reap(running, done, failed)
+            _restart_killed(runner, running, failed, log_dir)
     except KeyboardInterrupt:
         _stop(running.values())
         raise PipelineError(f"interrupted while running {', '.join(running)}\n"
                             f"resume with: {runner.command} --jobs {jobs}") from None
     if failed:
         step = failed[0]
-        raise PipelineError(f"step '{step.step.name}' failed (exit code {step.process.returncode}; its output: "
-                            f"{step.log_path})\nresume with: {runner.command} --jobs {jobs}")
+        how = (f"was killed (signal {-step.process.returncode}, after {step.retries} restarts" if step.killed
+               else f"failed (exit code {step.process.returncode}")
+        raise PipelineError(f"step '{step.step.name}' {how}; its output: {step.log_path})\n"
+                            f"resume with: {runner.command} --jobs {jobs}")
     return done
 
 
@@ -102,6 +115,23 @@ def _reap(running: dict[str, StepProcess], done: list[str], failed: list[StepPro
             failed.append(proc)
 
 
+def _restart_killed(runner, running: dict[str, StepProcess], failed: list[StepProcess], log_dir: Path) -> None:
+    """Start again, resuming, the steps in ``failed`` whose worker was killed and has retries left."""
+    for proc in [p for p in failed if p.killed and p.retries < WORKER_RETRIES]:
+        failed.remove(proc)
+        runner.log(f"step '{proc.step.name}': its worker was killed (signal {-proc.process.returncode}); starting it "
+                   f"again from what it left ({proc.retries + 1} of {WORKER_RETRIES})")
+        threads = int(_thread_option(proc.process.args))
+        again = _spawn(runner, proc.step, False, threads, log_dir, append=True)
+        again.retries = proc.retries + 1
+        running[proc.step.name] = again
+
+
+def _thread_option(args: list[str]) -> str:
+    """The ``--threads`` value a worker was started with."""
+    return args[args.index("--threads") + 1]
+
+
 def _stop(workers: Collection[StepProcess]) -> None:
     """Terminate ``workers`` and wait for them to exit."""
     for proc in workers:
@@ -110,7 +140,7 @@ def _stop(workers: Collection[StepProcess]) -> None:
         proc.process.wait()
 
 
-def _spawn(runner, step: Step, fresh: bool, threads: int, log_dir: Path) -> StepProcess:
+def _spawn(runner, step: Step, fresh: bool, threads: int, log_dir: Path, *, append: bool = False) -> StepProcess:
     cmd = [sys.executable, "-m", "spiral.pipeline.workers", str(runner.path), step.name,
            "--runs-dir", str(runner.plan.runs_dir), "--checkpoints-dir", str(runner.plan.checkpoints_dir),
            "--device", runner.plan.spec.device, "--threads", str(threads)]
@@ -122,7 +152,8 @@ def _spawn(runner, step: Step, fresh: bool, threads: int, log_dir: Path) -> Step
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
            "PYTHONUNBUFFERED": "1"}
     log_path = log_dir / f"{step.dirname}.log"
-    log_path.write_text("")
+    if not append:
+        log_path.write_text("")
     process = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     relay = threading.Thread(target=_relay, args=(process.stdout, log_path, step.name, runner.log), daemon=True)
     relay.start()

@@ -205,25 +205,6 @@ def write_branching_pipeline(tmp_path: Path, **nsp_overrides) -> Path:
     return path
 
 
-def test_parallel_run_trains_independent_branches_side_by_side_then_skips_them_like_a_sequential_run(tmp_path):
-    """With --jobs 2, train:1v1 and train:1v1-noselfplay start together once train:solo (alone, with every core)
-    is done; every step completes, and a sequential rerun finds nothing to do."""
-    path = write_branching_pipeline(tmp_path)
-    logs: list[str] = []
-    ran = runner_for(path, tmp_path, logs).run(jobs=2)
-    runner = runner_for(path, tmp_path)
-    assert sorted(ran) == sorted(s.name for s in runner.steps)
-    started = [line for line in logs if "started in a worker" in line]
-    cores = os.cpu_count() or 1
-    assert started[0].startswith(f"step 'train:solo' started in a worker ({cores} torch thread")
-    pair = {"step 'train:1v1' started", "step 'train:1v1-noselfplay' started"}
-    first_pair = [i for i, line in enumerate(started) if any(line.startswith(p) for p in pair)]
-    assert first_pair == [1, 2] and f"({max(1, cores // 2)} torch thread" in started[1]
-    assert any(line.startswith("[train:1v1-noselfplay] ") for line in logs)
-    assert (runner.plan.run_root / "logs" / "train-1v1.log").read_text()
-    assert runner.run() == []
-
-
 def test_failed_parallel_step_keeps_the_work_of_the_steps_running_beside_it(tmp_path):
     """A branch that fails (its init policy's observation layout is not its own) names the step and its log;
     the other branch's training finishes and stays complete, and nothing new starts after the failure."""
@@ -237,6 +218,60 @@ def test_failed_parallel_step_keeps_the_work_of_the_steps_running_beside_it(tmp_
     assert status["train:1v1"] == "complete"
     assert status["eval:1v1"] == "missing"
     assert "observation layout" in (runner.plan.run_root / "logs" / "train-1v1-noselfplay.log").read_text()
+
+
+def test_parallel_run_trains_branches_side_by_side_restarts_a_killed_worker_then_skips_like_a_sequential_run(
+        tmp_path):
+    """With --jobs 2, train:1v1 and train:1v1-noselfplay start together once train:solo (alone, with every core) is
+    done. train:1v1's worker, killed (SIGKILL) once it has saved a checkpoint, starts again and resumes from that
+    checkpoint; every step completes, and a sequential rerun finds nothing to do."""
+    import threading
+
+    path = write_branching_pipeline(tmp_path)
+    data = yaml.safe_load(path.read_text())
+    data["stages"][1].update(iterations=12, selfplay={"promotion": {"interval": 6, "races": 4, "min_races": 4}})
+    path.write_text(yaml.safe_dump(data))
+    logs: list[str] = []
+    ckpt = runner_for(path, tmp_path).plan.run_root / "train-1v1" / "ckpt"
+    killed: list[int] = []
+
+    def kill_once() -> None:
+        for _ in range(2400):
+            worker = _worker_pid("train:1v1")
+            if worker is not None and any(ckpt.glob("model_*.pt")):
+                os.kill(worker, signal.SIGKILL)
+                killed.append(worker)
+                return
+            time.sleep(0.05)
+
+    killer = threading.Thread(target=kill_once)
+    killer.start()
+    ran = runner_for(path, tmp_path, logs).run(jobs=2)
+    killer.join()
+    runner = runner_for(path, tmp_path)
+    assert sorted(ran) == sorted(s.name for s in runner.steps)
+    started = [line for line in logs if "started in a worker" in line]
+    cores = os.cpu_count() or 1
+    assert started[0].startswith(f"step 'train:solo' started in a worker ({cores} torch thread")
+    pair = {"step 'train:1v1' started", "step 'train:1v1-noselfplay' started"}
+    first_pair = [i for i, line in enumerate(started) if any(line.startswith(p) for p in pair)][:2]
+    assert first_pair == [1, 2] and f"({max(1, cores // 2)} torch thread" in started[1]
+    assert any(line.startswith("[train:1v1-noselfplay] ") for line in logs)
+    assert killed and any("train:1v1': its worker was killed (signal 9); starting it again" in line for line in logs)
+    assert "resuming stage '1v1' from model_" in (runner.plan.run_root / "logs" / "train-1v1.log").read_text()
+    assert runner.run() == []
+
+
+def _worker_pid(step: str) -> int | None:
+    """The pid of the live pipeline worker running ``step`` (from /proc), if any."""
+    for proc in Path("/proc").iterdir():
+        try:
+            args = (proc / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"spiral.pipeline.workers" in args and step.encode() in args:
+            return int(proc.name)
+    return None
 
 
 def test_held_out_check_and_head_to_head_sides_are_the_reports_alone(tmp_path):
