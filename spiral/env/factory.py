@@ -100,7 +100,7 @@ class RaceOptions:
     """Seed of the start placements."""
     training: bool = True
     """Training mode: a world resets in ``step`` when its race ends, from training starts (with the start
-    cuts and contact margin of ``env``); False is evaluation mode: every world races once from
+    cuts of ``env``); False is evaluation mode: every world races once from
     ``episode.eval_starts`` and drones that are done stay frozen."""
 
     def setting(self) -> RaceSetting:

@@ -94,7 +94,7 @@ class RaceEnv(RaceState):
     from an injected :class:`~spiral.core.policy.OpponentPolicy`, or are absent without one. A world resets when one
     of its learner drones crashes or finishes, at its time limit, or on a non-finite state (``nonfinite_resets``);
     learner drones cut short by another's end get ``time_outs``. ``training=False`` is evaluation mode (starts from
-    ``episode.eval_starts``, no start cuts or contact margin): every world races once, done drones stay
+    ``episode.eval_starts``, no start cuts): every world races once, done drones stay
     frozen. :meth:`step` runs apply action → simulate → race events → rewards → dones → reset → observe."""
 
     def __init__(self, setting: RaceSetting, cfg: EnvCfg, *, world_count: int, drones_per_world: int,
