@@ -154,7 +154,7 @@ def test_killed_training_step_resumes_and_ends_with_the_full_iteration_count(tmp
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT)
     ckpt_dir = tmp_path / "runs" / "smoke" / "train-solo" / "ckpt"
     deadline = time.time() + 120
-    while time.time() < deadline and len(list_checkpoints(ckpt_dir)) < 2:
+    while time.time() < deadline and _newest_valid_iteration(ckpt_dir) < 1:  # a file being written is not one
         time.sleep(0.05)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
@@ -169,6 +169,12 @@ def test_killed_training_step_resumes_and_ends_with_the_full_iteration_count(tmp
     assert [json.loads(r)["iteration"] for r in rows] == list(range(30))
     manifest = json.loads((tmp_path / "runs" / "smoke" / "train-solo" / "manifest.json").read_text())
     assert manifest["info"]["iterations"] == 30
+
+
+def _newest_valid_iteration(ckpt_dir: Path) -> int:
+    """Iteration of the newest checkpoint in ``ckpt_dir`` that loads, -1 without one."""
+    newest = newest_valid_checkpoint(ckpt_dir) if ckpt_dir.is_dir() else None
+    return -1 if newest is None else int(newest.stem.split("_")[1])
 
 
 def test_second_concurrent_run_is_refused(tmp_path):
