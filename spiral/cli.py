@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
 import sys
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, TypeVar
@@ -53,6 +54,10 @@ CkptDir = Annotated[Path, typer.Option("--checkpoints-dir", help="Folder of publ
 Overrides = Annotated[list[str] | None, typer.Option(
     "--set", metavar="PATH=VALUE", help="Set a field of the pipeline (value as YAML; a stage by its name, e.g. "
     "stages.1v1.iterations=600; repeatable); the run gets folders of its own, named for the settings")]
+Executor = Annotated[str, typer.Option("--executor", help="Where steps run: local (this machine) or ray (Ray tasks "
+                                      "on a cluster sharing this working directory; pip install 'spiral[ray]')")]
+Address = Annotated[str | None, typer.Option("--address", help="The Ray cluster (--executor ray): auto, host:port or "
+                                             "ray://host:port; default RAY_ADDRESS or a new local Ray instance")]
 SimThreads = Annotated[int, typer.Option("--sim-threads", min=1, help="CPU threads stepping the simulator, each a "
                                          "share of the worlds (a Warp CPU launch uses one core); same results")]
 
@@ -221,13 +226,16 @@ def run(
         "--accept-code-changes", help="Keep steps that ran with other spiral source code (same spec and inputs) "
         "instead of rerunning them")] = False,
     overrides: Overrides = None,
+    executor: Executor = "local",
+    address: Address = None,
 ) -> None:
     """Run a pipeline's steps in order; complete steps are skipped, interrupted training resumes."""
     from spiral.pipeline import PipelineRunner
 
     runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device,
                             accept_code_changes=accept_code_changes, overrides=overrides or ())
-    ran = runner.run(start=from_step, only=only, force=force, jobs=jobs)
+    with _launcher(executor, address, runner.plan.spec.device) as launcher:
+        ran = runner.run(start=from_step, only=only, force=force, jobs=jobs, launcher=launcher)
     typer.echo(f"pipeline '{runner.plan.spec.name}': {len(ran)} step(s) ran, {len(runner.steps) - len(ran)} skipped")
 
 
@@ -241,14 +249,37 @@ def sweep(
     checkpoints_dir: CkptDir = Path("checkpoints"),
     jobs: Annotated[int, typer.Option("--jobs", "-j", min=1, help="Steps of a run side by side (as spiral run)")] = 1,
     overrides: Overrides = None,
+    executor: Executor = "local",
+    address: Address = None,
 ) -> None:
     """Run a pipeline once per seed with the same --set settings, each in its own run folder, and table their
-    headline figures with the spread across seeds (runs/sweeps/<variant>/summary.md)."""
+    headline figures with the spread across seeds (runs/sweeps/<variant>/summary.md). Under --executor ray the
+    draws run at the same time."""
+    from spiral.core.device import canonical_device
     from spiral.pipeline.sweep import parse_seeds, run_sweep
 
-    summary = run_sweep(pipeline, parse_seeds(seeds), overrides or (), runs_dir=runs_dir,
-                        checkpoints_dir=checkpoints_dir, device=device, jobs=jobs)
+    seed_list = parse_seeds(seeds)
+    run_device = canonical_device(device) if device else load_pipeline(pipeline, overrides or ())[0].device
+    with _launcher(executor, address, run_device) as launcher:
+        summary = run_sweep(pipeline, seed_list, overrides or (), runs_dir=runs_dir, checkpoints_dir=checkpoints_dir,
+                            device=device, jobs=jobs, launcher=launcher)
     typer.echo(f"wrote {summary}")
+
+
+@contextlib.contextmanager
+def _launcher(executor: str, address: str | None, device: str) -> Iterator[Any]:
+    """The workers' launcher of ``--executor`` (None: the local default), closed after the run."""
+    if executor not in ("local", "ray"):
+        raise UsageError(f"--executor {executor!r}: expected local or ray")
+    if executor == "local":
+        if address is not None:
+            raise UsageError("--address names a Ray cluster: give it with --executor ray")
+        yield None
+        return
+    from spiral.pipeline.ray_executor import RayLauncher
+
+    with RayLauncher(address, device=device) as launcher:
+        yield launcher
 
 
 @app.command()

@@ -7,8 +7,14 @@ them when it is the only step that can run (nothing else can become ready before
 otherwise, so the workers never oversubscribe the CPU (torch's thread pools slow down many times over when they
 do). Worker output is relayed line by line, prefixed with the step's name, and kept in ``<run>/logs/<step>.log``.
 
+Where the workers run is the launcher's: :class:`LocalLauncher` starts them as child processes of this one;
+:class:`spiral.pipeline.ray_executor.RayLauncher` as Ray tasks on a cluster whose nodes share the working directory.
+The scheduling, retries and messages are the same for both.
+
 A failed step lets the running ones finish (their work is kept) and starts nothing new; the error names the
-step, its log and the command that resumes. An interrupt stops the workers; training resumes from checkpoints.
+step, its log and the command that resumes. A worker killed by a signal (or, under Ray, lost with its node) is
+started again, resuming, up to :data:`WORKER_RETRIES` times. An interrupt stops the workers; training resumes from
+checkpoints.
 """
 
 from __future__ import annotations
@@ -18,14 +24,14 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO
+from typing import IO, Protocol
 
 from spiral.pipeline.step import PipelineError, Step
 
-__all__ = ["StepProcess", "run_parallel", "thread_share"]
+__all__ = ["Launcher", "LocalLauncher", "StepJob", "WorkerHandle", "run_parallel", "thread_share", "worker_command"]
 
 POLL_S = 0.2
 WORKER_RETRIES = 2
@@ -38,43 +44,105 @@ def thread_share(cores: int, jobs: int, alone: bool) -> int:
     return max(1, cores if alone else cores // jobs)
 
 
+class WorkerHandle(Protocol):
+    """A started worker, wherever it runs."""
+
+    def poll(self) -> int | None:
+        """None while it runs; then its exit code, negative when it was killed by a signal or lost."""
+
+    def stop(self) -> None:
+        """End it and wait until it has ended."""
+
+
+class Launcher(Protocol):
+    """Starts workers: ``command`` is the worker's arguments after the Python interpreter."""
+
+    def threads(self, jobs: int, alone: bool) -> int:
+        """Torch threads for a worker of a run with ``jobs`` workers (``alone``: the only step that can run)."""
+
+    def start(self, command: list[str], env: dict[str, str], threads: int, log_path: Path,
+              log: Callable[[str], None]) -> WorkerHandle:
+        """Start a worker with ``threads`` torch threads; its output goes to ``log_path`` (appended) and, line by
+        line, to ``log``."""
+
+
 @dataclass
-class StepProcess:
-    """A running worker: its process, the thread relaying its output and its log file."""
+class StepJob:
+    """A step's running worker."""
 
     step: Step
-    process: subprocess.Popen
-    relay: threading.Thread
+    worker: WorkerHandle
     log_path: Path
+    threads: int
     retries: int = 0
     """Times this step's worker was started again after being killed."""
+    returncode: int | None = None
+
+    def done(self) -> bool:
+        """Whether the worker has ended (its exit code is then in ``returncode``)."""
+        self.returncode = self.worker.poll()
+        return self.returncode is not None
 
     @property
     def killed(self) -> bool:
-        """Whether the worker ended by a signal rather than by exiting."""
-        return self.process.returncode is not None and self.process.returncode < 0
+        """Whether the worker ended by a signal (or was lost) rather than by exiting."""
+        return self.returncode is not None and self.returncode < 0
 
 
-def _relay(stream: IO[str], log_file: Path, prefix: str, log) -> None:
+class _LocalWorker:
+    def __init__(self, process: subprocess.Popen, relay: threading.Thread) -> None:
+        self.process, self.relay = process, relay
+
+    def poll(self) -> int | None:
+        if self.process.poll() is None:
+            return None
+        self.relay.join()
+        return self.process.returncode
+
+    def stop(self) -> None:
+        self.process.terminate()
+        self.process.wait()
+
+
+class LocalLauncher:
+    """Workers as child processes of this one, on this machine."""
+
+    def __init__(self, cores: int | None = None) -> None:
+        self.cores = cores or os.cpu_count() or 1
+
+    def threads(self, jobs: int, alone: bool) -> int:
+        return thread_share(self.cores, jobs, alone)
+
+    def start(self, command: list[str], env: dict[str, str], threads: int, log_path: Path,
+              log: Callable[[str], None]) -> WorkerHandle:
+        process = subprocess.Popen([sys.executable, *command, "--parent", str(os.getpid())], stdout=subprocess.PIPE,
+                                   stderr=subprocess.STDOUT, text=True, env={**os.environ, **env})
+        relay = threading.Thread(target=_relay, args=(process.stdout, log_path, log), daemon=True)
+        relay.start()
+        return _LocalWorker(process, relay)
+
+
+def _relay(stream: IO[str], log_file: Path, log: Callable[[str], None]) -> None:
     with log_file.open("a") as out:
         for line in stream:
             out.write(line)
             out.flush()
-            log(f"[{prefix}] {line.rstrip()}")
+            log(line.rstrip())
 
 
-def run_parallel(runner, todo: list[Step], fresh: set[str], jobs: int, *, cores: int | None = None) -> list[str]:
-    """Run ``todo`` (steps of ``runner``, a ``PipelineRunner``, in dependency order) with at most ``jobs`` workers;
-    return those run.
+def run_parallel(runner, todo: list[Step], fresh: set[str], jobs: int, *,
+                 launcher: Launcher | None = None) -> list[str]:
+    """Run ``todo`` (steps of ``runner``, a ``PipelineRunner``, in dependency order) with at most ``jobs`` workers
+    started by ``launcher`` (child processes by default); return those run.
 
     Raises:
         PipelineError: a step failed (after the other running steps finished) or the run was interrupted.
     """
-    cores = cores or os.cpu_count() or 1
+    launcher = launcher or LocalLauncher()
     pending, names = list(todo), {s.name for s in todo}
-    running: dict[str, StepProcess] = {}
+    running: dict[str, StepJob] = {}
     done: list[str] = []
-    failed: list[StepProcess] = []
+    failed: list[StepJob] = []
     log_dir = runner.plan.run_root / "logs"
     log_dir.mkdir(parents=True, exist_ok=True)
     try:
@@ -83,80 +151,76 @@ def run_parallel(runner, todo: list[Step], fresh: set[str], jobs: int, *, cores:
             ready.sort(key=lambda s: not s.resumable)  # training first: the long steps set the wall time
             for step in ready[: jobs - len(running)]:
                 alone = not running and len(ready) == 1
-                running[step.name] = _spawn(runner, step, step.name in fresh,
-                                            thread_share(cores, jobs, alone), log_dir)
+                threads = launcher.threads(jobs, alone)
+                running[step.name] = _spawn(runner, launcher, step, step.name in fresh, threads, log_dir)
                 pending.remove(step)
             time.sleep(POLL_S)
             _reap(running, done, failed)
-            _restart_killed(runner, running, failed, log_dir)
+            _restart_killed(runner, launcher, running, failed, log_dir)
     except KeyboardInterrupt:
         _stop(running.values())
         raise PipelineError(f"interrupted while running {', '.join(running)}\n"
                             f"resume with: {runner.command} --jobs {jobs}") from None
     if failed:
-        step = failed[0]
-        how = (f"was killed (signal {-step.process.returncode}, after {step.retries} restarts" if step.killed
-               else f"failed (exit code {step.process.returncode}")
-        raise PipelineError(f"step '{step.step.name}' {how}; its output: {step.log_path})\n"
+        job = failed[0]
+        how = (f"was killed (signal {-job.returncode}, after {job.retries} restarts" if job.killed
+               else f"failed (exit code {job.returncode}")
+        raise PipelineError(f"step '{job.step.name}' {how}; its output: {job.log_path})\n"
                             f"resume with: {runner.command} --jobs {jobs}")
     return done
 
 
-def _reap(running: dict[str, StepProcess], done: list[str], failed: list[StepProcess]) -> None:
+def _reap(running: dict[str, StepJob], done: list[str], failed: list[StepJob]) -> None:
     """Move the workers that have ended from ``running`` to ``done`` (exit code 0, by name) or ``failed``."""
-    for name, proc in list(running.items()):
-        if proc.process.poll() is None:
+    for name, job in list(running.items()):
+        if not job.done():
             continue
-        proc.relay.join()
         del running[name]
-        if proc.process.returncode == 0:
+        if job.returncode == 0:
             done.append(name)
         else:
-            failed.append(proc)
+            failed.append(job)
 
 
-def _restart_killed(runner, running: dict[str, StepProcess], failed: list[StepProcess], log_dir: Path) -> None:
+def _restart_killed(runner, launcher: Launcher, running: dict[str, StepJob], failed: list[StepJob],
+                    log_dir: Path) -> None:
     """Start again, resuming, the steps in ``failed`` whose worker was killed and has retries left."""
-    for proc in [p for p in failed if p.killed and p.retries < WORKER_RETRIES]:
-        failed.remove(proc)
-        runner.log(f"step '{proc.step.name}': its worker was killed (signal {-proc.process.returncode}); starting it "
-                   f"again from what it left ({proc.retries + 1} of {WORKER_RETRIES})")
-        threads = int(_thread_option(proc.process.args))
-        again = _spawn(runner, proc.step, False, threads, log_dir, append=True)
-        again.retries = proc.retries + 1
-        running[proc.step.name] = again
+    for job in [j for j in failed if j.killed and j.retries < WORKER_RETRIES]:
+        failed.remove(job)
+        runner.log(f"step '{job.step.name}': its worker was killed (signal {-job.returncode}); starting it "
+                   f"again from what it left ({job.retries + 1} of {WORKER_RETRIES})")
+        again = _spawn(runner, launcher, job.step, False, job.threads, log_dir, append=True)
+        again.retries = job.retries + 1
+        running[job.step.name] = again
 
 
-def _thread_option(args: list[str]) -> str:
-    """The ``--threads`` value a worker was started with."""
-    return args[args.index("--threads") + 1]
+def _stop(jobs: Collection[StepJob]) -> None:
+    """End the workers of ``jobs``."""
+    for job in jobs:
+        job.worker.stop()
 
 
-def _stop(workers: Collection[StepProcess]) -> None:
-    """Terminate ``workers`` and wait for them to exit."""
-    for proc in workers:
-        proc.process.terminate()
-    for proc in workers:
-        proc.process.wait()
-
-
-def _spawn(runner, step: Step, fresh: bool, threads: int, log_dir: Path, *, append: bool = False) -> StepProcess:
-    cmd = [sys.executable, "-m", "spiral.pipeline.workers", str(runner.path), step.name,
-           "--runs-dir", str(runner.plan.runs_dir), "--checkpoints-dir", str(runner.plan.checkpoints_dir),
-           "--device", runner.plan.spec.device, "--threads", str(threads)]
+def worker_command(runner, step: Step, fresh: bool, threads: int) -> list[str]:
+    """The arguments (after the interpreter) of a worker that runs ``step`` of ``runner``'s pipeline (paths as the
+    runner has them: a worker runs in this process's working directory)."""
+    command = ["-m", "spiral.pipeline.workers", str(runner.path), step.name,
+               "--runs-dir", str(runner.plan.runs_dir), "--checkpoints-dir", str(runner.plan.checkpoints_dir),
+               "--device", runner.plan.spec.device, "--threads", str(threads)]
     if fresh:
-        cmd.append("--fresh")
+        command.append("--fresh")
     if runner.accept_code_changes:
-        cmd.append("--accept-code-changes")
-    cmd += [arg for override in runner.overrides for arg in ("--set", override)]
-    env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
-           "PYTHONUNBUFFERED": "1"}
+        command.append("--accept-code-changes")
+    return command + [arg for override in runner.overrides for arg in ("--set", override)]
+
+
+def _spawn(runner, launcher: Launcher, step: Step, fresh: bool, threads: int, log_dir: Path, *,
+           append: bool = False) -> StepJob:
+    env = {"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads), "PYTHONUNBUFFERED": "1"}
     log_path = log_dir / f"{step.dirname}.log"
     if not append:
         log_path.write_text("")
-    process = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
-    relay = threading.Thread(target=_relay, args=(process.stdout, log_path, step.name, runner.log), daemon=True)
-    relay.start()
+    worker = launcher.start(worker_command(runner, step, fresh, threads), env, threads, log_path,
+                            lambda line: runner.log(f"[{step.name}] {line}"))
     runner.log(f"step '{step.name}' started in a worker ({threads} torch thread{'s' if threads > 1 else ''}; "
                f"output also in {log_path})")
-    return StepProcess(step, process, relay, log_path)
+    return StepJob(step, worker, log_path, threads)

@@ -28,7 +28,7 @@ from spiral.pipeline.manifest import (
     step_state,
     write_manifest,
 )
-from spiral.pipeline.parallel import run_parallel
+from spiral.pipeline.parallel import Launcher, run_parallel
 from spiral.pipeline.step import PipelineError, Step, StepContext
 
 __all__ = ["PipelineRunner", "StepStatus"]
@@ -91,8 +91,11 @@ class PipelineRunner:
         return out
 
     def run(self, *, start: str | None = None, only: str | None = None, force: list[str] | None = None,
-            jobs: int = 1) -> list[str]:
-        """Run the selected steps, up to ``jobs`` independent ones at a time; return the names of those that ran."""
+            jobs: int = 1, launcher: Launcher | None = None) -> list[str]:
+        """Run the selected steps, up to ``jobs`` independent ones at a time; return the names of those that ran.
+
+        With a ``launcher`` (e.g. Ray's) every step runs in a worker it starts; without one, a step at a time runs
+        in this process and several in child processes."""
         if jobs < 1:
             raise UsageError(f"jobs must be at least 1, got {jobs}")
         check_device(self.plan.spec.device)
@@ -118,8 +121,8 @@ class PipelineRunner:
                     self._refuse_a_device_change(step)
                 self._refuse_missing_inputs(step, todo, fps)
                 todo[step.name] = (step, state)  # running upstream steps leaves a step's own folder as it is
-            if jobs > 1 and len(todo) > 1:
-                return run_parallel(self, [step for step, _ in todo.values()], forced, jobs)
+            if launcher is not None or (jobs > 1 and len(todo) > 1):
+                return run_parallel(self, [step for step, _ in todo.values()], forced, jobs, launcher=launcher)
             for step, state in todo.values():
                 self._run_step(step, fps[step.name], state, fresh=step.name in forced)
         return list(todo)

@@ -6,12 +6,15 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from spiral.config import load_pipeline
 from spiral.core.errors import UsageError
 from spiral.pipeline.manifest import read_manifest
+from spiral.pipeline.parallel import Launcher
 from spiral.pipeline.runner import PipelineRunner
 
 __all__ = ["SweepDraw", "parse_seeds", "run_sweep", "sweep_markdown"]
@@ -38,29 +41,43 @@ def parse_seeds(text: str) -> list[int]:
     return seeds
 
 
-def run_sweep(path: Path, seeds: Sequence[int], overrides: Sequence[str] = (), *, runs_dir: Path = Path("runs"),
-              checkpoints_dir: Path = Path("checkpoints"), device: str | None = None, jobs: int = 1,
-              log: Callable[[str], None] = print) -> Path:
+def run_sweep(path: Path, seeds: Sequence[int], overrides: Sequence[str] = (), *, jobs: int = 1,
+              launcher: Launcher | None = None, log: Callable[[str], None] = print, **runner_options: Any) -> Path:
     """Run the pipeline at ``path`` with ``overrides`` once per seed (``seed=S`` added; complete steps are skipped,
-    as by ``spiral run``), then write ``summary.json`` and ``summary.md`` into ``runs_dir/sweeps/<variant>``.
-    Returns the markdown's path."""
+    as by ``spiral run``), then write ``summary.json`` and ``summary.md`` into ``<runs_dir>/sweeps/<variant>``.
+    Returns the markdown's path. ``runner_options`` (``runs_dir``, ``checkpoints_dir``, ``device``) go to each draw's
+    :class:`PipelineRunner`.
+
+    The draws run one after another, or, with a ``launcher`` (a cluster's), all at once, each scheduling its steps
+    onto it (log lines then start with the seed)."""
     if any(o.split("=", 1)[0].strip() == "seed" for o in overrides):
         raise UsageError("--set seed=...: a sweep sets the seed of each draw; give the seeds with --seeds")
-    draws = []
-    for seed in seeds:
-        runner = PipelineRunner(path, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device, log=log,
-                                overrides=(*overrides, f"seed={seed}"))
+    together = launcher is not None and len(seeds) > 1
+    runners = [PipelineRunner(path, log=_prefixed(log, f"[seed {seed}] ") if together else log,
+                              overrides=(*overrides, f"seed={seed}"), **runner_options) for seed in seeds]
+    for seed, runner in zip(seeds, runners, strict=True):
         log(f"sweep: seed {seed} in {runner.plan.run_root}")
-        runner.run(jobs=jobs)
-        draws.append(SweepDraw(seed, runner.plan.run_root, _headline(runner.plan.run_root)))
+    if together:
+        with ThreadPoolExecutor(len(runners)) as pool:
+            for future in [pool.submit(r.run, jobs=jobs, launcher=launcher) for r in runners]:
+                future.result()
+    else:
+        for runner in runners:
+            runner.run(jobs=jobs, launcher=launcher)
+    draws = [SweepDraw(seed, r.plan.run_root, _headline(r.plan.run_root))
+             for seed, r in zip(seeds, runners, strict=True)]
     name = load_pipeline(path, overrides)[0].name
-    out = Path(runs_dir) / "sweeps" / name
+    out = runners[0].plan.runs_dir / "sweeps" / name
     out.mkdir(parents=True, exist_ok=True)
     summary = {"pipeline": str(path), "overrides": list(overrides),
                "draws": [{"seed": d.seed, "run": str(d.run_root), "headline": d.headline} for d in draws]}
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     (out / "summary.md").write_text(sweep_markdown(name, draws, overrides))
     return out / "summary.md"
+
+
+def _prefixed(log: Callable[[str], None], prefix: str) -> Callable[[str], None]:
+    return lambda line: log(prefix + line)
 
 
 def _headline(run_root: Path) -> dict[str, float | None]:

@@ -4,6 +4,8 @@ pipeline whose lock the parent holds, exactly as the sequential runner would."""
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
 from pathlib import Path
 
@@ -27,7 +29,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fresh", action="store_true")
     parser.add_argument("--accept-code-changes", action="store_true")
     parser.add_argument("--set", action="append", default=[], dest="overrides")
+    parser.add_argument("--parent", type=int, help="The process that started this worker: end with it")
     args = parser.parse_args(argv)
+    if args.parent is not None:
+        end_with_parent(args.parent)
     torch.set_num_threads(args.threads)
     runner = PipelineRunner(args.pipeline, runs_dir=args.runs_dir, checkpoints_dir=args.checkpoints_dir,
                             device=args.device, progress=False, log=lambda m: print(m, flush=True),
@@ -38,6 +43,18 @@ def main(argv: list[str] | None = None) -> int:
         print(str(exc).splitlines()[0], file=sys.stderr, flush=True)
         return 1
     return 0
+
+
+def end_with_parent(parent: int) -> None:
+    """Have the kernel kill this worker when the process that started it ends (Linux): a killed ``spiral run`` or
+    Ray task leaves no worker training on while another run takes the pipeline's lock. Exits at once if ``parent``
+    has already ended."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() != parent:
+        sys.exit(1)
 
 
 if __name__ == "__main__":

@@ -39,11 +39,13 @@ def write_pipeline(tmp_path: Path, *, iterations: int = 2, lr: float = 1e-3, sta
 
 
 @pytest.mark.bitwise
-def test_smoke_pipeline_twice_skips_every_step_the_second_time(tmp_path):
+def test_smoke_pipeline_twice_skips_every_step_the_second_time(smoke_run, tmp_path, monkeypatch):
     """Run smoke.yaml end to end, then again: the second run runs nothing and publishes the final policies. With
     every file no manifest declares deleted, every step runs again to the same training outputs."""
     logs: list[str] = []
-    first = runner_for(ROOT / "pipelines" / "smoke.yaml", tmp_path, logs).run()
+    smoke_run.copy_to(tmp_path)
+    monkeypatch.chdir(tmp_path)
+    first = smoke_run.ran
     assert first == [s.name for s in runner_for(ROOT / "pipelines" / "smoke.yaml", tmp_path).steps]
     second = runner_for(ROOT / "pipelines" / "smoke.yaml", tmp_path, logs).run()
     assert second == []
@@ -65,8 +67,13 @@ def test_smoke_pipeline_twice_skips_every_step_the_second_time(tmp_path):
     assert runner_for(ROOT / "pipelines" / "smoke.yaml", tmp_path).run(force=first) == first
     again = {d.name: json.loads((d / "manifest.json").read_text())["outputs"]
              for d in (tmp_path / "runs" / "smoke").glob("train-*")}
-    assert {(name, key): again[name][key] for name in outputs for key in ("best", "last")} == {
-        (name, key): outputs[name][key] for name in outputs for key in ("best", "last")}
+    assert {(name, key): _resolved(again[name][key]) for name in outputs for key in ("best", "last")} == {
+        (name, key): _resolved(outputs[name][key]) for name in outputs for key in ("best", "last")}
+
+
+def _resolved(output: dict) -> tuple[Path, str]:
+    """A manifest's output entry as its file's absolute path and checksum."""
+    return Path(output["path"]).resolve(), output["sha256"]
 
 
 def test_no_self_play_2v2_stage_waits_for_the_stage_its_frozen_opponent_comes_from(tmp_path):
@@ -227,7 +234,7 @@ def test_failed_parallel_step_keeps_the_work_of_the_steps_running_beside_it(tmp_
 
 
 def test_parallel_run_trains_branches_side_by_side_restarts_a_killed_worker_then_skips_like_a_sequential_run(
-        tmp_path):
+        tmp_path, worker_pid):
     """With --jobs 2, train:1v1 and train:1v1-noselfplay start together once train:solo (alone, with every core) is
     done. train:1v1's worker, killed (SIGKILL) once it has saved a checkpoint, starts again and resumes from that
     checkpoint; every step completes, and a sequential rerun finds nothing to do."""
@@ -243,7 +250,7 @@ def test_parallel_run_trains_branches_side_by_side_restarts_a_killed_worker_then
 
     def kill_once() -> None:
         for _ in range(2400):
-            worker = _worker_pid("train:1v1")
+            worker = worker_pid("train:1v1")
             if worker is not None and any(ckpt.glob("model_*.pt")):
                 os.kill(worker, signal.SIGKILL)
                 killed.append(worker)
@@ -266,18 +273,6 @@ def test_parallel_run_trains_branches_side_by_side_restarts_a_killed_worker_then
     assert killed and any("train:1v1': its worker was killed (signal 9); starting it again" in line for line in logs)
     assert "resuming stage '1v1' from model_" in (runner.plan.run_root / "logs" / "train-1v1.log").read_text()
     assert runner.run() == []
-
-
-def _worker_pid(step: str) -> int | None:
-    """The pid of the live pipeline worker running ``step`` (from /proc), if any."""
-    for proc in Path("/proc").iterdir():
-        try:
-            args = (proc / "cmdline").read_bytes().split(b"\0")
-        except OSError:
-            continue
-        if b"spiral.pipeline.workers" in args and step.encode() in args:
-            return int(proc.name)
-    return None
 
 
 def test_held_out_check_and_head_to_head_sides_are_the_reports_alone(tmp_path):

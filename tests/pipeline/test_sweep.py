@@ -55,16 +55,22 @@ def test_seeds_are_integers_given_once_and_a_sweep_sets_them_itself(tmp_path):
         run_sweep(ROOT / "pipelines" / "smoke.yaml", [0], ["seed=3"], runs_dir=tmp_path)
 
 
-def test_a_sweep_of_two_seeds_runs_two_folders_and_tables_both(tmp_path):
+def test_a_sweep_of_two_seeds_runs_two_folders_and_tables_both(smoke_run, tmp_path, monkeypatch):
     """The smoke pipeline on seeds 0 and 1: a run folder each (named for the seed), each with its report's headline
-    figures, and one summary of both."""
+    figures, and one summary of both. Seed 0 is the plain file's run, found finished beside it: its steps are reused
+    but publishing, which writes into the draw's own folder."""
+    smoke_run.copy_to(tmp_path)
+    monkeypatch.chdir(tmp_path)
+    logs: list[str] = []
     summary = run_sweep(ROOT / "pipelines" / "smoke.yaml", [0, 1], runs_dir=tmp_path / "runs",
-                        checkpoints_dir=tmp_path / "ckpt", log=lambda _: None)
+                        checkpoints_dir=tmp_path / "ckpt", log=logs.append)
+    reused = {line.split("'")[1] for line in logs if "reused from" in line and "/runs/smoke/" in line}
+    assert reused == {name for name in smoke_run.ran if not name.startswith("publish:")}  # publishing: own folder
     assert summary == tmp_path / "runs" / "sweeps" / "smoke" / "summary.md"
     data = json.loads(summary.with_name("summary.json").read_text())
     assert [d["seed"] for d in data["draws"]] == [0, 1]
     assert [Path(d["run"]).name for d in data["draws"]] == ["smoke-seed-0", "smoke-seed-1"]
     for draw in data["draws"]:
-        assert (Path(draw["run"]) / "report" / "headline.json").exists()
+        assert (Path(draw["run"]) / "report" / "manifest.json").exists()  # its own, or one naming a reused run
         assert 0.0 <= draw["headline"]["protocol/2v2/spiral/success"] <= 1.0
     assert "| protocol/2v2/spiral/success |" in summary.read_text()

@@ -1,0 +1,61 @@
+"""The smoke pipeline run once per session, in this process, for the tests that compare other runs with it."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from spiral.pipeline import PipelineRunner
+
+ROOT = Path(__file__).resolve().parents[2]
+SMOKE = ROOT / "pipelines" / "smoke.yaml"
+
+
+@dataclass(frozen=True)
+class SmokeRun:
+    """A finished run of smoke.yaml under ``root`` (its ``runs`` and ``ckpt`` folders; the manifests name the files
+    relative to ``root``) and the steps it ran, in order."""
+
+    root: Path
+    ran: list[str]
+
+    def copy_to(self, root: Path) -> None:
+        """The run's folders copied under ``root``; with ``root`` the working directory, its manifests name the
+        copies (a test that changes them changes its copy)."""
+        for name in ("runs", "ckpt"):
+            shutil.copytree(self.root / name, root / name, symlinks=True)
+
+
+@pytest.fixture(scope="session")
+def smoke_run(tmp_path_factory) -> SmokeRun:
+    """smoke.yaml run step by step in this process (the local executor's sequential path), from its root folder."""
+    root = tmp_path_factory.mktemp("smoke-run")
+    here = Path.cwd()
+    os.chdir(root)
+    try:
+        runner = PipelineRunner(SMOKE, runs_dir=Path("runs"), checkpoints_dir=Path("ckpt"), progress=False,
+                                log=lambda _: None)
+        return SmokeRun(root, runner.run())
+    finally:
+        os.chdir(here)
+
+
+@pytest.fixture(scope="session")
+def worker_pid():
+    """``worker_pid(step)``: the pid of the live pipeline worker running ``step`` (from /proc), or None."""
+
+    def find(step: str) -> int | None:
+        for proc in Path("/proc").iterdir():
+            try:
+                args = (proc / "cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if b"spiral.pipeline.workers" in args and step.encode() in args:
+                return int(proc.name)
+        return None
+
+    return find
