@@ -46,15 +46,16 @@ def smoke_run(tmp_path_factory) -> SmokeRun:
 
 @pytest.fixture(scope="session")
 def worker_pid():
-    """``worker_pid(step)``: the pid of the live pipeline worker running ``step`` (from /proc), or None."""
+    """``worker_pid(step, runs_dir)``: the pid of the live pipeline worker running ``step`` of a run under
+    ``runs_dir`` (from /proc), or None; workers of other pipelines on the machine are not the test's."""
 
-    def find(step: str) -> int | None:
+    def find(step: str, runs_dir: Path) -> int | None:
         for proc in Path("/proc").iterdir():
             try:
                 args = (proc / "cmdline").read_bytes().split(b"\0")
             except OSError:
                 continue
-            if b"spiral.pipeline.workers" in args and step.encode() in args:
+            if b"spiral.pipeline.workers" in args and step.encode() in args and str(runs_dir).encode() in args:
                 return int(proc.name)
         return None
 

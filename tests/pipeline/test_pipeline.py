@@ -46,8 +46,9 @@ def test_smoke_pipeline_twice_skips_every_step_the_second_time(smoke_run, tmp_pa
     smoke_run.copy_to(tmp_path)
     monkeypatch.chdir(tmp_path)
     first = smoke_run.ran
-    assert first == [s.name for s in runner_for(ROOT / "pipelines" / "smoke.yaml", tmp_path).steps]
-    second = runner_for(ROOT / "pipelines" / "smoke.yaml", tmp_path, logs).run()
+    here = Path()  # the copy's manifests name their files relative to it, and its publishing folder so
+    assert first == [s.name for s in runner_for(ROOT / "pipelines" / "smoke.yaml", here).steps]
+    second = runner_for(ROOT / "pipelines" / "smoke.yaml", here, logs).run()
     assert second == []
     assert sum("unchanged, skipping" in line for line in logs) == len(first)
     published = tmp_path / "ckpt" / "smoke"
@@ -64,7 +65,7 @@ def test_smoke_pipeline_twice_skips_every_step_the_second_time(smoke_run, tmp_pa
     # every step reads only what its input steps declared: with every other file gone (a declared pool's members,
     # pinned by their checksums in it, count as declared), each runs again and the stages train the same policies
     _keep_only_declared(tmp_path / "runs" / "smoke", keep=set())
-    assert runner_for(ROOT / "pipelines" / "smoke.yaml", tmp_path).run(force=first) == first
+    assert runner_for(ROOT / "pipelines" / "smoke.yaml", here).run(force=first) == first
     again = {d.name: json.loads((d / "manifest.json").read_text())["outputs"]
              for d in (tmp_path / "runs" / "smoke").glob("train-*")}
     assert {(name, key): _resolved(again[name][key]) for name in outputs for key in ("best", "last")} == {
@@ -250,7 +251,7 @@ def test_parallel_run_trains_branches_side_by_side_restarts_a_killed_worker_then
 
     def kill_once() -> None:
         for _ in range(2400):
-            worker = worker_pid("train:1v1")
+            worker = worker_pid("train:1v1", tmp_path / "runs")
             if worker is not None and any(ckpt.glob("model_*.pt")):
                 os.kill(worker, signal.SIGKILL)
                 killed.append(worker)

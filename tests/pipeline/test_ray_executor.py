@@ -134,7 +134,7 @@ def test_a_lost_ray_worker_ends_its_step_s_process_and_the_step_resumes_from_its
 
     def kill_once() -> None:
         for _ in range(2400):
-            worker = worker_pid("train:solo")
+            worker = worker_pid("train:solo", tmp_path / "runs")
             newest = newest_valid_checkpoint(ckpt) if ckpt.is_dir() else None
             if worker is not None and newest is not None and newest.stem != "model_0":
                 ray_worker = int(Path(f"/proc/{worker}/stat").read_text().rsplit(")", 1)[1].split()[1])
