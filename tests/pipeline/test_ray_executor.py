@@ -58,23 +58,22 @@ def test_an_address_without_the_ray_executor_is_refused():
 
 
 @pytest.mark.bitwise
-def test_a_sweep_on_ray_runs_both_seeds_at_once_and_seed_0_trains_what_the_local_executor_trains(
-        ray_instance, smoke_run, tmp_path):
-    """Seeds 0 and 1 of smoke.yaml as Ray tasks, the two draws at once: two run folders, one summary; every step of
-    seed 0 ends with the manifests (the same fingerprints but where the run's folder name enters: publishing, the
-    report) and, tensor for tensor, the checkpoints of the smoke pipeline run step by step in this process."""
+def test_smoke_pipeline_on_ray_trains_what_the_local_executor_trains(ray_instance, smoke_run, tmp_path):
+    """smoke.yaml's steps as Ray tasks, two at a time: every step ends with the manifests (the same fingerprints but
+    where the checkpoints folder enters: publishing, the report) and, tensor for tensor, the checkpoints of the smoke
+    pipeline run step by step in this process."""
+    from spiral.pipeline import PipelineRunner
     from spiral.pipeline.ray_executor import RayLauncher
 
     logs: list[str] = []
+    runner = PipelineRunner(SMOKE, runs_dir=tmp_path / "runs", checkpoints_dir=tmp_path / "ckpt", progress=False,
+                            log=logs.append)
     with RayLauncher() as launcher:
-        summary = run_sweep(SMOKE, [0, 1], runs_dir=tmp_path / "runs", checkpoints_dir=tmp_path / "ckpt",
-                            jobs=2, launcher=launcher, log=logs.append)
-    data = json.loads(summary.with_name("summary.json").read_text())
-    assert [Path(d["run"]).name for d in data["draws"]] == ["smoke-seed-0", "smoke-seed-1"]
-    assert all(d["headline"] for d in data["draws"])
-    assert any(line.startswith("[seed 1] [train:solo] ") for line in logs)  # worker output relayed, per draw
+        assert sorted(runner.run(jobs=2, launcher=launcher)) == sorted(smoke_run.ran)
+    assert runner.run() == []  # complete, as a local run sees it
+    assert any(line.startswith("[train:1v1] ") for line in logs)  # worker output relayed
 
-    local, ray_run = smoke_run.root / "runs" / "smoke", tmp_path / "runs" / "smoke-seed-0"
+    local, ray_run = smoke_run.root / "runs" / "smoke", tmp_path / "runs" / "smoke"
     steps = sorted(p.name for p in local.iterdir() if (p / "manifest.json").exists())
     assert steps == sorted(p.name for p in ray_run.iterdir() if (p / "manifest.json").exists())
     for step in steps:
@@ -86,6 +85,35 @@ def test_a_sweep_on_ray_runs_both_seeds_at_once_and_seed_0_trains_what_the_local
         for key, out in a["outputs"].items():
             if out["path"].endswith(".pt"):
                 _assert_same_tensors(smoke_run.root / out["path"], Path(b["outputs"][key]["path"]))
+
+
+def test_a_sweep_on_ray_runs_its_seeds_at_once_in_folders_of_their_own(ray_instance, tmp_path):
+    """Seeds 0 and 1 of a one-stage pipeline through Ray: both draws at once (their log lines named by seed), two
+    run folders, one summary."""
+    from spiral.pipeline.ray_executor import RayLauncher
+
+    logs: list[str] = []
+    with RayLauncher() as launcher:
+        summary = run_sweep(one_stage_pipeline(tmp_path, iterations=2), [0, 1], runs_dir=tmp_path / "runs",
+                            checkpoints_dir=tmp_path / "ckpt", jobs=2, launcher=launcher, log=logs.append)
+    data = json.loads(summary.with_name("summary.json").read_text())
+    assert [Path(d["run"]).name for d in data["draws"]] == ["smoke-seed-0", "smoke-seed-1"]
+    for seed in (0, 1):
+        assert (tmp_path / "runs" / f"smoke-seed-{seed}" / "train-solo" / "manifest.json").exists()
+        assert any(line.startswith(f"[seed {seed}] [train:solo] ") for line in logs)
+
+
+def one_stage_pipeline(tmp_path: Path, *, iterations: int) -> Path:
+    """smoke.yaml's solo stage alone, ``iterations`` long, without a report."""
+    import yaml
+
+    data = yaml.safe_load(SMOKE.read_text())
+    data = json.loads(json.dumps({k: v for k, v in data.items() if not k.startswith("x-")}))
+    data.update(track=str(ROOT / "tracks" / "oval4.yaml"), report={"enabled": False}, stages=data["stages"][:1])
+    data["stages"][0]["iterations"] = iterations
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
 
 
 def _info(manifest: dict) -> dict:
@@ -117,18 +145,11 @@ def test_a_lost_ray_worker_ends_its_step_s_process_and_the_step_resumes_from_its
     """The Ray worker running the solo stage's task, killed (SIGKILL) once the step has saved a checkpoint past the
     first iteration, takes the step's process with it; the task is submitted again and the step resumes from that
     checkpoint; the pipeline completes with every iteration."""
-    import yaml
-
     from spiral.core.checkpoint import newest_valid_checkpoint
     from spiral.pipeline import PipelineRunner
     from spiral.pipeline.ray_executor import RayLauncher
 
-    data = yaml.safe_load(SMOKE.read_text())
-    data = json.loads(json.dumps({k: v for k, v in data.items() if not k.startswith("x-")}))
-    data.update(track=str(ROOT / "tracks" / "oval4.yaml"), report={"enabled": False}, stages=data["stages"][:1])
-    data["stages"][0]["iterations"] = 30
-    path = tmp_path / "p.yaml"
-    path.write_text(yaml.safe_dump(data))
+    path = one_stage_pipeline(tmp_path, iterations=30)
     ckpt = tmp_path / "runs" / "smoke" / "train-solo" / "ckpt"
     killed: list[int] = []
 
