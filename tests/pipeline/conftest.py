@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
+import threading
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -60,3 +64,30 @@ def worker_pid():
         return None
 
     return find
+
+
+@pytest.fixture
+def kill_once():
+    """``kill_once(target, ready)``: starts a thread that SIGKILLs the process ``target()`` names once it names one
+    and ``ready()`` holds (polling for up to two minutes); returns the list the killed pid goes into."""
+    threads: list[threading.Thread] = []
+
+    def start(target: Callable[[], int | None], ready: Callable[[], bool]) -> list[int]:
+        killed: list[int] = []
+
+        def run() -> None:
+            for _ in range(2400):
+                pid = target()
+                if pid is not None and ready():
+                    os.kill(pid, signal.SIGKILL)
+                    killed.append(pid)
+                    return
+                time.sleep(0.05)
+
+        threads.append(threading.Thread(target=run))
+        threads[-1].start()
+        return killed
+
+    yield start
+    for thread in threads:
+        thread.join()

@@ -235,11 +235,10 @@ def test_failed_parallel_step_keeps_the_work_of_the_steps_running_beside_it(tmp_
 
 
 def test_parallel_run_trains_branches_side_by_side_restarts_a_killed_worker_then_skips_like_a_sequential_run(
-        tmp_path, worker_pid):
+        tmp_path, worker_pid, kill_once):
     """With --jobs 2, train:1v1 and train:1v1-noselfplay start together once train:solo (alone, with every core) is
     done. train:1v1's worker, killed (SIGKILL) once it has saved a checkpoint, starts again and resumes from that
     checkpoint; every step completes, and a sequential rerun finds nothing to do."""
-    import threading
 
     path = write_branching_pipeline(tmp_path)
     data = yaml.safe_load(path.read_text())
@@ -247,21 +246,8 @@ def test_parallel_run_trains_branches_side_by_side_restarts_a_killed_worker_then
     path.write_text(yaml.safe_dump(data))
     logs: list[str] = []
     ckpt = runner_for(path, tmp_path).plan.run_root / "train-1v1" / "ckpt"
-    killed: list[int] = []
-
-    def kill_once() -> None:
-        for _ in range(2400):
-            worker = worker_pid("train:1v1", tmp_path / "runs")
-            if worker is not None and any(ckpt.glob("model_*.pt")):
-                os.kill(worker, signal.SIGKILL)
-                killed.append(worker)
-                return
-            time.sleep(0.05)
-
-    killer = threading.Thread(target=kill_once)
-    killer.start()
+    killed = kill_once(lambda: worker_pid("train:1v1", tmp_path / "runs"), lambda: any(ckpt.glob("model_*.pt")))
     ran = runner_for(path, tmp_path, logs).run(jobs=2)
-    killer.join()
     runner = runner_for(path, tmp_path)
     assert sorted(ran) == sorted(s.name for s in runner.steps)
     started = [line for line in logs if "started in a worker" in line]
