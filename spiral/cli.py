@@ -259,7 +259,9 @@ def sweep(
     from spiral.pipeline.sweep import parse_seeds, run_sweep
 
     seed_list = parse_seeds(seeds)
-    run_device = canonical_device(device) if device else load_pipeline(pipeline, overrides or ())[0].device
+    run_device = "cpu"  # only Ray's launcher asks for GPUs
+    if executor == "ray":
+        run_device = canonical_device(device) if device else load_pipeline(pipeline, overrides or ())[0].device
     with _launcher(executor, address, run_device) as launcher:
         summary = run_sweep(pipeline, seed_list, overrides or (), runs_dir=runs_dir, checkpoints_dir=checkpoints_dir,
                             device=device, jobs=jobs, launcher=launcher)

@@ -75,7 +75,7 @@ class RayLauncher:
     def start(self, command: list[str], env: dict[str, str], threads: int, log_path: Path,
               log: Callable[[str], None]) -> _RayWorker:
         forwarded = {k: v for k, v in os.environ.items() if k.startswith(FORWARDED_ENV)}
-        offset = log_path.stat().st_size if log_path.exists() else 0
+        offset = log_path.stat().st_size  # the scheduler has created or emptied it
         ref = self._task.options(num_cpus=threads, num_gpus=self.gpus, max_retries=0).remote(
             command, {**forwarded, **env}, str(log_path.resolve()), os.getcwd())
         return _RayWorker(self._ray, ref, log_path, offset, log)
@@ -96,7 +96,7 @@ class _RayWorker:
     """A step's Ray task, and the thread that relays its log file."""
 
     def __init__(self, ray: Any, ref: Any, log_path: Path, offset: int, log: Callable[[str], None]) -> None:
-        self._ray, self._ref, self._log_path, self._log = ray, ref, log_path, log
+        self._ray, self._ref, self._log_path = ray, ref, log_path
         self._ended = threading.Event()
         self._tail = threading.Thread(target=_tail, args=(log_path, offset, log, self._ended), daemon=True)
         self._tail.start()
@@ -139,10 +139,6 @@ class _RayWorker:
 
 def _tail(path: Path, offset: int, log: Callable[[str], None], ended: threading.Event) -> None:
     """Relay the lines appended to ``path`` after ``offset`` until ``ended`` is set and everything is read."""
-    while not path.exists() and not ended.is_set():
-        time.sleep(TAIL_POLL_S)
-    if not path.exists():
-        return
     with path.open() as stream:
         stream.seek(offset)
         partial = ""
