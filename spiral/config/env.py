@@ -20,7 +20,6 @@ class ObsCfg(StrictModel):
     """
 
     history_len: PosInt = Field(default=50, description="Control steps K kept in the history buffer")
-    history_stride: PosInt = Field(default=1, description="Control steps between stored history entries")
     gate_normals: bool = Field(default=False, description="Add the passing direction of the next 2 gates")
     pid_integral: bool = Field(default=False, description="Add the position controller's integral state")
     opponent_velocity: bool = Field(default=False, description="Add the relative velocity of the 2 nearest drones")
@@ -125,10 +124,6 @@ class PassageStartsCfg(StrictModel):
     share_start: float = Field(default=0.5, ge=0, le=1, description="Share of episodes started from passage states "
                                "at the stage's first iteration")
     share_end: float = Field(default=0.5, ge=0, le=1, description="The same share at its last iteration")
-    pack: float = Field(default=0.0, ge=0, le=1, description="Share of passage-start worlds whose drones all start "
-                        "from states of one gate, at least the track's start.min_separation apart: the field as a "
-                        "pack at racing speed, e.g. crossing into its next lap; the others start behind different "
-                        "gates")
     capacity: PosInt = Field(default=512, description="Passage states kept per gate (the newest)")
     pos_noise: NonNegFloat = Field(default=0.05, description="Standard deviation of a start's position noise per "
                                    "axis [m]")
@@ -143,12 +138,6 @@ class EpisodeCfg(StrictModel):
         default=0.5, ge=0, le=1, description="Share of episodes started at a random point along the track"
     )
     track_start_speed: NonNegFloat = Field(default=1.0, description="Largest initial speed of a track start [m/s]")
-    file_start_prob: float = Field(
-        default=0.0, ge=0, le=1,
-        description="Share of multi-drone episodes that start with the world's drones in single file on one stretch "
-        "of the track, 0.4-1 m apart in random order, each at its own speed up to track_start_speed: starts where a "
-        "drone must follow or pass another (not in the paper)",
-    )
     passage_starts: PassageStartsCfg | None = Field(
         default=None, description="Starts from recorded gate-passage states (not in the paper); null: none"
     )

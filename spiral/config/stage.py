@@ -19,13 +19,11 @@ __all__ = ["FinalPickCfg", "PromotionCfg", "SelectionCfg", "SelfPlayCfg", "Stage
 class WorldPart:
     """A group of a stage's training worlds that race alike."""
 
-    name: str
-    """The scenario, with ``-mirror`` for worlds whose drones are all learner drones."""
     scenario: str
     worlds: int
     learner_slots: list[int]
     opponents: bool
-    """Whether the other slots are opponents (pool or frozen policies); otherwise they are absent or learners."""
+    """Whether the other slots are opponents (pool or frozen policies); otherwise the scenario has none."""
 
 
 class FinalPickCfg(StrictModel):
@@ -81,7 +79,6 @@ class PromotionCfg(StrictModel):
         description="Promote as well a learner whose self-match success beats the best's by at least this much "
         "while its head-to-head success is not below the best's by more than max_success_drop; null: never",
     )
-    elo_k: float = Field(default=16.0, gt=0, description="Elo K-factor applied per evaluation (match score)")
     scenarios: bool = Field(
         default=False,
         description="Also race the learner and the best in a self-match of each other scenario of the stage's "
@@ -118,13 +115,6 @@ class SelfPlayCfg(StrictModel):
         description="Probability that a world's opponents are the learner's current policy (mirror self-play, "
         "pool mode only); the rest are drawn from the pool",
     )
-    mirror_actions: Literal["mean", "sampled", "learner"] = Field(
-        default="mean",
-        description="What the learner's copies in mirror worlds fly: its mean action, an action drawn from its "
-        "action distribution like the learner drones' own (opponents as noisy as the learner), or `learner`: every "
-        "drone of a mirror world is a learner drone (sampled actions that PPO trains on, parameters shared), and "
-        "the share p_self of each scenario's worlds races that way",
-    )
     opponent_offset: float = Field(
         default=0.0, ge=0, le=1,
         description="Largest constant offset added to an opponent's actions for a whole episode, drawn per world "
@@ -147,8 +137,6 @@ class SelfPlayCfg(StrictModel):
             raise ValueError("p_self: frozen opponents (PPO without self-play) cannot race the learner itself")
         if self.mode == "pool" and self.opponent_from is not None:
             raise ValueError("opponent_from: only frozen opponents come from one stage; pool opponents are the pool")
-        if self.mirror_actions != "mean" and self.p_self == 0:
-            raise ValueError(f"mirror_actions: {self.mirror_actions!r} is for mirror worlds, but p_self is 0")
         return self
 
 
@@ -246,18 +234,10 @@ class StageSpec(StrictModel):
         return SCENARIO_DRONES[self.scenario]
 
     def world_parts(self) -> list[WorldPart]:
-        """The training worlds by how they race: each scenario of :meth:`world_split`, its mirror share split off as
-        all-learner worlds when ``selfplay.mirror_actions`` is ``learner``; the stage's own scenario first."""
-        sp = self.selfplay
-        parts = []
-        for scenario, worlds in self.world_split().items():
-            drones, slots = SCENARIO_DRONES[scenario], learner_slots(scenario)
-            mirror = round(sp.p_self * worlds) if sp.mirror_actions == "learner" and drones > 1 else 0
-            if mirror < worlds:
-                parts.append(WorldPart(scenario, scenario, worlds - mirror, slots, opponents=drones > len(slots)))
-            if mirror:
-                parts.append(WorldPart(f"{scenario}-mirror", scenario, mirror, list(range(drones)), opponents=False))
-        return parts
+        """The training worlds by scenario (:meth:`world_split`), the stage's own scenario first."""
+        return [WorldPart(scenario, worlds, learner_slots(scenario),
+                          opponents=SCENARIO_DRONES[scenario] > len(learner_slots(scenario)))
+                for scenario, worlds in self.world_split().items()]
 
     def learner_slots(self) -> list[int]:
         """Drone slots driven by the learner (team A) in the stage's own scenario; the other slots are opponents."""

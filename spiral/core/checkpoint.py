@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import io
 import json
@@ -37,16 +38,17 @@ FORMAT = "spiral-checkpoint-2"
 
 _FORMAT_1 = "spiral-checkpoint-1"
 _FORMAT_1_LAYOUT = {"teammates": False, "priority": False, "closest_approach": False, "approach_horizon_s": 0.5}
+"""Observation options that a format-1 checkpoint's ``obs_layout`` left out when they were off, with the values they
+then had; format 2 stores every option."""
 REMOVED_ENV_OPTIONS: dict[tuple[str, ...], Any] = {
     ("shield",): None, ("reward", "intervention"): 0.0, ("reward", "proximity_leader"): 1.0,
     ("reward", "closing_miss"): 0.0, ("reward", "closing_neighbours"): 1, ("reward", "forfeit"): False,
     ("reward", "contact"): 0.0, ("reward", "overtake"): 0.0, ("episode", "contact_margin"): 0.0,
-    ("obs", "priority"): False}
+    ("obs", "priority"): False, ("obs", "history_stride"): 1, ("episode", "file_start_prob"): 0.0,
+    ("episode", "passage_starts", "pack"): 0.0}
 """Env options of earlier versions, by their path in the env settings, with the value that left them off (tried, never
 in a shipped pipeline): a checkpoint saved with them off reads as today's. The observation's own (``obs.*``) leave its
 ``obs_layout`` too."""
-"""Observation options that a format-1 checkpoint's ``obs_layout`` left out when they were off, with the values they
-then had; format 2 stores every option."""
 
 
 class CheckpointError(Exception):
@@ -129,16 +131,16 @@ def upgrade_meta(meta: dict[str, Any]) -> dict[str, Any]:
 
 def _without_removed(env: dict[str, Any]) -> dict[str, Any]:
     """``env`` (settings as saved) without the removed options, each checked to be off."""
-    env = {key: dict(value) if isinstance(value, dict) else value for key, value in env.items()}
+    env = copy.deepcopy(env)
     for path, off in REMOVED_ENV_OPTIONS.items():
         *parents, name = path
         block = env
         for key in parents:
-            block = block.get(key, {})
+            block = block.get(key) or {}  # a block saved as null holds nothing
         if name in block:
             if block[name] != off:
                 raise ValueError(f"env.{'.'.join(path)}: this checkpoint was trained with an option that no longer "
-                                 f"exists ({block.pop(name)!r}); train it again with this version")
+                                 f"exists ({block[name]!r}); train it again with this version")
             del block[name]
     return env
 

@@ -1,5 +1,4 @@
-"""Training worlds that race in different ways (other scenarios: ``StageSpec.mix``; all-learner mirror worlds)
-stepped as one environment."""
+"""Training worlds that race different scenarios (``StageSpec.mix``) stepped as one environment."""
 
 from __future__ import annotations
 
@@ -17,7 +16,7 @@ from spiral.env.stats import summarize_stats
 __all__ = ["MixedRaceEnv", "training_env"]
 
 class MixedRaceEnv:
-    """Named :class:`RaceEnv` parts (scenarios, all-learner mirror worlds) stepped together; their learner rows
+    """Named :class:`RaceEnv` parts (one per scenario) stepped together; their learner rows
     are concatenated in part order.
 
     To PPO it is one env of ``num_envs = Σ part.num_envs`` learner drones. Each part keeps its own worlds, resets,
@@ -114,10 +113,10 @@ class MixedRaceEnv:
 
 def training_env(setting: RaceSetting, stage: StageSpec, *, device: str, seed: int) -> RaceEnv | MixedRaceEnv:
     """The training env of ``stage``: one :class:`RaceEnv` when all its worlds race alike, else a
-    :class:`MixedRaceEnv` over :meth:`StageSpec.world_parts` (other scenarios of ``stage.mix``, all-learner mirror
-    worlds), the first part with the stage's seed."""
+    :class:`MixedRaceEnv` over :meth:`StageSpec.world_parts` (the other scenarios of ``stage.mix``), the first part
+    with the stage's seed."""
     parts = {
-        part.name: RaceEnv(setting, stage.env, world_count=part.worlds,
+        part.scenario: RaceEnv(setting, stage.env, world_count=part.worlds,
                            drones_per_world=SCENARIO_DRONES[part.scenario], learner_slots=part.learner_slots,
                            device=device, seed=seed + k * MIX_PART_STRIDE)
         for k, part in enumerate(stage.world_parts())

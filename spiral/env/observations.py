@@ -215,9 +215,9 @@ class ObservationBuilder:
         self.cfg = cfg
         self.terms = [name for name, term in OBS_TERMS.items() if term.width(cfg) > 0]
         """Names of the enabled terms, in observation order."""
-        self.length = (cfg.history_len - 1) * cfg.history_stride + 1
+        self.length = cfg.history_len
         self.history = torch.zeros(drone_count, self.length, HISTORY_FEATURES, device=device)
-        """Feature history, oldest first; entries ``::history_stride`` are observed."""
+        """Feature history (N, K, 16), oldest first."""
 
     @property
     def obs_dim(self) -> int:
@@ -255,7 +255,7 @@ class ObservationBuilder:
 
     def observed_history(self) -> torch.Tensor:
         """The observed history entries (N, K, 16), oldest first."""
-        return self.history[:, :: self.cfg.history_stride]
+        return self.history
 
     def build(self, state: ObsState) -> torch.Tensor:
         """Concatenate the observation of every drone, shape (N, obs_dim)."""

@@ -3,10 +3,8 @@ drawn again (perturbed) as the start of a new episode.
 
 Each gate keeps its newest ``capacity`` passage states: position, velocity and yaw at the end of the control step in
 which a racing drone passed it. A start drawn from gate ``g``'s states heads for gate ``g + 1``. The drones of one
-world start behind different gates (a world with more drones than gates gets none of these starts), or, in a share
-``pack`` of the worlds, all behind one gate, as a pack; each state is perturbed by Gaussian noise, and a draw whose
-position is out of bounds or touches a gate's frame, or a pack whose drones are closer than the start box's minimum
-separation, is not used.
+world start behind different gates (a world with more drones than gates gets none of these starts); each state is
+perturbed by Gaussian noise, and a draw whose position is out of bounds or touches a gate's frame is not used.
 """
 
 from __future__ import annotations
@@ -19,7 +17,7 @@ from spiral.env.starts import Starts
 from spiral.env.state import RaceState
 from spiral.env.track_tensors import TrackTensors
 
-__all__ = ["PassageBuffer", "PassageStarts", "clear_of_gates", "closest_pair", "passage_share"]
+__all__ = ["PassageBuffer", "PassageStarts", "clear_of_gates", "passage_share"]
 
 
 def passage_share(cfg: PassageStartsCfg, fraction: float) -> float:
@@ -50,13 +48,6 @@ def clear_of_gates(pos: torch.Tensor, track: TrackSpec | TrackTensors, radius: f
     return inside & ~touches.any(dim=-1)
 
 
-def closest_pair(pos: torch.Tensor) -> torch.Tensor:
-    """Distance between the two closest of each world's drones (positions (W, D, 3)); infinite with one drone."""
-    gaps = torch.cdist(pos, pos)
-    eye = torch.eye(pos.shape[1], dtype=torch.bool, device=pos.device)
-    return gaps.masked_fill(eye, float("inf")).amin(dim=(1, 2))
-
-
 class PassageBuffer:
     """The newest ``capacity`` passage states of each gate (positions, velocities, yaws), on the env's device."""
 
@@ -85,23 +76,21 @@ class PassageBuffer:
         self.head = (self.head + added) % self.capacity
         self.count = (self.count + added).clamp(max=self.capacity)
 
-    def sample(self, pack: torch.Tensor, drones: int, generator: torch.Generator, *, pos_noise: float,
+    def sample(self, world_count: int, drones: int, generator: torch.Generator, *, pos_noise: float,
                vel_noise: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Starts for worlds of ``drones``, one per entry of ``pack`` (W,): positions and velocities (W, D, 3), yaws
-        and next gates (W, D), and whether each world could be given such starts (W,): every drone's gate has
-        recorded states, and there are at least as many gates as drones unless the world is a pack. The drones of a
-        ``pack`` world start behind one gate, those of another world behind different gates."""
-        device, world_count = self.pos.device, pack.numel()
+        """Starts for ``world_count`` worlds of ``drones``: positions and velocities (W, D, 3), yaws and next gates
+        (W, D), and whether each world could be given such starts (W,): every drone's gate has recorded states, and
+        there are at least as many gates as drones. The drones of a world start behind different gates."""
+        device = self.pos.device
         order = torch.rand(world_count, self.gate_count, generator=generator, device=device).argsort(dim=1)
-        spread = order[:, torch.arange(drones, device=device) % self.gate_count]
-        gate = torch.where(pack[:, None], order[:, :1], spread)
+        gate = order[:, torch.arange(drones, device=device) % self.gate_count]
         pick = torch.rand(world_count, drones, generator=generator, device=device)
         slot = (pick * self.count[gate]).long().clamp(max=self.capacity - 1)
         pos = self.pos[gate, slot] + pos_noise * torch.randn(world_count, drones, 3, generator=generator,
                                                             device=device)
         vel = self.vel[gate, slot] + vel_noise * torch.randn(world_count, drones, 3, generator=generator,
                                                             device=device)
-        ok = (self.count[gate] > 0).all(dim=1) & (pack | (drones <= self.gate_count))
+        ok = (self.count[gate] > 0).all(dim=1) & (drones <= self.gate_count)
         return pos, vel, self.yaw[gate, slot], (gate + 1) % self.gate_count, ok
 
 
@@ -143,15 +132,10 @@ class PassageStarts:
             return starts
         world_count, drones = starts.yaw.shape
         device = starts.pos.device
-        pack = torch.zeros(world_count, dtype=torch.bool, device=device)
-        if self.cfg.pack > 0:  # drawn only when used, so that a stage without packs keeps its draws
-            pack = torch.rand(world_count, generator=generator, device=device) < self.cfg.pack
-        pos, vel, yaw, gate, ok = self.buffer.sample(pack, drones, generator, pos_noise=self.cfg.pos_noise,
+        pos, vel, yaw, gate, ok = self.buffer.sample(world_count, drones, generator, pos_noise=self.cfg.pos_noise,
                                                      vel_noise=self.cfg.vel_noise)
         use = torch.rand(world_count, generator=generator, device=device) < self.share
         use &= ok & clear_of_gates(pos, self.geometry, self.radius).all(dim=1)
-        if self.cfg.pack > 0:
-            use &= ~pack | (closest_pair(pos) >= self.track.start.min_separation)
         w, v = use[:, None, None], use[:, None]
         return Starts(torch.where(w, pos, starts.pos), torch.where(w, vel, starts.vel), torch.where(v, yaw, starts.yaw),
                       torch.where(v, gate.to(starts.gate.dtype), starts.gate), starts.box & ~use)

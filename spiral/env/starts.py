@@ -145,7 +145,8 @@ class Starts:
     gate: torch.Tensor
     """Next gate (W, D), int32."""
     box: torch.Tensor
-    """Whether each world starts in the start box (W,), else along the track (at a random point or in single file)."""
+    """Whether each world starts in the start box (W,), else along the track (at a random point or, in evaluation, in
+    single file)."""
 
     def to(self, device: torch.device) -> Starts:
         """These starts on ``device``."""
@@ -154,12 +155,11 @@ class Starts:
 
 def draw_starts(track: TrackSpec | TrackTensors, episode: EpisodeCfg, world_count: int, drones: int,
                 generator: torch.Generator, *, training: bool, device: torch.device, checked: bool = True) -> Starts:
-    """Starts in the start box, and in training a share ``episode.track_start_prob`` of worlds along the track and,
-    with several drones, a share ``episode.file_start_prob`` in single file (taking precedence over the other two).
+    """Starts in the start box, and in training a share ``episode.track_start_prob`` of worlds along the track.
     Evaluation starts every world where ``episode.eval_starts`` says.
 
     The draws depend only on the generator's state: box placements for every world first, then track starts and
-    the choice between them (training with track starts only), then file starts and theirs (only when used).
+    the choice between them (training with track starts only).
     ``checked``: the box draw's (:func:`sample_box_starts`).
     """
     pos, yaw = sample_box_starts(track, world_count, drones, generator, device=device, checked=checked)
@@ -169,14 +169,10 @@ def draw_starts(track: TrackSpec | TrackTensors, episode: EpisodeCfg, world_coun
         sample = sample_track_starts if episode.eval_starts == "track" else sample_file_starts
         drawn = sample(track, world_count, drones, generator, max_speed=episode.track_start_speed, device=device)
         return Starts(*(new.to(old.dtype) for new, old in zip(drawn, state, strict=True)), ~box)
-    others = []
     if training and episode.track_start_prob > 0:
-        others.append((sample_track_starts, episode.track_start_prob))
-    if training and episode.file_start_prob > 0 and drones > 1:
-        others.append((sample_file_starts, episode.file_start_prob))
-    for sample, share in others:
-        drawn = sample(track, world_count, drones, generator, max_speed=episode.track_start_speed, device=device)
-        use = torch.rand(world_count, generator=generator, device=device) < share
+        drawn = sample_track_starts(track, world_count, drones, generator, max_speed=episode.track_start_speed,
+                                    device=device)
+        use = torch.rand(world_count, generator=generator, device=device) < episode.track_start_prob
         state = tuple(torch.where(use.view(-1, *[1] * (old.dim() - 1)), new.to(old.dtype), old)
                       for new, old in zip(drawn, state, strict=True))
         box = box & ~use

@@ -115,11 +115,10 @@ def _world_opponents(stage: StageSpec, members: list[FrozenPolicy], matchmaker: 
     """The opponents of each part of the stage's training worlds that has opponent slots, drawing from ``members``
     through one matchmaker and one generator."""
     sp = stage.selfplay
-    p_self = 0.0 if sp.mirror_actions == "learner" else sp.p_self  # else: own parts
-    draws = OpponentDraws(p_self=p_self, offset=sp.opponent_offset, blind=sp.opponent_blind,
+    draws = OpponentDraws(p_self=sp.p_self, offset=sp.opponent_offset, blind=sp.opponent_blind,
                           unseen=other_drone_columns(stage.env.obs))
     return {
-        part.name: PoolOpponents(members, matchmaker, world_count=part.worlds,
+        part.scenario: PoolOpponents(members, matchmaker, world_count=part.worlds,
                                  per_world=SCENARIO_DRONES[part.scenario] - len(part.learner_slots),
                                  generator=generator, draws=draws)
         for part in stage.world_parts() if part.opponents

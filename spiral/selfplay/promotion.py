@@ -21,7 +21,7 @@ from spiral.selfplay.pool import Pool
 from spiral.train.runner import StageTrainer
 from spiral.train.selection import paired_scores
 
-__all__ = ["PROMOTED_DIR", "HeadToHead", "PromotionSelector", "elo_update", "head_to_head", "keep_promoted",
+__all__ = ["ELO_K", "PROMOTED_DIR", "HeadToHead", "PromotionSelector", "elo_update", "head_to_head", "keep_promoted",
            "self_match_env", "self_match_envs", "should_promote"]
 
 PROMOTED_DIR = "promoted"
@@ -120,6 +120,11 @@ def keep_promoted(best: Path, iteration: int) -> Path:
     return copy
 
 
+ELO_K = 16.0
+"""Elo K-factor of the ratings in ``pool.json``, applied once per promotion check (score: (wins + draws / 2) /
+races)."""
+
+
 def elo_update(rating_a: float, rating_b: float, score_a: float, k: float) -> tuple[float, float]:
     """Elo update for a match in which A scored ``score_a`` in [0, 1] against B."""
     expected = 1.0 / (1.0 + 10.0 ** ((rating_b - rating_a) / 400.0))
@@ -154,7 +159,7 @@ class PromotionSelector:
         scenarios = {key: tuple(score.success for score in paired_scores(env, learner, self.best))
                    for key, env in self.other_self_matches.items()}
         trainer.runner.alg.train_mode()
-        learner_rating, best_rating = elo_update(self.best_rating, self.best_rating, result.score, self.cfg.elo_k)
+        learner_rating, best_rating = elo_update(self.best_rating, self.best_rating, result.score, ELO_K)
         row = {"h2h/win_rate": result.win_rate, "h2h/draws": result.draws / max(result.races, 1),
                "h2h/learner_success": result.a_success, "h2h/best_success": result.b_success,
                "h2h/promoted": 0.0, "eval/success": own.success,

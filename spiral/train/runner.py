@@ -10,7 +10,6 @@ e.g. selfplay's promotion), :class:`~spiral.train.progress.TrainLog` (TensorBoar
 from __future__ import annotations
 
 import contextlib
-import functools
 import io
 import math
 import random
@@ -126,12 +125,11 @@ class StageTrainer:
         return opponents
 
     def _mirror_learner(self, opponents: dict[str, Any]) -> None:
-        """Mirror self-play: opponents that race the learner's current policy get it (mean or sampled actions)."""
+        """Mirror self-play: opponents that race the learner's current policy get it (its mean actions)."""
         actor = self.runner.alg.get_policy()  # called plainly it returns the mean action
-        sampled = self.stage.selfplay.mirror_actions == "sampled"
         for policy in opponents.values():
             if isinstance(policy, MirrorOpponent):
-                policy.live = functools.partial(actor, stochastic_output=True) if sampled else actor
+                policy.live = actor
 
     def _resume_or_init(self, init_checkpoint: Path | None) -> None:
         """Resume from the newest valid checkpoint, else start from ``init_checkpoint``'s policy (if any)."""

@@ -59,3 +59,21 @@ def test_env_settings_of_removed_options_read_as_today_when_off_and_are_refused_
     layout = {**_layout(ObsCfg()), "priority": False}  # an observation option removed since, stored off
     save_checkpoint(tmp_path / "obs.pt", {"w": torch.zeros(1)}, {"obs_layout": layout})
     assert load_checkpoint(tmp_path / "obs.pt")["spiral"]["obs_layout"] == _layout(ObsCfg())
+
+
+def test_a_removed_option_nested_in_a_block_reads_as_today_whether_the_block_was_set_or_null(tmp_path):
+    """``episode.passage_starts.pack`` stored off inside a passage-starts block leaves it; a null block (the
+    default) loads untouched; a pack that was on is refused naming its whole path."""
+    from spiral.config.env import EnvCfg
+
+    env = EnvCfg().model_dump()
+    block = {"share_start": 0.5, "share_end": 0.2, "capacity": 512, "pos_noise": 0.05, "vel_noise": 0.2}
+    for name, stored, today in [("set", {**block, "pack": 0.0}, block), ("null", None, None)]:
+        old = {**env, "episode": {**env["episode"], "passage_starts": stored}}
+        save_checkpoint(tmp_path / f"{name}.pt", {"w": torch.zeros(1)}, {"obs_layout": _layout(ObsCfg()), "env": old})
+        loaded = EnvCfg.model_validate(load_checkpoint(tmp_path / f"{name}.pt")["spiral"]["env"])
+        assert loaded == EnvCfg.model_validate({**env, "episode": {**env["episode"], "passage_starts": today}})
+    on = {**env, "episode": {**env["episode"], "passage_starts": {**block, "pack": 0.3}}}
+    save_checkpoint(tmp_path / "on.pt", {"w": torch.zeros(1)}, {"obs_layout": _layout(ObsCfg()), "env": on})
+    with pytest.raises(CheckpointError, match=r"env\.episode\.passage_starts\.pack: this checkpoint was trained"):
+        load_checkpoint(tmp_path / "on.pt")

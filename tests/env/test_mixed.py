@@ -86,25 +86,6 @@ def test_mixed_env_statistics_add_up_and_report_each_scenarios_success(line2):
     assert env.pop_stats()["episodes"] == 0
 
 
-def test_learner_mirror_worlds_split_off_each_scenarios_mirror_share_as_all_learner_worlds(line2):
-    """With ``mirror_actions: learner`` the mirror share of every multi-drone format becomes worlds whose drones
-    are all learner drones (no opponents); solo worlds have no mirror."""
-    stage = mixed_stage(selfplay={"p_self": 0.5, "mirror_actions": "learner"})
-    parts = [(p.name, p.worlds, p.learner_slots, p.opponents) for p in stage.world_parts()]
-    assert parts == [("2v2", 2, [0, 1], True), ("2v2-mirror", 2, [0, 1, 2, 3], False), ("solo", 2, [0], False),
-                     ("1v1", 1, [0], True), ("1v1-mirror", 1, [0, 1], False)]
-    assert stage.iteration_budget() == 1 and StageSpec.model_validate(
-        {**stage.model_dump(), "iterations": None, "env_steps": 24 * 16}).iteration_budget() == 1
-    env = training_env(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), stage, device="cpu", seed=0)
-    assert env.num_envs == 2 * 2 + 2 * 4 + 2 + 1 + 2 == 17
-    assert env.parts["2v2-mirror"].opponent_slots == [] and env.parts["2v2-mirror"].contested.all()
-
-
-def test_other_mirror_actions_without_mirror_worlds_are_refused():
-    with pytest.raises(ValidationError, match="mirror_actions"):
-        mixed_stage(selfplay={"mirror_actions": "learner"})
-
-
 def test_a_stage_without_mix_trains_on_one_plain_race_env(line2):
     stage = StageSpec(name="1v1", scenario="1v1", worlds=3, iterations=1, env={"obs": {"history_len": 1}})
     env = training_env(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), stage, device="cpu", seed=0)

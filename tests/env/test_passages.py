@@ -7,7 +7,7 @@ import torch
 
 from spiral.config import AIRFRAMES, EnvCfg, ObsCfg, PassageStartsCfg, SimCfg
 from spiral.env import RaceEnv, RaceSetting
-from spiral.env.passages import PassageBuffer, clear_of_gates, closest_pair, passage_share
+from spiral.env.passages import PassageBuffer, clear_of_gates, passage_share
 
 CF2X = AIRFRAMES["cf2x"]
 
@@ -32,7 +32,7 @@ def test_drawn_starts_are_recorded_states_behind_different_gates_heading_for_the
         n = 5
         buf.record(torch.full((n,), g), torch.rand(n, 3) + 10 * g, torch.rand(n, 3), torch.full((n,), float(g)))
     gen = torch.Generator().manual_seed(0)
-    pos, _, yaw, gate, ok = buf.sample(torch.zeros(64, dtype=torch.bool), 3, gen, pos_noise=0.0, vel_noise=0.0)
+    pos, _, yaw, gate, ok = buf.sample(64, 3, gen, pos_noise=0.0, vel_noise=0.0)
     g = (gate - 1) % 4
     assert (g.sort(dim=1).values.diff(dim=1) > 0).all()
     assert torch.equal(ok, (g != 3).all(dim=1))  # exact: booleans
@@ -42,28 +42,7 @@ def test_drawn_starts_are_recorded_states_behind_different_gates_heading_for_the
             held = buf.pos[g[w, d], : buf.count[g[w, d]]]
             assert torch.isclose(held, pos[w, d], rtol=1e-6, atol=1e-9).all(dim=1).any()
             assert yaw[w, d].item() == pytest.approx(g[w, d].item())
-    spread = torch.zeros(4, dtype=torch.bool)
-    assert not buf.sample(spread, 5, gen, pos_noise=0.0, vel_noise=0.0)[-1].any()  # more drones than gates
-
-
-def test_a_pack_starts_every_drone_of_its_world_behind_one_gate_even_with_more_drones_than_gates():
-    """Draw packs of five drones from a buffer of two gates: each pack world's drones come from one gate's states
-    and head for the gate after it; the spread worlds of the same draw cannot start (five drones, two gates)."""
-    buf = PassageBuffer(2, 16, device=torch.device("cpu"))
-    for g in range(2):
-        buf.record(torch.full((16,), g), torch.rand(16, 3) + 10 * g, torch.rand(16, 3), torch.full((16,), float(g)))
-    pack = torch.tensor([True, False] * 16)
-    pos, _, _, gate, ok = buf.sample(pack, 5, torch.Generator().manual_seed(1), pos_noise=0.0, vel_noise=0.0)
-    assert torch.equal(ok, pack)  # exact: booleans
-    assert (gate[pack] == gate[pack][:, :1]).all()
-    source = (gate[pack] - 1) % 2
-    assert ((pos[pack] >= 10 * source[..., None]) & (pos[pack] < 10 * source[..., None] + 1)).all()
-
-
-def test_closest_pair_is_the_smallest_distance_between_two_drones_of_a_world():
-    pos = torch.tensor([[[0.0, 0, 0], [3, 4, 0], [0, 0, 1]], [[0, 0, 0], [1, 0, 0], [5, 0, 0]]])
-    assert closest_pair(pos).tolist() == pytest.approx([1.0, 1.0])
-    assert closest_pair(pos[:, :1]).tolist() == [float("inf")] * 2
+    assert not buf.sample(4, 5, gen, pos_noise=0.0, vel_noise=0.0)[-1].any()  # more drones than gates
 
 
 def test_clearance_rejects_starts_on_a_gate_frame_or_out_of_bounds(oval2):
@@ -111,30 +90,6 @@ def test_a_training_env_starts_worlds_from_the_passages_its_drones_flew(line2):
     for p in starts:
         assert ((recorded - p).norm(dim=-1) < 1e-6).any()
     assert not env.contested.any() and env.vel.norm(dim=-1).gt(0.5).all()
-
-
-def test_packs_in_a_training_env_start_behind_one_gate_no_closer_than_the_start_boxs_separation(oval2):
-    """With every passage start a pack, a two-drone training env whose buffer holds states spread across each gate's
-    opening starts its worlds with both drones behind one gate, heading for the same next gate, at least the start
-    box's minimum separation apart; worlds whose draw is too close keep their box start."""
-    cfg = EnvCfg(obs=ObsCfg(history_len=1), episode={"track_start_prob": 0.0, "passage_starts": {
-        "share_start": 1.0, "share_end": 1.0, "pack": 1.0, "pos_noise": 0.0, "vel_noise": 0.0}})
-    env = RaceEnv(RaceSetting(oval2, CF2X, SimCfg()), cfg, world_count=64, drones_per_world=2, seed=0)
-    buf, gen = env.passages.buffer, torch.Generator().manual_seed(0)
-    centers = torch.tensor(oval2.gate_centers(), dtype=torch.float32)
-    rot = torch.tensor(oval2.gate_rotations(), dtype=torch.float32)
-    for g in range(len(oval2.gates)):  # states 0.3 m past each gate, spread over its opening
-        n = 64
-        side = (torch.rand(n, 2, generator=gen) - 0.5) * oval2.gate_opening(g) * 0.8
-        pos = centers[g] + 0.3 * rot[g][:, 0] + side[:, :1] * rot[g][:, 1] + side[:, 1:] * rot[g][:, 2]
-        buf.record(torch.full((n,), g), pos, 2.0 * rot[g][:, 0].expand(n, 3), torch.zeros(n))
-    env.reset()
-    pos, gate = env.pos.view(64, 2, 3), env.next_gate.view(64, 2)
-    off_box = env.vel.view(64, 2, 3).norm(dim=-1).gt(1.0).all(dim=1)  # box starts are at rest, these at 2 m/s
-    assert off_box.sum() > 16 and (~off_box).any()  # share 1: a box start only where the pack was too close
-    assert env.vel.view(64, 2, 3)[~off_box].norm(dim=-1).lt(1e-6).all()
-    assert (gate[off_box, 0] == gate[off_box, 1]).all()
-    assert (closest_pair(pos[off_box]) >= oval2.start.min_separation).all()
 
 
 def test_the_curriculum_shares_of_passage_track_and_box_starts_at_three_points_of_a_stage(oval2):

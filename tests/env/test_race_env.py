@@ -14,17 +14,15 @@ from tests.env.helpers import make_env
 
 
 def test_only_start_box_races_against_opponents_are_contested(oval2):
-    """Contest the winner of start-box races with opponents present, not of track or file starts or solo flights."""
-    def contested(track_start_prob: float, opponents: bool, file_start_prob: float = 0.0) -> torch.Tensor:
-        env = make_env(oval2, worlds=4, drones=2, learners=(0,),
-                       episode={"track_start_prob": track_start_prob, "file_start_prob": file_start_prob})
+    """Contest the winner of start-box races with opponents present, not of track starts or solo flights."""
+    def contested(track_start_prob: float, opponents: bool) -> torch.Tensor:
+        env = make_env(oval2, worlds=4, drones=2, learners=(0,), episode={"track_start_prob": track_start_prob})
         env.set_opponent_policy((lambda obs: torch.zeros(len(obs["policy"]), 4)) if opponents else None)
         env.reset()
         return env.contested
 
     assert contested(0.0, opponents=True).all()
     assert not contested(1.0, opponents=True).any()
-    assert not contested(0.0, opponents=True, file_start_prob=1.0).any()
     assert not contested(0.0, opponents=False).any()
     solo = make_env(oval2, worlds=4, drones=1, learners=(0,))
     assert not solo.contested.any()

@@ -77,25 +77,6 @@ def test_file_start_jitter_is_the_set_spread_around_the_line(line2):
     assert (across ** 2).mean().sqrt() == pytest.approx(math.sqrt(2) * starts_module.FILE_JITTER, rel=0.05)
 
 
-def test_draw_starts_gives_file_starts_their_share_and_never_to_a_solo_drone(line2):
-    """With file_start_prob 1 every multi-drone world starts in single file (not in the start box); a solo world
-    never does and draws what it would without the option; evaluation always starts in the box."""
-    generator = torch.Generator().manual_seed(1)
-    all_file = EpisodeCfg(track_start_prob=0.5, file_start_prob=1.0)
-    starts = draw_starts(line2, all_file, 64, 2, generator, training=True, device=CPU)
-    assert not starts.box.any() and (starts.gate[:, 0] == starts.gate[:, 1]).all()
-    solo = draw_starts(line2, all_file, 64, 1, torch.Generator().manual_seed(1), training=True, device=CPU)
-    plain = draw_starts(line2, EpisodeCfg(track_start_prob=0.5), 64, 1, torch.Generator().manual_seed(1),
-                        training=True, device=CPU)
-    torch.testing.assert_close(solo.pos, plain.pos)  # the same draws from the same seed
-    assert torch.equal(solo.box, plain.box)  # exact: boolean flags
-    half = draw_starts(line2, EpisodeCfg(track_start_prob=0.0, file_start_prob=0.5), 2000, 2,
-                       torch.Generator().manual_seed(2), training=True, device=CPU)
-    assert (~half.box).float().mean() == pytest.approx(0.5, abs=0.04)
-    evaluation = draw_starts(line2, all_file, 64, 2, torch.Generator().manual_seed(1), training=False, device=CPU)
-    assert evaluation.box.all()
-
-
 @pytest.mark.parametrize("where", ["track", "file"])
 @pytest.mark.bitwise
 def test_evaluation_starts_every_world_off_the_box_when_asked_and_ignores_the_training_shares(line2, where):

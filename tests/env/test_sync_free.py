@@ -11,11 +11,11 @@ from tests.env.helpers import make_env
 
 
 def test_a_training_step_with_every_optional_term_makes_no_host_sync(circuit6):
-    """Every reward term, track, file and passage starts and start cuts on: 2v2 steps with resets read nothing back
+    """Every reward term, track and passage starts and start cuts on: 2v2 steps with resets read nothing back
     on the sync-free path."""
     reward = {"proximity": 1.0, "closing": 1.0, "win": 1.0}
-    episode = {"track_start_prob": 0.3, "file_start_prob": 0.2, "start_cut_prob": 0.5, "start_cut_s": 0.1,
-               "passage_starts": {"share_start": 0.5, "pack": 0.3}}
+    episode = {"track_start_prob": 0.3, "start_cut_prob": 0.5, "start_cut_s": 0.1,
+               "passage_starts": {"share_start": 0.5}}
     env = make_env(circuit6, worlds=8, drones=4, learners=(0, 1), obs=ObsCfg(history_len=3),
                    reward=reward, episode=episode)
     env.sync_free = True
