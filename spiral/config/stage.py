@@ -65,8 +65,6 @@ class PromotionCfg(StrictModel):
     interval: PosInt = Field(default=25, description="Iterations between head-to-head evaluations")
     races: PosInt = Field(default=64, description="Seeded races per evaluation (M): the head to head's, the "
                           "self-match's and each of `scenarios` and `track_starts`")
-    min_races: PosInt | None = Field(default=None, description="Fewest races a promotion may rest on (at most "
-                                     "`races`); null: `races`")
     min_win_rate: float = Field(default=0.55, ge=0, le=1, description="Win rate needed over the current best")
     max_success_drop: float = Field(default=0.02, ge=0, le=1, description="Largest success-ratio drop allowed")
     self_match: bool = Field(
@@ -193,10 +191,6 @@ class StageSpec(StrictModel):
         for name in (n for n in owned if getattr(self.selection, n) != SelectionCfg.model_fields[n].default):
             raise ValueError(f"selection.{name}: a multi-drone stage evaluates at each promotion, its self-match "
                              f"with the head to head; set {owned[name]}")
-        promotion = self.selfplay.promotion
-        if promotion.min_races is not None and promotion.min_races > promotion.races:
-            raise ValueError(f"selfplay.promotion.min_races: {promotion.min_races} is more than the {promotion.races} "
-                             "races of a promotion's head to head (promotion.races): no learner would be promoted")
         return self
 
     @property

@@ -242,7 +242,7 @@ def test_parallel_run_trains_branches_side_by_side_restarts_a_killed_worker_then
 
     path = write_branching_pipeline(tmp_path)
     data = yaml.safe_load(path.read_text())
-    data["stages"][1].update(iterations=12, selfplay={"promotion": {"interval": 6, "races": 4, "min_races": 4}})
+    data["stages"][1].update(iterations=12, selfplay={"promotion": {"interval": 6, "races": 4}})
     path.write_text(yaml.safe_dump(data))
     logs: list[str] = []
     ckpt = runner_for(path, tmp_path).plan.run_root / "train-1v1" / "ckpt"

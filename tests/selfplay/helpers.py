@@ -11,4 +11,4 @@ COMMON = {"worlds": 8, "env": {"obs": {"history_len": 1, "gate_normals": True, "
 SOLO = {**COMMON, "selection": {"interval": 2, "races": 2}}
 """A solo stage's options: COMMON with two evaluation races every second iteration (a multi-drone stage's come from
 its promotion)."""
-PERMISSIVE = {"promotion": {"interval": 1, "races": 4, "min_races": 4, "min_win_rate": 0.0, "max_success_drop": 1.0}}
+PERMISSIVE = {"promotion": {"interval": 1, "races": 4, "min_win_rate": 0.0, "max_success_drop": 1.0}}
