@@ -31,7 +31,7 @@ def sphere_box_overlap(center: wp.vec3, radius: wp.float32, box_center: wp.vec3,
 
 @wp.func
 def sphere_gate_overlap(p: wp.vec3, radius: wp.float32, g: wp.int32, track: TrackArrays) -> wp.bool:
-    """Whether a sphere touches one of the four bars of gate ``g``.
+    """Whether a sphere touches one of the four bars of gate entry ``g`` (of all tracks' gates).
 
     In the gate frame (x normal, opening in y-z) each bar is a box of cross-section bar × bar: the top and bottom
     bars span the full outer width, the side bars the opening's height.
@@ -62,20 +62,23 @@ def collision_bits(
     pos: wp.array[wp.vec3],
     out: wp.array[wp.int32],
     track: TrackArrays,
+    t: wp.int32,
     params: QuadParams,
     drones_per_world: wp.int32,
 ) -> wp.int32:
-    """This substep's collision bits of flying drone ``tid``: ground, arena bounds, gate bars, flying drones."""
+    """This substep's collision bits of flying drone ``tid`` on track ``t``: ground, arena bounds, gate bars, flying
+    drones."""
     p = pos[tid]
     r = params.radius
     bits = wp.int32(0)
     if p[2] < r:
         bits = bits | COLLISION_GROUND
-    lo = track.bounds_min
-    hi = track.bounds_max
+    lo = track.bounds_min[t]
+    hi = track.bounds_max[t]
     if p[0] < lo[0] or p[1] < lo[1] or p[2] < lo[2] or p[0] > hi[0] or p[1] > hi[1] or p[2] > hi[2]:
         bits = bits | COLLISION_BOUNDS
-    for g in range(track.gate_count):
+    first = track.track_first[t]
+    for g in range(first, first + track.track_gates[t]):
         if sphere_gate_overlap(p, r, g, track):
             bits = bits | COLLISION_GATE
     first = (tid / drones_per_world) * drones_per_world
@@ -92,6 +95,7 @@ def detect_collisions_and_gate_passes(
     out: wp.array[wp.int32],
     track: TrackArrays,
     params: QuadParams,
+    world_track: wp.array[wp.int32],
     world_substeps: wp.array[wp.int32],
     drones_per_world: wp.int32,
     substep: wp.int32,
@@ -103,7 +107,8 @@ def detect_collisions_and_gate_passes(
     pass_time: wp.array[wp.float32],
 ):
     """Write this substep's collision bits of each flying drone and advance its next gate when it passed it;
-    drones out of the race (crashed, finished or absent) get bits 0 and no passes.
+    drones out of the race (crashed, finished or absent) get bits 0 and no passes. Each drone meets the gates and
+    bounds of its world's track (``world_track``).
 
     Two concerns in one launch, as one launch per substep is cheaper: both read the substep's positions and the
     crash flags and neither writes what the other reads (the gate test touches only its own drone's race counters,
@@ -113,8 +118,9 @@ def detect_collisions_and_gate_passes(
     tid = wp.tid()
     bits = wp.int32(0)
     if out[tid] == 0:
-        bits = collision_bits(tid, pos, out, track, params, drones_per_world)
-        pass_next_gate(tid, prev_pos, pos, track, world_substeps, drones_per_world, substep, dt, next_gate,
+        t = world_track[tid / drones_per_world]
+        bits = collision_bits(tid, pos, out, track, t, params, drones_per_world)
+        pass_next_gate(tid, prev_pos, pos, track, t, world_substeps, drones_per_world, substep, dt, next_gate,
                        gates_passed, step_passes, pass_time)
     contact[tid] = bits
 

@@ -14,7 +14,8 @@ wp.set_module_options(MODULE_OPTIONS)
 
 @wp.func
 def segment_gate_crossing(p0: wp.vec3, p1: wp.vec3, g: wp.int32, track: TrackArrays) -> wp.float32:
-    """Fraction in [0, 1] of the segment p0 → p1 where it passes gate ``g`` forward through the opening, else −1."""
+    """Fraction in [0, 1] of the segment p0 → p1 where it passes gate entry ``g`` (of all tracks' gates) forward
+    through the opening, else −1."""
     c = track.gate_center[g]
     rot = track.gate_rot[g]
     normal = wp.vec3(rot[0, 0], rot[1, 0], rot[2, 0]) * track.gate_dir[g]
@@ -38,6 +39,7 @@ def pass_next_gate(
     prev_pos: wp.array[wp.vec3],
     pos: wp.array[wp.vec3],
     track: TrackArrays,
+    t: wp.int32,
     world_substeps: wp.array[wp.int32],
     drones_per_world: wp.int32,
     substep: wp.int32,
@@ -47,12 +49,13 @@ def pass_next_gate(
     step_passes: wp.array[wp.int32],
     pass_time: wp.array[wp.float32],
 ):
-    """Advance flying drone ``tid``'s next gate when its substep's path passes it; the crossing time is
-    interpolated in the substep. Called by ``collisions.detect_collisions_and_gate_passes`` for drones not crashed."""
+    """Advance flying drone ``tid``'s next gate of track ``t`` when its substep's path passes it; the crossing time
+    is interpolated in the substep. Called by ``collisions.detect_collisions_and_gate_passes`` for drones not
+    crashed."""
     g = next_gate[tid]
-    t = segment_gate_crossing(prev_pos[tid], pos[tid], g, track)
-    if t >= 0.0:
-        next_gate[tid] = (g + 1) % track.gate_count
+    u = segment_gate_crossing(prev_pos[tid], pos[tid], track.track_first[t] + g, track)
+    if u >= 0.0:
+        next_gate[tid] = (g + 1) % track.track_gates[t]
         gates_passed[tid] = gates_passed[tid] + 1
         step_passes[tid] = step_passes[tid] + 1
-        pass_time[tid] = (wp.float32(world_substeps[tid / drones_per_world] + substep) + t) * dt
+        pass_time[tid] = (wp.float32(world_substeps[tid / drones_per_world] + substep) + u) * dt

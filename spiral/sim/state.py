@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import warp as wp
@@ -65,16 +66,22 @@ class QuadParams:
 
 @wp.struct
 class TrackArrays:
-    """Gate frames and arena bounds. ``gate_rot`` columns are the gate's local x (normal), y and z axes."""
+    """Gate frames and arena bounds of one or more tracks. The gate arrays run over the gates of every track, track
+    after track: gate ``g`` of track ``t`` is entry ``track_first[t] + g``. ``gate_rot`` columns are the gate's local
+    x (normal), y and z axes."""
 
     gate_center: wp.array[wp.vec3]
     gate_rot: wp.array[wp.mat33]
     gate_dir: wp.array[wp.float32]
     gate_half_opening: wp.array[wp.float32]
     gate_bar: wp.array[wp.float32]
-    gate_count: wp.int32
-    bounds_min: wp.vec3
-    bounds_max: wp.vec3
+    track_first: wp.array[wp.int32]
+    """Entry of each track's first gate."""
+    track_gates: wp.array[wp.int32]
+    """Gates of each track."""
+    bounds_min: wp.array[wp.vec3]
+    """Arena bounds of each track."""
+    bounds_max: wp.array[wp.vec3]
 
 
 def make_quad_params(airframe: AirframeCfg, sim: SimCfg) -> QuadParams:
@@ -95,19 +102,23 @@ def make_quad_params(airframe: AirframeCfg, sim: SimCfg) -> QuadParams:
     return p
 
 
-def make_track_arrays(track: TrackSpec, device: str) -> TrackArrays:
-    """Copy a track's gate geometry to ``device``."""
+def make_track_arrays(tracks: Sequence[TrackSpec], device: str) -> TrackArrays:
+    """Copy the gate geometry and bounds of ``tracks`` to ``device``, one after another."""
     t = TrackArrays()
-    count = len(track.gates)
-    t.gate_center = wp.array(track.gate_centers().astype(np.float32), dtype=wp.vec3, device=device)
-    t.gate_rot = wp.array(track.gate_rotations().astype(np.float32), dtype=wp.mat33, device=device)
-    t.gate_dir = wp.array(track.gate_directions().astype(np.float32), dtype=wp.float32, device=device)
-    half = np.array([track.gate_opening(i) / 2 for i in range(count)], dtype=np.float32)
-    bar = np.array([track.gate_bar(i) for i in range(count)], dtype=np.float32)
+    counts = [len(track.gates) for track in tracks]
+    cat = lambda part, dtype: np.concatenate([part(track) for track in tracks]).astype(dtype)  # noqa: E731
+    t.gate_center = wp.array(cat(TrackSpec.gate_centers, np.float32), dtype=wp.vec3, device=device)
+    t.gate_rot = wp.array(cat(TrackSpec.gate_rotations, np.float32), dtype=wp.mat33, device=device)
+    t.gate_dir = wp.array(cat(TrackSpec.gate_directions, np.float32), dtype=wp.float32, device=device)
+    half = cat(lambda track: [track.gate_opening(i) / 2 for i in range(len(track.gates))], np.float32)
+    bar = cat(lambda track: [track.gate_bar(i) for i in range(len(track.gates))], np.float32)
     t.gate_half_opening = wp.array(half, dtype=wp.float32, device=device)
     t.gate_bar = wp.array(bar, dtype=wp.float32, device=device)
-    t.gate_count = count
-    t.bounds_min, t.bounds_max = wp.vec3(*track.bounds.min), wp.vec3(*track.bounds.max)
+    t.track_first = wp.array(np.cumsum([0, *counts[:-1]]).astype(np.int32), dtype=wp.int32, device=device)
+    t.track_gates = wp.array(np.asarray(counts, np.int32), dtype=wp.int32, device=device)
+    bounds = [(track.bounds.min, track.bounds.max) for track in tracks]
+    t.bounds_min = wp.array(np.asarray([lo for lo, _ in bounds], np.float32), dtype=wp.vec3, device=device)
+    t.bounds_max = wp.array(np.asarray([hi for _, hi in bounds], np.float32), dtype=wp.vec3, device=device)
     return t
 
 
@@ -136,7 +147,7 @@ class RaceCounters:
     def __init__(self, world_count: int, drone_count: int, device: str) -> None:
         zeros_i = lambda n: wp.zeros(n, dtype=wp.int32, device=device)  # noqa: E731
         self.next_gate = zeros_i(drone_count)
-        """Index of the gate each drone must pass next."""
+        """Gate each drone must pass next, numbered within its world's track."""
         self.gates_passed = zeros_i(drone_count)
         """Gates passed in order since the last reset."""
         self.step_passes = zeros_i(drone_count)
@@ -157,3 +168,5 @@ class RaceCounters:
         """Physics substeps since each world's reset: world time = substeps · dt, kept exact."""
         self.world_nonfinite = zeros_i(world_count)
         """1 when a drone of the world produced a non-finite state since its reset."""
+        self.world_track = zeros_i(world_count)
+        """Track each world races (an index into :attr:`World.tracks`)."""

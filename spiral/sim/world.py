@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from itertools import pairwise
 from types import SimpleNamespace
@@ -90,6 +91,9 @@ class World:
     yaw in ``pid`` mode, four motor speeds in ``rpm`` mode), then call :meth:`step` for one control step of
     ``sim.substeps`` physics steps. Per-step events are in :attr:`race` (``step_passes``, ``step_collision``).
 
+    ``track`` is the track of every world, or a sequence of tracks: world ``w`` races ``tracks[world_track[w]]``
+    (:meth:`set_world_tracks`; all race the first until told), so that one batch flies many layouts.
+
     ``cpu_threads`` CPU threads step the replayed launches, each on a contiguous share of the worlds (worlds never
     interact, so the result is the same for any count). A Warp CPU launch runs on one core; with 2 threads a process
     steps on two, which pays when the simulator has the cores to itself (docs/physics.md). CUDA ignores it.
@@ -97,7 +101,7 @@ class World:
 
     def __init__(
         self,
-        track: TrackSpec,
+        track: TrackSpec | Sequence[TrackSpec],
         airframe: AirframeCfg,
         sim: SimCfg,
         *,
@@ -110,12 +114,15 @@ class World:
             raise ValueError("world_count and drones_per_world must be positive")
         if cpu_threads < 1:
             raise ValueError(f"cpu_threads must be positive, got {cpu_threads}")
-        self.track_spec, self.airframe, self.sim = track, airframe, sim
+        self.tracks = [track] if isinstance(track, TrackSpec) else list(track)
+        if not self.tracks:
+            raise ValueError("track: give a track or a non-empty sequence of tracks")
+        self.airframe, self.sim = airframe, sim
         self.world_count, self.drones_per_world = world_count, drones_per_world
         self.drone_count = world_count * drones_per_world
         self.device = str(wp.get_device(device))
         self.params = make_quad_params(airframe, sim)
-        self.track = make_track_arrays(track, self.device)
+        self.track = make_track_arrays(self.tracks, self.device)
         self.state = QuadState(self.drone_count, self.device)
         self.race = RaceCounters(world_count, self.drone_count, self.device)
         self._alloc_buffers()
@@ -223,7 +230,7 @@ class World:
                     v.ext_force, self.params, mode, d, dt],
                    [s.prev_pos, r.world_nonfinite])
             launch(detect_collisions_and_gate_passes, n,
-                   [s.prev_pos, s.pos, r.out, self.track, self.params, r.world_substeps, d, k, dt],
+                   [s.prev_pos, s.pos, r.out, self.track, self.params, r.world_track, r.world_substeps, d, k, dt],
                    [r.contact, r.next_gate, r.gates_passed, r.step_passes, r.pass_time])
             launch(apply_contacts, n, [r.contact, r.world_substeps, d, k, dt],
                    [r.step_collision, r.out, r.crash_time])
@@ -251,6 +258,17 @@ class World:
                            r.gates_passed, r.out, r.world_substeps, r.world_nonfinite],
                   device=self.device)
         wp.launch(euler_angles, self.drone_count, inputs=[s.quat], outputs=[self.rpy], device=self.device)
+
+    def set_world_tracks(self, world_track: np.ndarray | wp.array) -> None:
+        """Race world ``w`` on ``tracks[world_track[w]]`` from now on (give each changed world a reset with starts
+        and next gates of its new track); a numpy array is checked against the track count."""
+        if isinstance(world_track, np.ndarray):
+            if world_track.shape != (self.world_count,) or not np.all((world_track >= 0)
+                                                                       & (world_track < len(self.tracks))):
+                raise ValueError(f"world_track: expected {self.world_count} indices in [0, {len(self.tracks)}), got "
+                                 f"{world_track!r}")
+            world_track = wp.array(world_track.astype(np.int32), dtype=wp.int32, device=self.device)
+        wp.copy(self.race.world_track, world_track)
 
     def reset_all(self, init_pos: np.ndarray, init_yaw: np.ndarray | None = None) -> None:
         """Reset every world from numpy arrays (convenience for tests and tools): positions ``(N, 3)``."""

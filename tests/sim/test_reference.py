@@ -119,7 +119,8 @@ def test_reference_contacts_match_kernel(kernels, make_world, circuit6):
     counters = [wp.zeros(3000, dtype=wp.int32, device=dev) for _ in range(3)]  # next gate, gates passed, step passes
     wp.launch(detect_collisions_and_gate_passes, 3000,
               inputs=[p, p, wp.array(crashed, dtype=wp.int32, device=dev), world.track, world.params,
-                      wp.zeros(1000, dtype=wp.int32, device=dev), 3, 0, 1.0 / 240.0],
+                      wp.zeros(1000, dtype=wp.int32, device=dev), wp.zeros(1000, dtype=wp.int32, device=dev), 3, 0,
+                      1.0 / 240.0],
               outputs=[out, *counters, wp.zeros(3000, dtype=wp.float32, device=dev)], device=dev)
     expected = out.numpy()
     assert not counters[1].numpy().any()  # standing still, nobody passes a gate

@@ -8,6 +8,7 @@ import warp as wp
 from pydantic import ValidationError
 
 from spiral.config import SimCfg
+from spiral.sim import World
 from tests.sim.helpers import ON_CUDA
 
 STATE = ("pos", "vel", "quat", "omega", "rpm")
@@ -228,3 +229,55 @@ def test_cpu_threads_must_be_positive(make_world):
     """A thread count below one is refused by name."""
     with pytest.raises(ValueError, match="cpu_threads"):
         make_world(cpu_threads=0)
+
+
+def _fly_the_gates(world: World, starts: np.ndarray, steps: int) -> list[dict[str, np.ndarray]]:
+    """Reset ``world`` at ``starts`` and steer every drone at a point 0.5 m past its next gate of its world's track,
+    the drones of a world side by side in the opening, for ``steps`` control steps; the race state after each step."""
+    world.reset_all(starts)
+    tracks = [world.tracks[t] for t in world.race.world_track.numpy()]
+    d, history = world.drones_per_world, []
+    side = [0.1 * (2 * (i % d) / max(d - 1, 1) - 1) for i in range(world.drone_count)]
+    for _ in range(steps):
+        gate = world.race.next_gate.numpy()
+        cmd = np.zeros((world.drone_count, 4), np.float32)
+        for i in range(world.drone_count):
+            t, g = tracks[i // d], gate[i]
+            cmd[i, :3] = t.gate_centers()[g] + 0.5 * t.gate_forward()[g] + side[i] * t.gate_rotations()[g][:, 1]
+        world.cmd.assign(cmd)
+        world.step()
+        history.append({name: getattr(src, name).numpy().copy() for src, names in (
+            (world.state, ("pos", "vel", "quat")), (world.race, ("next_gate", "gates_passed", "out", "pass_time",
+                                                                 "step_collision"))) for name in names})
+    return history
+
+
+@pytest.mark.bitwise
+def test_worlds_on_different_tracks_step_exactly_as_each_would_alone(kernels, cf2x, circuit6, oval2):
+    """Four worlds of two drones race circuit6 and oval2 alternately, in two CPU threads: each world's drones fly,
+    pass gates and meet frames and bounds exactly as the same world in a batch of its track alone."""
+    tracks = [circuit6, oval2]
+    mixed = World(tracks, cf2x, SimCfg(), world_count=4, drones_per_world=2, cpu_threads=2)
+    mixed.set_world_tracks(np.array([0, 1, 0, 1]))
+    box = lambda t, dx: np.asarray(t.start.center) + np.array([[dx, -0.15, 0.0], [dx, 0.15, 0.0]])  # noqa: E731
+    starts = np.concatenate([box(tracks[k % 2], 0.1 * k) for k in range(4)])
+    together = _fly_the_gates(mixed, starts, 200)
+    for t, track in enumerate(tracks):
+        alone = _fly_the_gates(World(track, mixed.airframe, SimCfg(), world_count=2, drones_per_world=2),
+                               starts.reshape(4, 2, 3)[t::2].reshape(-1, 3), 200)
+        rows = np.concatenate([np.arange(2 * w, 2 * w + 2) for w in (t, t + 2)])
+        for step_mixed, step_alone in zip(together, alone, strict=True):
+            for name, value in step_alone.items():
+                assert np.array_equal(step_mixed[name][rows], value), name  # exact: same arithmetic per drone
+    passed = together[-1]["gates_passed"].reshape(4, 2)
+    assert passed[0::2].max() >= 1 and passed[1::2].max() >= 1  # drones of both tracks passed gates of their own
+
+
+def test_world_tracks_must_name_a_track_of_the_world(kernels, cf2x, circuit6):
+    world = World([circuit6], cf2x, SimCfg(), world_count=2, drones_per_world=1)
+    with pytest.raises(ValueError, match="world_track"):
+        world.set_world_tracks(np.array([0, 1]))
+    with pytest.raises(ValueError, match="world_track"):
+        world.set_world_tracks(np.array([0]))
+    with pytest.raises(ValueError, match="track"):
+        World([], cf2x, SimCfg(), world_count=1, drones_per_world=1)
