@@ -117,8 +117,8 @@ def training_env(setting: RaceSetting, stage: StageSpec, *, device: str, seed: i
     with the stage's seed."""
     parts = {
         part.scenario: RaceEnv(setting, stage.env, world_count=part.worlds,
-                           drones_per_world=SCENARIO_DRONES[part.scenario], learner_slots=part.learner_slots,
-                           device=device, seed=seed + k * MIX_PART_STRIDE)
+                               drones_per_world=SCENARIO_DRONES[part.scenario], learner_slots=part.learner_slots,
+                               device=device, seed=seed + k * MIX_PART_STRIDE)
         for k, part in enumerate(stage.world_parts())
     }
     return next(iter(parts.values())) if len(parts) == 1 else MixedRaceEnv(parts)

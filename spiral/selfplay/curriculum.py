@@ -119,8 +119,8 @@ def _world_opponents(stage: StageSpec, members: list[FrozenPolicy], matchmaker: 
                           unseen=other_drone_columns(stage.env.obs))
     return {
         part.scenario: PoolOpponents(members, matchmaker, world_count=part.worlds,
-                                 per_world=SCENARIO_DRONES[part.scenario] - len(part.learner_slots),
-                                 generator=generator, draws=draws)
+                                     per_world=SCENARIO_DRONES[part.scenario] - len(part.learner_slots),
+                                     generator=generator, draws=draws)
         for part in stage.world_parts() if part.opponents
     }
 

@@ -66,14 +66,12 @@ def should_promote(result: HeadToHead, cfg: PromotionCfg, self_match: tuple[floa
                    scenarios: Mapping[str, tuple[float, float]] | None = None) -> bool:
     """Whether the learner (team A of ``result``) replaces the best.
 
-    Faster: win rate at least ``min_win_rate`` with success not below the best's
-    by more than ``max_success_drop`` (and, given ``self_match = (learner, best)`` self-match success ratios and
-    ``cfg.self_match``, self-match success not below the best's by more than that either). Safer (with
-    ``cfg.self_match`` and ``cfg.self_match_gain``): self-match success at least ``self_match_gain`` above the
-    best's and head-to-head success not below the best's by more than
-    ``max_success_drop``. Either way, given ``scenarios`` (key →
-    (learner, best) success ratios in the other self-matches of :func:`self_match_envs`), none of them more than
-    ``max_success_drop`` below the best's.
+    Faster: win rate at least ``min_win_rate`` with success not below the best's by more than ``max_success_drop``
+    (and, given ``self_match = (learner, best)`` self-match success ratios and ``cfg.self_match``, self-match success
+    not below the best's by more than that either). Safer (with ``cfg.self_match`` and ``cfg.self_match_gain``):
+    self-match success at least ``self_match_gain`` above the best's and head-to-head success not below the best's
+    by more than ``max_success_drop``. Either way, given ``scenarios`` (key → (learner, best) success ratios in the
+    other self-matches of :func:`self_match_envs`), none of them more than ``max_success_drop`` below the best's.
     """
     if any(own < best - cfg.max_success_drop for own, best in (scenarios or {}).values()):
         return False

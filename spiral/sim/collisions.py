@@ -77,8 +77,8 @@ def collision_bits(
     hi = track.bounds_max[t]
     if p[0] < lo[0] or p[1] < lo[1] or p[2] < lo[2] or p[0] > hi[0] or p[1] > hi[1] or p[2] > hi[2]:
         bits = bits | COLLISION_BOUNDS
-    first = track.track_first[t]
-    for g in range(first, first + track.track_gates[t]):
+    first_gate = track.track_first[t]
+    for g in range(first_gate, first_gate + track.track_gates[t]):
         if sphere_gate_overlap(p, r, g, track):
             bits = bits | COLLISION_GATE
     first = (tid / drones_per_world) * drones_per_world
