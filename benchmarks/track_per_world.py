@@ -5,8 +5,9 @@ Run from the repository root with spiral's interpreter:
 
     OMP_NUM_THREADS=1 python benchmarks/track_per_world.py --worlds 1024 --drones 2 --repeats 5 --json out.json
 
-Three worlds of the same size, stepped with the same random position targets (redrawn every 10 control steps, crash
-flags cleared each step, as ``spiral bench sim`` does):
+Three worlds of the same size, stepped with the same random targets and timed as ``spiral bench sim`` times a world
+(``spiral.sim.bench.draw_inputs`` and ``time_warp``: targets redrawn every 10 control steps, crash flags cleared each
+step):
 
 - ``shared``: every world races circuit6;
 - ``copies``: eight copies of circuit6, world ``w`` on copy ``w % 8``: the same gates, so the difference to
@@ -22,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -31,33 +31,19 @@ import warp as wp
 from spiral.config import SimCfg, load_track
 from spiral.config.airframe import AIRFRAMES
 from spiral.sim import World
+from spiral.sim.bench import draw_inputs, time_warp
 
 TRACKS = Path(__file__).resolve().parents[1] / "tracks"
-REDRAW = 10
 
 
-def make_world(tracks: list, worlds: int, drones: int, rng: np.random.Generator) -> tuple[World, list[wp.array]]:
-    """A world of ``worlds`` × ``drones`` with world ``w`` on ``tracks[w % len(tracks)]``, and its target sets."""
+def make_world(tracks: list, worlds: int, drones: int) -> tuple[World, list[wp.array]]:
+    """A world of ``worlds`` × ``drones`` with world ``w`` on ``tracks[w % len(tracks)]``, and its target sets (the
+    same for every variant: drawn in the first track's arena, seed 0)."""
     world = World(tracks, AIRFRAMES["cf2x"], SimCfg(), world_count=worlds, drones_per_world=drones)
     world.set_world_tracks(np.arange(worlds) % len(tracks))
-    lo, hi = np.asarray(tracks[0].bounds.min) + 0.5, np.asarray(tracks[0].bounds.max) - 0.5
-    n = worlds * drones
-    world.reset_all(rng.uniform(lo, hi, (n, 3)).astype(np.float32))
-    targets = [np.concatenate([rng.uniform(lo, hi, (n, 3)), np.zeros((n, 1))], axis=1).astype(np.float32)
-               for _ in range(8)]
+    start, yaw, targets = draw_inputs(tracks[0], worlds * drones, 8, 0)
+    world.reset_all(start, yaw)
     return world, [wp.array(t, dtype=wp.vec4, device=world.device) for t in targets]
-
-
-def timed(world: World, targets: list[wp.array], steps: int, first: int) -> float:
-    """Wall seconds of ``steps`` control steps from step ``first`` of the target schedule."""
-    start = time.perf_counter()
-    for i in range(first, first + steps):
-        if i % REDRAW == 0:
-            wp.copy(world.cmd, targets[(i // REDRAW) % len(targets)])
-        world.race.out.zero_()
-        world.step()
-    wp.synchronize_device(world.device)
-    return time.perf_counter() - start
 
 
 def main() -> None:
@@ -71,14 +57,13 @@ def main() -> None:
     circuit6 = load_track(TRACKS / "circuit6.yaml")
     variants = {"shared": [circuit6], "copies": [circuit6] * 8,
                 "shipped": [load_track(p) for p in sorted(TRACKS.glob("*.yaml"))]}
-    rng = np.random.default_rng(0)
-    built = {name: make_world(tracks, args.worlds, args.drones, rng) for name, tracks in variants.items()}
+    built = {name: make_world(tracks, args.worlds, args.drones) for name, tracks in variants.items()}
     best = dict.fromkeys(built, float("inf"))
     for world, targets in built.values():
-        timed(world, targets, 5, 0)  # warm-up
+        time_warp(world, targets, 5, 0)  # warm-up
     for r in range(args.repeats):
         for name, (world, targets) in built.items():
-            best[name] = min(best[name], timed(world, targets, args.steps, 5 + r * args.steps))
+            best[name] = min(best[name], time_warp(world, targets, args.steps, 5 + r * args.steps)[0])
     n = args.worlds * args.drones
     result = {"worlds": args.worlds, "drones": args.drones, "steps": args.steps, "repeats": args.repeats,
               **{f"{name}_drone_ctrl_steps_per_s": round(n * args.steps / t) for name, t in best.items()},

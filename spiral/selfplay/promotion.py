@@ -26,6 +26,9 @@ __all__ = ["ELO_K", "PROMOTED_DIR", "HeadToHead", "PromotionSelector", "elo_upda
 
 PROMOTED_DIR = "promoted"
 """Folder beside a stage's ``best.pt`` with a copy of every policy the stage promoted."""
+ELO_K = 16.0
+"""Elo K-factor of the ratings in ``pool.json``, applied once per promotion check (score: (wins + draws / 2) /
+races)."""
 
 
 @dataclass
@@ -115,11 +118,6 @@ def keep_promoted(best: Path, iteration: int) -> Path:
     copy = folder / f"best-{iteration:05d}.pt"
     copy_checkpoint(best, copy)
     return copy
-
-
-ELO_K = 16.0
-"""Elo K-factor of the ratings in ``pool.json``, applied once per promotion check (score: (wins + draws / 2) /
-races)."""
 
 
 def elo_update(rating_a: float, rating_b: float, score_a: float, k: float) -> tuple[float, float]:

@@ -34,9 +34,9 @@ from spiral.sim.options import MODULE_OPTIONS
 from spiral.sim.reference import ReferenceSim
 from spiral.sim.world import World
 
-__all__ = ["BenchExtras", "default_world_counts", "format_bench_table", "format_kernel_table", "kernel_profile",
-           "machine_info", "run_build_comparison", "run_sim_bench", "run_sim_bench_two_process", "time_world",
-           "two_process_worker"]
+__all__ = ["BenchExtras", "default_world_counts", "draw_inputs", "format_bench_table", "format_kernel_table",
+           "kernel_profile", "machine_info", "run_build_comparison", "run_sim_bench", "run_sim_bench_two_process",
+           "time_warp", "time_world", "two_process_worker"]
 
 TARGET_REDRAW_STEPS = 10
 """Control steps between two draws of the random targets (about 0.2 s at 48 Hz)."""
@@ -95,7 +95,7 @@ def _bench_cfg() -> SimCfg:
     return SimCfg(physics_hz=240, ctrl_hz=48, control_mode="pid", freeze_crashed=False)
 
 
-def _draw_inputs(track: TrackSpec, drone_count: int, draws: int,
+def draw_inputs(track: TrackSpec, drone_count: int, draws: int,
                  seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Start positions ``(n, 3)``, start yaws ``(n,)`` and ``draws`` target sets ``(draws, n, 4)``, in the arena."""
     rng = np.random.default_rng(seed)
@@ -109,7 +109,7 @@ def _draw_inputs(track: TrackSpec, drone_count: int, draws: int,
     return start, yaw, targets
 
 
-def _time_warp(world: World, targets: list[wp.array], steps: int, first: int) -> tuple[float, float]:
+def time_warp(world: World, targets: list[wp.array], steps: int, first: int) -> tuple[float, float]:
     """Wall and process CPU seconds for ``steps`` control steps, from step ``first`` of the target schedule."""
     device = world.device
     wp.synchronize_device(device)
@@ -124,7 +124,7 @@ def _time_warp(world: World, targets: list[wp.array], steps: int, first: int) ->
 
 
 def _time_numpy(ref: ReferenceSim, targets: np.ndarray, steps: int, first: int) -> tuple[float, float]:
-    """Wall and CPU seconds for ``steps`` control steps of the numpy reference, on :func:`_time_warp`'s schedule."""
+    """Wall and CPU seconds for ``steps`` control steps of the numpy reference, on :func:`time_warp`'s schedule."""
     start, cpu = time.perf_counter(), time.process_time()
     cmd = targets[(first // TARGET_REDRAW_STEPS) % len(targets)]
     for i in range(first, first + steps):
@@ -139,7 +139,7 @@ def _make_world(track: TrackSpec, airframe: AirframeCfg, world_count: int, drone
                 seed: int, cpu_threads: int = 1) -> tuple[World, list[wp.array], np.ndarray, np.ndarray, np.ndarray]:
     n = world_count * drones
     draws = 8
-    start, yaw, targets = _draw_inputs(track, n, draws, seed)
+    start, yaw, targets = draw_inputs(track, n, draws, seed)
     world = World(track, airframe, _bench_cfg(), world_count=world_count, drones_per_world=drones, device=device,
                   cpu_threads=cpu_threads)
     world.reset_all(start, yaw)
@@ -154,12 +154,12 @@ def _bench_row(track: TrackSpec, airframe: AirframeCfg, world_count: int, drones
     world, targets_wp, start, yaw, targets = _make_world(track, airframe, world_count, drones, device, seed)
     ref = ReferenceSim(airframe, _bench_cfg(), n, track=track, drones_per_world=drones, dtype=np.float32)
     ref.reset(start, yaw)
-    _time_warp(world, targets_wp, WARMUP_STEPS, 0)
+    time_warp(world, targets_wp, WARMUP_STEPS, 0)
     one = _time_numpy(ref, targets, 1, 0)[0]  # untimed warm-up, also sizes the numpy run
     np_steps = int(min(steps, max(3, NUMPY_BUDGET_S / max(one, 1e-9))))
     warp_t, np_t = [], []
     for r in range(repeats):
-        warp_t.append(_time_warp(world, targets_wp, steps, WARMUP_STEPS + r * steps))
+        warp_t.append(time_warp(world, targets_wp, steps, WARMUP_STEPS + r * steps))
         np_t.append(_time_numpy(ref, targets, np_steps, 1 + r * np_steps))
     speed = np.linalg.norm(world.state.vel.numpy(), axis=1)
     warp_rate, np_rate = n * steps / min(t[0] for t in warp_t), n * np_steps / min(t[0] for t in np_t)
@@ -291,8 +291,8 @@ def time_world(world_count: int, drones: int, *, device: str = "cpu", steps: int
     wp.init()
     track, airframe = track if track is not None else load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"]
     world, targets_wp, *_ = _make_world(track, airframe, world_count, drones, device, seed, cpu_threads)
-    _time_warp(world, targets_wp, WARMUP_STEPS, 0)
-    times = [_time_warp(world, targets_wp, steps, WARMUP_STEPS + r * steps) for r in range(repeats)]
+    time_warp(world, targets_wp, WARMUP_STEPS, 0)
+    times = [time_warp(world, targets_wp, steps, WARMUP_STEPS + r * steps) for r in range(repeats)]
     n = world_count * drones
     rate = n * steps / min(t[0] for t in times)
     return {
@@ -368,7 +368,7 @@ def kernel_profile(world_count: int, drones: int, *, device: str = "cpu", launch
     wp.init()
     track, airframe = track if track is not None else load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"]
     world, targets_wp, *_ = _make_world(track, airframe, world_count, drones, device, seed)
-    _time_warp(world, targets_wp, WARMUP_STEPS, 0)
+    time_warp(world, targets_wp, WARMUP_STEPS, 0)
     restore = _restorer(world)
     best_of = partial(_best_per_call, world, restore, repeats=repeats)  # each repeat starts from the snapshot
     rows = _kernel_rows(world, best_of, launches)
@@ -439,12 +439,12 @@ def two_process_worker(world_count: int, drones: int, device: str, steps: int, s
     wp.init()  # quiet: spiral.sim.world sets Warp's log level on import
     world, targets_wp, *_ = _make_world(load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"], world_count, drones, device,
                                         seed)
-    _time_warp(world, targets_wp, WARMUP_STEPS, 0)
+    time_warp(world, targets_wp, WARMUP_STEPS, 0)
     for r in range(repeats):
         print("ready", flush=True)
         sys.stdin.readline()
         begin = time.perf_counter()
-        _time_warp(world, targets_wp, steps, WARMUP_STEPS + r * steps)
+        time_warp(world, targets_wp, steps, WARMUP_STEPS + r * steps)
         print(f"span {begin!r} {time.perf_counter()!r}", flush=True)
 
 

@@ -259,16 +259,15 @@ class World:
                   device=self.device)
         wp.launch(euler_angles, self.drone_count, inputs=[s.quat], outputs=[self.rpy], device=self.device)
 
-    def set_world_tracks(self, world_track: np.ndarray | wp.array) -> None:
+    def set_world_tracks(self, world_track: np.ndarray) -> None:
         """Race world ``w`` on ``tracks[world_track[w]]`` from now on (give each changed world a reset with starts
-        and next gates of its new track); a numpy array is checked against the track count."""
-        if isinstance(world_track, np.ndarray):
-            if world_track.shape != (self.world_count,) or not np.all((world_track >= 0)
-                                                                       & (world_track < len(self.tracks))):
-                raise ValueError(f"world_track: expected {self.world_count} indices in [0, {len(self.tracks)}), got "
-                                 f"{world_track!r}")
-            world_track = wp.array(world_track.astype(np.int32), dtype=wp.int32, device=self.device)
-        wp.copy(self.race.world_track, world_track)
+        and next gates of its new track)."""
+        world_track = np.asarray(world_track)
+        in_range = np.all((world_track >= 0) & (world_track < len(self.tracks)))
+        if world_track.shape != (self.world_count,) or not in_range:
+            raise ValueError(f"world_track: expected {self.world_count} indices in [0, {len(self.tracks)}), got "
+                             f"{world_track!r}")
+        self.race.world_track.assign(world_track.astype(np.int32))
 
     def reset_all(self, init_pos: np.ndarray, init_yaw: np.ndarray | None = None) -> None:
         """Reset every world from numpy arrays (convenience for tests and tools): positions ``(N, 3)``."""

@@ -235,15 +235,17 @@ def _fly_the_gates(world: World, starts: np.ndarray, steps: int) -> list[dict[st
     """Reset ``world`` at ``starts`` and steer every drone at a point 0.5 m past its next gate of its world's track,
     the drones of a world side by side in the opening, for ``steps`` control steps; the race state after each step."""
     world.reset_all(starts)
-    tracks = [world.tracks[t] for t in world.race.world_track.numpy()]
     d, history = world.drones_per_world, []
-    side = [0.1 * (2 * (i % d) / max(d - 1, 1) - 1) for i in range(world.drone_count)]
+    aims = []  # per drone, the point it steers at behind each gate of its world's track (gates × 3)
+    for i in range(world.drone_count):
+        t = world.tracks[world.race.world_track.numpy()[i // d]]
+        side = 0.1 * (2 * (i % d) / max(d - 1, 1) - 1)
+        aims.append(t.gate_centers() + 0.5 * t.gate_forward() + side * t.gate_rotations()[:, :, 1])
     for _ in range(steps):
         gate = world.race.next_gate.numpy()
         cmd = np.zeros((world.drone_count, 4), np.float32)
         for i in range(world.drone_count):
-            t, g = tracks[i // d], gate[i]
-            cmd[i, :3] = t.gate_centers()[g] + 0.5 * t.gate_forward()[g] + side[i] * t.gate_rotations()[g][:, 1]
+            cmd[i, :3] = aims[i][gate[i]]
         world.cmd.assign(cmd)
         world.step()
         history.append({name: getattr(src, name).numpy().copy() for src, names in (
