@@ -23,7 +23,7 @@ from spiral.config.stage import StageSpec
 from spiral.core.checkpoint import load_checkpoint
 from spiral.core.numerics import TORCH_AVX2_ENV, cpu_target, portable_build
 from spiral.env.setting import RaceSetting
-from spiral.sim.bench import DEFAULT_TRACK, _make_world, _time_warp, machine_info
+from spiral.sim.bench import DEFAULT_TRACK, _make_world, machine_info, time_warp
 from spiral.sim.options import MODULE_OPTIONS
 from spiral.train.runner import StageTrainer
 
@@ -47,7 +47,7 @@ def sim_digest(*, world_count: int = 64, drones: int = 4, steps: int = 200, seed
     start points and targets of ``seed``, gates and collisions on)."""
     wp.init()
     world, targets, *_ = _make_world(load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"], world_count, drones, "cpu", seed)
-    _time_warp(world, targets, steps, 0)
+    time_warp(world, targets, steps, 0)
     digest = hashlib.sha256()
     for name in ("pos", "vel", "quat", "omega"):
         digest.update(getattr(world.state, name).numpy().tobytes())
