@@ -36,17 +36,18 @@ class RaceEvents:
     """Duration of the lap each drone completed during the step, else 0 [s] (:func:`lap_splits`)."""
 
 
-def _laps_closed(passed: torch.Tensor, gates: int) -> torch.Tensor:
+def _laps_closed(passed: torch.Tensor, gates: int | torch.Tensor) -> torch.Tensor:
     """Laps closed after ``passed`` gate passages of a race whose first passage is its start line."""
     return torch.div((passed - 1).clamp(min=0), gates, rounding_mode="floor")
 
 
 def lap_splits(gates_passed: torch.Tensor, step_passes: torch.Tensor, pass_time: torch.Tensor,
-               lap_start: torch.Tensor, counted: torch.Tensor, gates: int) -> tuple[torch.Tensor, torch.Tensor]:
+               lap_start: torch.Tensor, counted: torch.Tensor, gates: int | torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor]:
     """The laps ``counted`` drones completed during a step: a race's first passage crosses its start line and every
-    ``gates`` passages after it close a lap. Returns each drone's lap duration, passage time less ``lap_start`` (0
-    for drones without a lap in the step), and the updated lap starts (the passage time where a lap closed) [s].
-    Over a one-lap race the only split is the race time."""
+    ``gates`` passages after it (a count, or each drone's (N,)) close a lap. Returns each drone's lap duration,
+    passage time less ``lap_start`` (0 for drones without a lap in the step), and the updated lap starts (the passage
+    time where a lap closed) [s]. Over a one-lap race the only split is the race time."""
     closed = counted & (_laps_closed(gates_passed, gates) > _laps_closed(gates_passed - step_passes, gates))
     split = torch.where(closed, pass_time - lap_start, torch.zeros_like(pass_time))
     return split, torch.where(closed, pass_time, lap_start)

@@ -78,7 +78,7 @@ class Neighbours:
     mask: torch.Tensor
     """Whether each of them exists (W, D, 2)."""
     gates: torch.Tensor
-    """Indices of the next gate and the one after (N, 2)."""
+    """Rows of the next gate and the one after in the env's gate arrays (N, 2) (track-major over its tracks)."""
 
     def relative(self, x: torch.Tensor) -> torch.Tensor:
         """Per-drone vectors ``x`` (N, 3) of the nearest drones minus the drone's own, zero where absent: (W, D, 2,
@@ -96,13 +96,14 @@ def relative_to_others(x: torch.Tensor, idx: torch.Tensor, mask: torch.Tensor) -
     return (other - x_w[:, :, None]) * mask[..., None]
 
 
-def neighbours(pos: torch.Tensor, out: torch.Tensor, next_gate: torch.Tensor, gate_count: int, *, world_count: int,
-               drones_per_world: int) -> Neighbours:
-    """The nearest drones still racing (``out == 0``) and the next 2 gates of every drone."""
+def neighbours(pos: torch.Tensor, out: torch.Tensor, next_gate: torch.Tensor, gate_count: torch.Tensor,
+               gate_base: torch.Tensor, *, world_count: int, drones_per_world: int) -> Neighbours:
+    """The nearest drones still racing (``out == 0``) and the next 2 gates of every drone, whose track has
+    ``gate_count`` gates (N,) from row ``gate_base`` (N,) of the gate arrays on."""
     w, d = world_count, drones_per_world
     near_idx, near_mask = nearest_others(pos.view(w, d, 3), (out == 0).view(w, d))
     gates = torch.stack([next_gate.long(), (next_gate.long() + 1) % gate_count], 1)
-    return Neighbours(near_idx, near_mask, gates)
+    return Neighbours(near_idx, near_mask, gates + gate_base[:, None])
 
 
 def history_entry(pos: torch.Tensor, near: Neighbours, gate_center: torch.Tensor, last_action: torch.Tensor
@@ -299,7 +300,12 @@ class ObsSource:
     race_team: torch.Tensor
     """Race team of each slot (D,)."""
     gate_center: torch.Tensor
+    """Gate centres of every track, track-major (T · G, 3)."""
     gate_forward: torch.Tensor
+    gate_count: torch.Tensor
+    """Gates of each drone's track (N,)."""
+    gate_base: torch.Tensor
+    """Row of each drone's track's first gate in ``gate_center`` (N,)."""
     other_slots: torch.Tensor
     """(D, D − 1): the other slots of each slot's world, as the race critic lists them."""
 
@@ -342,8 +348,8 @@ class Observer:
     def _push(self, last_action: torch.Tensor, fresh: torch.Tensor) -> None:
         v = self.source
         d = v.race_team.shape[0]
-        self.near = neighbours(v.pos, v.out, v.next_gate, v.gate_center.shape[0], world_count=v.pos.shape[0] // d,
-                               drones_per_world=d)
+        self.near = neighbours(v.pos, v.out, v.next_gate, v.gate_count, v.gate_base,
+                               world_count=v.pos.shape[0] // d, drones_per_world=d)
         self.builder.push(history_entry(v.pos, self.near, v.gate_center, last_action), fresh)
 
     def _build(self) -> torch.Tensor:

@@ -16,7 +16,7 @@ def step_outcome(state: RaceState, ev: RaceEvents) -> StepOutcome:
     """The reward terms' view of the step of ``state``'s env; frozen drones make no progress."""
     racing, zero = ev.racing, torch.zeros_like(ev.dist_before)
     nearest = None
-    to_gate = state.gate_center[state.next_gate.long()] - state.pos
+    to_gate = state.to_next_gate()
     reward, w, d = state.cfg.reward, state.world_count, state.drones_per_world
     if reward.proximity > 0:
         nearest = nearest_distance(state.pos, state.out, world_count=w, drones_per_world=d)

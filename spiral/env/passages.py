@@ -3,8 +3,9 @@ drawn again (perturbed) as the start of a new episode.
 
 Each gate keeps its newest ``capacity`` passage states: position, velocity and yaw at the end of the control step in
 which a racing drone passed it. A start drawn from gate ``g``'s states heads for gate ``g + 1``. The drones of one
-world start behind different gates (a world with more drones than gates gets none of these starts); each state is
-perturbed by Gaussian noise, and a draw whose position is out of bounds or touches a gate's frame is not used.
+world start behind different gates of the world's track (a world with more drones than gates gets none of these
+starts); each state is perturbed by Gaussian noise, and a draw whose position is out of bounds or touches a gate's
+frame is not used. With several tracks (a track per world) every gate of every track keeps its own states.
 """
 
 from __future__ import annotations
@@ -28,9 +29,10 @@ def passage_share(cfg: PassageStartsCfg, fraction: float) -> float:
 
 
 def clear_of_gates(pos: torch.Tensor, track: TrackSpec | TrackTensors, radius: float, *,
-                   margin: float = 0.05) -> torch.Tensor:
+                   margin: float = 0.05, world_tracks: torch.Tensor | None = None) -> torch.Tensor:
     """Whether a sphere of ``radius`` at each position (..., 3) keeps ``margin`` from every gate's frame and from the
-    arena's bounds.
+    arena's bounds; positions (W, D, 3) with ``world_tracks`` (W,) are checked against their world's track of
+    ``track`` (default: the first track).
 
     A gate's frame is the square ring between the opening (half side ``h``) and the outer side (``h`` plus the bar),
     as deep as the bar. A sphere touches it when it reaches into that slab (``|x| < bar / 2 + r``) and is not inside
@@ -39,36 +41,52 @@ def clear_of_gates(pos: torch.Tensor, track: TrackSpec | TrackTensors, radius: f
     """
     r = radius + margin
     geometry = TrackTensors.of(track, pos.device)
-    centers, rot, half, bar = geometry.gate_centers, geometry.gate_rotations, geometry.gate_half, geometry.gate_bar
-    local = torch.einsum("gij,...gi->...gj", rot, pos[..., None, :] - centers)  # rot's columns: normal, y, z
+    if world_tracks is None:
+        centers, rot, half, bar = (x[0] for x in (geometry.gate_centers, geometry.gate_rotations, geometry.gate_half,
+                                                  geometry.gate_bar))
+        local = torch.einsum("gij,...gi->...gj", rot, pos[..., None, :] - centers)  # rot's columns: normal, y, z
+        lo, hi = geometry.bounds[0][0] + r, geometry.bounds[1][0] - r
+    else:  # (W, D, 3): each world's own track
+        t = world_tracks.long()
+        centers, rot, half, bar = (x[t][:, None] for x in (geometry.gate_centers, geometry.gate_rotations,
+                                                           geometry.gate_half, geometry.gate_bar))
+        local = torch.einsum("wdgij,wdgi->wdgj", rot, pos[..., None, :] - centers)
+        lo, hi = geometry.bounds[0][t][:, None] + r, geometry.bounds[1][t][:, None] - r
     in_plane = local[..., 1:].abs().amax(dim=-1)
     touches = (local[..., 0].abs() < bar / 2 + r) & (in_plane > half - r) & (in_plane < half + bar + r)
-    lo, hi = geometry.bounds[0] + r, geometry.bounds[1] - r
     inside = ((pos >= lo) & (pos <= hi)).all(dim=-1)
     return inside & ~touches.any(dim=-1)
 
 
 class PassageBuffer:
-    """The newest ``capacity`` passage states of each gate (positions, velocities, yaws), on the env's device."""
+    """The newest ``capacity`` passage states of each gate (positions, velocities, yaws), on the env's device.
 
-    def __init__(self, gate_count: int, capacity: int, *, device: torch.device) -> None:
-        self.gate_count, self.capacity = gate_count, capacity
-        rows = gate_count + 1  # a spare row past the last gate takes the states of drones that passed none
-        self.pos = torch.zeros(rows, capacity, 3, device=device)
-        self.vel = torch.zeros(rows, capacity, 3, device=device)
-        self.yaw = torch.zeros(rows, capacity, device=device)
-        self.count = torch.zeros(gate_count, dtype=torch.long, device=device)
+    Gates are rows of the tracks' flat gate layout (:class:`~spiral.env.track_tensors.TrackTensors`: gate ``g`` of
+    track ``t`` is row ``t · max_gates + g``), ``gate_count`` (T,) the gates of each track (default: one track of
+    ``rows`` gates)."""
+
+    def __init__(self, rows: int, capacity: int, *, device: torch.device,
+                 gate_count: torch.Tensor | None = None) -> None:
+        self.rows, self.capacity = rows, capacity
+        self.gate_count = torch.tensor([rows], device=device) if gate_count is None else gate_count.to(device)
+        """Gates of each track (T,)."""
+        self.max_gates = rows // self.gate_count.numel()
+        self.pos = torch.zeros(rows + 1, capacity, 3, device=device)  # a spare row past the last takes the states
+        self.vel = torch.zeros(rows + 1, capacity, 3, device=device)  # of drones that passed none
+        self.yaw = torch.zeros(rows + 1, capacity, device=device)
+        self.count = torch.zeros(rows, dtype=torch.long, device=device)
         """States recorded per gate, at most ``capacity``."""
-        self.head = torch.zeros(gate_count, dtype=torch.long, device=device)
+        self.head = torch.zeros(rows, dtype=torch.long, device=device)
         """Slot of each gate's next recorded state (the oldest once full)."""
 
     def record(self, gate: torch.Tensor, pos: torch.Tensor, vel: torch.Tensor, yaw: torch.Tensor) -> None:
-        """Keep the states of the drones that passed ``gate`` (N,; −1 for a drone that passed none) in this step.
+        """Keep the states of the drones that passed gate row ``gate`` (N,; −1 for a drone that passed none) in this
+        step.
 
         Every drone's state is written, those of drones that passed no gate to a spare row past the last gate, so
         that no count is read on the host."""
-        g = torch.where(gate >= 0, gate.long(), self.gate_count)
-        passed = g[:, None] == torch.arange(self.gate_count + 1, device=g.device)
+        g = torch.where(gate >= 0, gate.long(), self.rows)
+        passed = g[:, None] == torch.arange(self.rows + 1, device=g.device)
         rank = passed.long().cumsum(dim=0).gather(1, g[:, None]).squeeze(1) - 1
         slot = (torch.cat([self.head, self.head.new_zeros(1)])[g] + rank) % self.capacity
         self.pos[g, slot], self.vel[g, slot], self.yaw[g, slot] = pos, vel, yaw
@@ -77,21 +95,30 @@ class PassageBuffer:
         self.count = (self.count + added).clamp(max=self.capacity)
 
     def sample(self, world_count: int, drones: int, generator: torch.Generator, *, pos_noise: float,
-               vel_noise: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Starts for ``world_count`` worlds of ``drones``: positions and velocities (W, D, 3), yaws and next gates
-        (W, D), and whether each world could be given such starts (W,): every drone's gate has recorded states, and
-        there are at least as many gates as drones. The drones of a world start behind different gates."""
+               vel_noise: float, world_tracks: torch.Tensor | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Starts for ``world_count`` worlds of ``drones`` (on the tracks ``world_tracks`` (W,); default: the first):
+        positions and velocities (W, D, 3), yaws and next gates (W, D), and whether each world could be given such
+        starts (W,): every drone's gate has recorded states, and the world's track has at least as many gates as
+        drones. The drones of a world start behind different gates."""
         device = self.pos.device
-        order = torch.rand(world_count, self.gate_count, generator=generator, device=device).argsort(dim=1)
-        gate = order[:, torch.arange(drones, device=device) % self.gate_count]
+        tracks = torch.zeros(world_count, dtype=torch.long, device=device) if world_tracks is None else \
+            world_tracks.long()
+        count = self.gate_count[tracks][:, None]
+        keys = torch.rand(world_count, self.max_gates, generator=generator, device=device)
+        if self.gate_count.numel() > 1:  # a shorter track's padding rows sort last
+            keys = keys.masked_fill(torch.arange(self.max_gates, device=device) >= count, 2.0)
+        order = keys.argsort(dim=1)
+        gate = order.gather(1, torch.arange(drones, device=device).expand(world_count, -1) % count)
+        row = tracks[:, None] * self.max_gates + gate
         pick = torch.rand(world_count, drones, generator=generator, device=device)
-        slot = (pick * self.count[gate]).long().clamp(max=self.capacity - 1)
-        pos = self.pos[gate, slot] + pos_noise * torch.randn(world_count, drones, 3, generator=generator,
-                                                            device=device)
-        vel = self.vel[gate, slot] + vel_noise * torch.randn(world_count, drones, 3, generator=generator,
-                                                            device=device)
-        ok = (self.count[gate] > 0).all(dim=1) & (drones <= self.gate_count)
-        return pos, vel, self.yaw[gate, slot], (gate + 1) % self.gate_count, ok
+        slot = (pick * self.count[row]).long().clamp(max=self.capacity - 1)
+        pos = self.pos[row, slot] + pos_noise * torch.randn(world_count, drones, 3, generator=generator,
+                                                           device=device)
+        vel = self.vel[row, slot] + vel_noise * torch.randn(world_count, drones, 3, generator=generator,
+                                                           device=device)
+        ok = (self.count[row] > 0).all(dim=1) & (drones <= count[:, 0])
+        return pos, vel, self.yaw[row, slot], (gate + 1) % count, ok
 
 
 class PassageStarts:
@@ -99,18 +126,20 @@ class PassageStarts:
     drones at each gate passage, and turns a share of the starts it draws into starts from those states. Inert
     without the setting, and in evaluation (an env that does not reset by itself)."""
 
-    def __init__(self, cfg: PassageStartsCfg | None, track: TrackSpec, radius: float, *, training: bool,
-                 device: torch.device) -> None:
+    def __init__(self, cfg: PassageStartsCfg | None, track: TrackSpec | TrackTensors, radius: float, *,
+                 training: bool, device: torch.device) -> None:
         self.cfg = cfg if training else None
-        self.track, self.radius, self.share = track, radius, 0.0 if self.cfg is None else self.cfg.share_start
+        self.radius, self.share = radius, 0.0 if self.cfg is None else self.cfg.share_start
         self.geometry = TrackTensors.of(track, device)
-        """The track's gates and bounds on the buffer's device, for the checks of a draw."""
-        self.buffer = None if self.cfg is None else PassageBuffer(len(track.gates), self.cfg.capacity, device=device)
+        """The tracks' gates and bounds on the buffer's device, for the checks of a draw."""
+        g = self.geometry
+        self.buffer = None if self.cfg is None else PassageBuffer(
+            g.track_count * g.max_gates, self.cfg.capacity, device=device, gate_count=g.gate_count)
 
     @classmethod
     def of(cls, env: RaceState, radius: float) -> PassageStarts:
         """The passage starts of ``env`` (its ``episode.passage_starts``; training only), for drones of ``radius``."""
-        return cls(env.cfg.episode.passage_starts, env.track, radius, training=env.training, device=env.device)
+        return cls(env.cfg.episode.passage_starts, env.track_set, radius, training=env.training, device=env.device)
 
     def set_training_progress(self, fraction: float) -> None:
         """Move the share of passage starts along the stage's schedule."""
@@ -122,20 +151,23 @@ class PassageStarts:
         it and passed a gate, as a state of the gate before its next one (nothing without a buffer)."""
         if self.buffer is not None:
             passed = racing & ~crashed_now & (env.step_passes > 0)
-            gate = torch.where(passed, (env.next_gate.long() - 1) % self.buffer.gate_count, -1)
-            self.buffer.record(gate, env.pos, env.vel, env.rpy[:, 2])
+            before = (env.next_gate.long() - 1) % env.gate_count + env.gate_base
+            self.buffer.record(torch.where(passed, before, -1), env.pos, env.vel, env.rpy[:, 2])
 
-    def apply(self, starts: Starts, generator: torch.Generator) -> Starts:
+    def apply(self, starts: Starts, generator: torch.Generator, world_tracks: torch.Tensor | None = None) -> Starts:
         """``starts`` with a share of its worlds started from passage states instead (those worlds are not box
-        starts); a world whose draw is not clear of the gates and bounds keeps its start."""
+        starts); a world whose draw is not clear of the gates and bounds keeps its start. ``world_tracks`` (W,):
+        the track of each world (default: the first)."""
         if self.buffer is None or self.share <= 0:
             return starts
         world_count, drones = starts.yaw.shape
         device = starts.pos.device
         pos, vel, yaw, gate, ok = self.buffer.sample(world_count, drones, generator, pos_noise=self.cfg.pos_noise,
-                                                     vel_noise=self.cfg.vel_noise)
+                                                     vel_noise=self.cfg.vel_noise, world_tracks=world_tracks)
         use = torch.rand(world_count, generator=generator, device=device) < self.share
-        use &= ok & clear_of_gates(pos, self.geometry, self.radius).all(dim=1)
+        clear = clear_of_gates(pos, self.geometry, self.radius,
+                               world_tracks=world_tracks if self.geometry.track_count > 1 else None)
+        use &= ok & clear.all(dim=1)
         w, v = use[:, None, None], use[:, None]
         return Starts(torch.where(w, pos, starts.pos), torch.where(w, vel, starts.vel), torch.where(v, yaw, starts.yaw),
                       torch.where(v, gate.to(starts.gate.dtype), starts.gate), starts.box & ~use)

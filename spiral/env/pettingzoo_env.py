@@ -89,7 +89,7 @@ class RaceParallelEnv(ParallelEnv):
         obs, rewards, _, _ = race.step(batch)
         idx = race.learner_idx
         out = (race.crashed | race.finished)[idx].cpu()
-        time_up = bool(race.world_time()[0] >= race.time_limit - 1e-6) or bool(race.world_nonfinite[0] != 0)
+        time_up = bool(race.world_time()[0] >= race.world_time_limit[0] - 1e-6) or bool(race.world_nonfinite[0] != 0)
         live, reward = self.agents, rewards.cpu()
         terminated = {a: bool(out[self._index[a]]) for a in live}
         truncated = {a: time_up and not terminated[a] for a in live}

@@ -26,7 +26,7 @@ from spiral.env.starts import Starts, draw_starts
 from spiral.env.state import RaceState
 from spiral.env.track_tensors import TrackTensors
 
-__all__ = ["EpisodeEnds", "RaceEnv", "restart_worlds"]
+__all__ = ["EpisodeEnds", "RaceEnv", "draw_world_tracks", "restart_worlds"]
 
 
 @dataclass(frozen=True)
@@ -44,16 +44,37 @@ def observed_tensors(state: RaceState) -> ObsSource:
     return ObsSource(pos=state.pos, vel=state.vel, rpy=state.rpy, omega=state.omega, integral=state.integral,
                      out=state.out, next_gate=state.next_gate, gates_passed=state.gates_passed,
                      race_team=state.race_team, gate_center=state.gate_center,
-                     gate_forward=state.gate_forward, other_slots=state.other_slots)
+                     gate_forward=state.gate_forward, gate_count=state.gate_count, gate_base=state.gate_base,
+                     other_slots=state.other_slots)
 
 
-def draw_env_starts(env: RaceEnv, world_count: int, *, checked: bool = True) -> Starts:
-    """Starts of ``world_count`` worlds of ``env`` (passage starts among them in training), drawn with its generator
-    on the generator's device (:func:`~spiral.env.state.draw_device`) and moved to the env's; ``checked``: the box
-    draw's (:func:`~spiral.env.starts.sample_box_starts`)."""
-    starts = draw_starts(env.track_geometry, env.cfg.episode, world_count, env.drones_per_world, env.generator,
+def draw_env_starts(env: RaceEnv, world_count: int, *, checked: bool = True,
+                    world_tracks: torch.Tensor | None = None) -> Starts:
+    """Starts of ``world_count`` worlds of ``env`` (passage starts among them in training) on their tracks
+    (``world_tracks`` (W,); default: the first), drawn with its generator on the generator's device
+    (:func:`~spiral.env.state.draw_device`) and moved to the env's; ``checked``: the box draw's
+    (:func:`~spiral.env.starts.sample_box_starts`)."""
+    if world_tracks is not None:
+        world_tracks = world_tracks.to(env.generator.device)
+    worlds = world_count if world_tracks is None else world_tracks
+    starts = draw_starts(env.track_geometry, env.cfg.episode, worlds, env.drones_per_world, env.generator,
                          training=env.training, device=env.generator.device, checked=checked)
-    return env.passages.apply(starts, env.generator).to(env.device)
+    return env.passages.apply(starts, env.generator, world_tracks).to(env.device)
+
+
+def draw_world_tracks(env: RaceEnv, worlds: torch.Tensor, idx: torch.Tensor | None) -> torch.Tensor | None:
+    """The tracks of the worlds of ``env`` that the bool mask ``worlds`` selects (``idx``: its indices; None: every
+    world's), drawn anew for those worlds in training (uniformly, with the env's generator; with ``idx`` None drawn
+    for every world and kept where the mask is set); None for an env of one track (nothing is drawn)."""
+    if len(env.tracks) == 1:
+        return None
+    if env.training:
+        count = env.world_count if idx is None else idx.numel()
+        generator = env.generator
+        drawn = torch.randint(0, len(env.tracks), (count,), generator=generator, device=generator.device)
+        put_rows(env.world_track, drawn.to(env.device), worlds, idx)
+        env.follow_world_tracks()
+    return env.world_track if idx is None else env.world_track[idx]
 
 
 def contests(env: RaceState) -> bool:
@@ -70,7 +91,8 @@ def restart_worlds(env: RaceEnv, worlds: torch.Tensor, *, every_world: bool = Fa
     d, generator = env.drones_per_world, env.generator
     idx = None if every_world else worlds.nonzero().squeeze(1)
     count = env.world_count if idx is None else idx.numel()
-    starts = draw_env_starts(env, count, checked=idx is not None)
+    tracks = draw_world_tracks(env, worlds, idx)
+    starts = draw_env_starts(env, count, checked=idx is not None, world_tracks=tracks)
     buf, t = env.start_buffers, wp.to_torch
     t(buf["mask"]).copy_(worlds.int())
     for name in ("pos", "vel", "yaw", "gate"):
@@ -102,7 +124,8 @@ class RaceEnv(RaceState):
                  training: bool = True) -> None:
         super().__init__(setting, cfg, world_count=world_count, drones_per_world=drones_per_world,
                          learner_slots=learner_slots, device=device, seed=seed, training=training)
-        self.action_map = ActionMap(cfg, setting.track, world_count=world_count, drones_per_world=drones_per_world,
+        arena = self.one_track("action.mode absolute") if cfg.action.mode == "absolute" else self.track
+        self.action_map = ActionMap(cfg, arena, world_count=world_count, drones_per_world=drones_per_world,
                                     device=self.device)
         self._obs_source = observed_tensors(self)
         self.observer = Observer(cfg, self._obs_source, device=self.device)
@@ -111,8 +134,8 @@ class RaceEnv(RaceState):
         self.opponent_observer: Observer | None = None
         """The opponent slots' own observer when their policy reads another observation layout (cross-play)."""
         self.passages = PassageStarts.of(self, setting.airframe.radius)
-        self.track_geometry = TrackTensors.of(self.track, self.generator.device)
-        """The track's geometry where starts are drawn, so that a draw copies nothing from the host."""
+        self.track_geometry = TrackTensors.of(self.track_set, self.generator.device)
+        """The tracks' geometry where starts are drawn, so that a draw copies nothing from the host."""
         self.reset()
 
     def set_opponent_policy(self, policy: OpponentPolicy | None, *, obs: ObsCfg | None = None) -> None:
@@ -179,12 +202,12 @@ class RaceEnv(RaceState):
         crashed_now = racing & (self.step_collision != 0)
         self.crashed |= crashed_now
         self.crash_kind = torch.where(crashed_now, self.step_collision, self.crash_kind)
-        finished_now = racing & ~crashed_now & (self.gates_passed >= self.passes_needed)
+        finished_now = racing & ~crashed_now & (self.gates_passed >= self.race_passes)
         self.finished |= finished_now
         self.lap_time = torch.where(finished_now, self.pass_time, self.lap_time)
         self.out.masked_fill_(finished_now, 1)
         split, self.lap_start = lap_splits(self.gates_passed, self.step_passes, self.pass_time, self.lap_start,
-                                           racing & ~crashed_now, len(self.track.gates))
+                                           racing & ~crashed_now, self.gate_count)
         self.passages.record(self, racing, crashed_now)
         result = None
         if self.cfg.reward.win > 0:
@@ -204,7 +227,7 @@ class RaceEnv(RaceState):
         """Dones: a learner drone's crash or finish terminates its episode; its world ends with it, at the time limit
         (or a start's cut) or on a non-finite state, and the world's other learner episodes time out."""
         terminated = (ev.crashed_now | ev.finished_now)[self.learner_idx]
-        time_up = self.world_time() >= torch.clamp(self.cut_time, max=self.time_limit) - 1e-6
+        time_up = self.world_time() >= torch.minimum(self.cut_time, self.world_time_limit) - 1e-6
         worlds = terminated.view(self.world_count, -1).any(dim=1) | time_up | (self.world_nonfinite != 0)
         time_outs = per_row(worlds, len(self.learner_slots)) & ~terminated
         dones = terminated | time_outs

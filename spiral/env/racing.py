@@ -98,6 +98,7 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
     """
     if env.training:
         raise ValueError("run_races needs a RaceEnv built with training=False")
+    env.one_track("run_races")
     obs = env.reset()
     team = (env.slot_team.cpu() if teams is None else _team_of_slots(teams, env.drones_per_world)).to(env.device)
     tally = _RaceTally(env, team, record=record)

@@ -1,4 +1,5 @@
-"""Where and with what races are flown: the track, the airframe and the simulator settings, which travel together."""
+"""Where and with what races are flown: the track (or tracks), the airframe and the simulator settings, which travel
+together."""
 
 from __future__ import annotations
 
@@ -22,3 +23,11 @@ class RaceSetting:
     sim_threads: int = 1
     """CPU threads that step the simulator, each a share of the worlds: how the races are computed, not what they
     are (worlds never interact, so the result is the same for any count; :class:`~spiral.sim.World`)."""
+    more_tracks: tuple[TrackSpec, ...] = ()
+    """Further tracks a training env's worlds race (a track per world): at every reset a world draws one of
+    :attr:`tracks` uniformly; none: every world races ``track``."""
+
+    @property
+    def tracks(self) -> tuple[TrackSpec, ...]:
+        """Every track the worlds race: ``track`` first, then :attr:`more_tracks`."""
+        return (self.track, *self.more_tracks)

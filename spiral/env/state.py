@@ -11,6 +11,7 @@ import torch
 import warp as wp
 
 from spiral.config.env import EnvCfg
+from spiral.config.track import TrackSpec
 from spiral.core.errors import UsageError
 from spiral.core.outcome import race_winner
 from spiral.core.policy import OpponentPolicy
@@ -21,6 +22,7 @@ from spiral.env.rewards import REWARD_TERMS
 from spiral.env.setting import RaceSetting
 from spiral.env.slots import slot_map
 from spiral.env.stats import add_ended_episodes, empty_stats, read_stats, summarize_stats
+from spiral.env.track_tensors import TrackTensors
 from spiral.sim import World
 
 __all__ = ["RaceState", "draw_device"]
@@ -42,10 +44,15 @@ class RaceState:
                  training: bool = True) -> None:
         if setting.sim.control_mode != "pid":
             raise UsageError("RaceEnv drives the PID: sim.control_mode must be 'pid'")
-        self.track = setting.track.with_laps(cfg.episode.laps or setting.track.laps)
-        self.world = World(setting.track, setting.airframe, setting.sim, world_count=world_count,
+        self.tracks = tuple(t.with_laps(cfg.episode.laps or t.laps) for t in setting.tracks)
+        """The tracks the worlds race, with the env's laps (one, or a track per world drawn at each reset)."""
+        self.track = self.tracks[0]
+        """The track, when there is one (the first of several)."""
+        self.world = World(list(setting.tracks), setting.airframe, setting.sim, world_count=world_count,
                            drones_per_world=drones_per_world, device=device, cpu_threads=setting.sim_threads)
         self.device = torch.device(device)
+        self.track_set = TrackTensors.of(self.tracks, self.device)
+        """The tracks' geometry on the env's device."""
         self.cfg, self.training, self.world_count, self.drones_per_world = cfg, training, world_count, drones_per_world
         self.drone_count = world_count * drones_per_world
         self.slots = slot_map(world_count, drones_per_world, learner_slots, device=self.device)
@@ -56,9 +63,7 @@ class RaceState:
         self.slot_team, self.race_team, self.other_slots = s.slot_team, s.race_team, s.other_slots
         self.num_envs = self.learner_idx.numel()
         self.dt = self.world.time_step
-        self.time_limit = cfg.episode.time_limit_s or self.track.time_limit_s
-        self.max_episode_length = math.ceil(self.time_limit / self.dt)
-        self.passes_needed = len(setting.track.gates) * self.track.laps + 1
+        self._set_race_lengths()
         self.generator = torch.Generator(device=draw_device(self.device, training=training)).manual_seed(seed)
         self.opponent_policy: OpponentPolicy | None = None
         self.sync_free = self.device.type != "cpu"
@@ -69,6 +74,18 @@ class RaceState:
         self._bind_views()
         self._alloc_buffers()
 
+    def _set_race_lengths(self) -> None:
+        """Each track's time limit and the gate passages that finish its race, and the longest of them."""
+        limits = [self.cfg.episode.time_limit_s or t.time_limit_s for t in self.tracks]
+        passes = [len(t.gates) * t.laps + 1 for t in self.tracks]
+        self.time_limit = max(limits)
+        """The longest time limit of any track [s]."""
+        self.max_episode_length = math.ceil(self.time_limit / self.dt)
+        self.passes_needed = max(passes)
+        """Gate passages that finish the longest race of any track (its start line's included)."""
+        self._track_limits = torch.tensor(limits, device=self.device)
+        self._track_passes = torch.tensor(passes, device=self.device)
+
     def _bind_views(self) -> None:
         s, r, t = self.world.state, self.world.race, wp.to_torch
         self.pos, self.vel, self.quat, self.omega = t(s.pos), t(s.vel), t(s.quat), t(s.omega)
@@ -77,8 +94,10 @@ class RaceState:
         self.pass_time, self.step_collision, self.out = t(r.pass_time), t(r.step_collision), t(r.out)
         self.crash_time = t(r.crash_time)
         self.world_substeps, self.world_nonfinite = t(r.world_substeps), t(r.world_nonfinite)
-        self.gate_center = torch.tensor(self.track.gate_centers(), dtype=torch.float32, device=self.device)
-        self.gate_forward = torch.tensor(self.track.gate_forward(), dtype=torch.float32, device=self.device)
+        self.world_track_view = t(r.world_track)
+        """The simulator's track of each world (W,), int32."""
+        self.gate_center, self.gate_forward = self.track_set.flat_centers, self.track_set.flat_forward
+        """Every track's gate centres and passing directions, track-major (T · G, 3)."""
 
     def _alloc_buffers(self) -> None:
         n, w, dev = self.drone_count, self.world_count, self.device
@@ -107,6 +126,35 @@ class RaceState:
             ("gate", n, wp.int32))}
         """Warp buffers of the start states a reset hands the simulator."""
         self.stats = empty_stats(dev)
+        self.world_track = torch.arange(w, device=dev) % len(self.tracks)
+        """Track of each world (W,), an index into :attr:`tracks`: in training drawn anew at every reset of the
+        world, in evaluation world ``w`` races track ``w mod T``."""
+        self.gate_count = torch.zeros(n, dtype=torch.long, device=dev)
+        """Gates of each drone's track (N,)."""
+        self.gate_base = torch.zeros(n, dtype=torch.long, device=dev)
+        """Row of each drone's track's first gate in :attr:`gate_center` (N,)."""
+        self.race_passes = torch.zeros(n, dtype=torch.long, device=dev)
+        """Gate passages that finish each drone's race (N,)."""
+        self.world_time_limit = torch.zeros(w, device=dev)
+        """Time limit of each world's race [s] (W,)."""
+        self.follow_world_tracks()
+
+    def follow_world_tracks(self) -> None:
+        """Bring the per-drone track figures and the simulator's tracks in line with :attr:`world_track`."""
+        drone_track = self.world_track.repeat_interleave(self.drones_per_world)
+        self.gate_count.copy_(self.track_set.gate_count[drone_track])
+        self.gate_base.copy_(drone_track * self.track_set.max_gates)
+        self.race_passes.copy_(self._track_passes[drone_track])
+        self.world_time_limit.copy_(self._track_limits[self.world_track])
+        self.world_track_view.copy_(self.world_track)
+
+    def one_track(self, user: str) -> TrackSpec:
+        """The env's track, for ``user`` (what needs a single track, named in the error), which an env flying a
+        track per world refuses."""
+        if len(self.tracks) > 1:
+            raise UsageError(f"{user} needs every world on one track; this env flies {len(self.tracks)} (a track "
+                             f"per world is for training)")
+        return self.track
 
     def set_opponent_policy(self, policy: OpponentPolicy | None) -> None:
         """Drive the opponent slots with ``policy`` from the next reset on (``None``: the slots are absent)."""
@@ -130,12 +178,16 @@ class RaceState:
     def gate_distance(self, gate: torch.Tensor) -> torch.Tensor:
         """Progress distance of every drone to ``gate`` (:func:`~spiral.env.events.gate_distance`)."""
         kappa = self.cfg.reward.progress_lateral
-        return gate_distance(self.pos, self.gate_center[gate], self.gate_forward[gate], kappa)
+        row = gate + self.gate_base
+        return gate_distance(self.pos, self.gate_center[row], self.gate_forward[row], kappa)
 
     def track_place(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Where each drone is in the race: gates passed and distance to the next gate's centre [m] (N,) each."""
-        to_gate = self.gate_center[self.next_gate.long()] - self.pos
-        return self.gates_passed.clone(), to_gate.norm(dim=-1)
+        return self.gates_passed.clone(), self.to_next_gate().norm(dim=-1)
+
+    def to_next_gate(self) -> torch.Tensor:
+        """Every drone's vector to the centre of its next gate [m] (N, 3)."""
+        return self.gate_center[self.next_gate.long() + self.gate_base] - self.pos
 
     def learner_won(self) -> torch.Tensor:
         """Per world, whether the learner's team won the race against the opponent slots (bool, (W,))."""

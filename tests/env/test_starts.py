@@ -146,8 +146,22 @@ def test_track_tensors_hold_the_tracks_geometry_and_are_built_once_per_device(ci
 
     geometry = TrackTensors.of(circuit6, "cpu")
     assert TrackTensors.of(geometry, CPU) is geometry
-    torch.testing.assert_close(geometry.gate_centers, torch.tensor(circuit6.gate_centers(), dtype=torch.float32))
+    torch.testing.assert_close(geometry.gate_centers[0], torch.tensor(circuit6.gate_centers(), dtype=torch.float32))
     lo, size = geometry.box
-    torch.testing.assert_close(lo + size / 2, torch.tensor(circuit6.start.center))
-    assert geometry.gate_half.shape == geometry.gate_bar.shape == (len(circuit6.gates),)
+    torch.testing.assert_close(lo[0] + size[0] / 2, torch.tensor(circuit6.start.center))
+    assert geometry.gate_half.shape == geometry.gate_bar.shape == (1, len(circuit6.gates))
 
+
+def test_track_tensors_of_several_tracks_pad_the_shorter_ones_track_major(circuit6, line2):
+    """circuit6 (6 gates) and line2 (2): per-gate arrays of 6 rows per track, line2's padded with its last gate; in
+    the flat layout line2's gates are rows 6 and 7."""
+    from spiral.env.track_tensors import TrackTensors
+
+    geometry = TrackTensors.of([circuit6, line2], CPU)
+    assert geometry.track_count == 2 and geometry.max_gates == 6 and geometry.gate_count.tolist() == [6, 2]
+    centers = torch.tensor(line2.gate_centers(), dtype=torch.float32)
+    torch.testing.assert_close(geometry.flat_centers[6:8], centers)
+    torch.testing.assert_close(geometry.gate_centers[1, 2:], centers[-1].expand(4, 3))
+    torch.testing.assert_close(geometry.flat_forward[6:8], torch.tensor(line2.gate_forward(), dtype=torch.float32))
+    torch.testing.assert_close(geometry.start_separation, torch.tensor([circuit6.start.min_separation,
+                                                                        line2.start.min_separation]))

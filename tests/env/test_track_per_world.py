@@ -1,0 +1,132 @@
+"""A race env whose worlds fly different tracks: each world as it would alone, a track drawn at each training reset,
+starts and passage states on the world's own track, and the single-track users that refuse such an env."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from spiral.config import EnvCfg, ObsCfg, PassageStartsCfg, SimCfg
+from spiral.core.errors import UsageError
+from spiral.env import RaceEnv, RaceSetting
+from spiral.env.passages import PassageBuffer
+from spiral.env.racing import run_races
+from tests.env.helpers import CF2X
+
+ROOT_TRACKS = ("circuit6", "oval4", "figure8")
+
+
+@pytest.fixture(scope="module")
+def tracks():
+    from spiral.config.load import load_track
+    from tests.conftest import ROOT
+
+    return [load_track(ROOT / "tracks" / f"{name}.yaml") for name in ROOT_TRACKS]
+
+
+def _env(tracks, *, worlds: int, drones: int = 1, training: bool, episode: dict | None = None) -> RaceEnv:
+    cfg = EnvCfg(obs=ObsCfg(history_len=2, gate_normals=True), reward={"proximity": 0.1, "closing": 0.5},
+                 episode=episode or {"track_start_prob": 0.0})
+    setting = RaceSetting(tracks[0], CF2X, SimCfg(), more_tracks=tuple(tracks[1:]))
+    return RaceEnv(setting, cfg, world_count=worlds, drones_per_world=drones,
+                   learner_slots=tuple(range(drones)), seed=5, training=training)
+
+
+def _towards_next_gate(env: RaceEnv) -> torch.Tensor:
+    """Actions that fly every learner drone at its next gate's centre (and through it)."""
+    rel = env.to_next_gate()[env.learner_idx] / env.cfg.action.pos_scale
+    return torch.cat([rel.clamp(-1, 1), torch.zeros(len(rel), 1)], dim=-1)
+
+
+@pytest.mark.bitwise
+def test_worlds_on_different_tracks_step_as_each_would_alone(tracks):
+    """Two evaluation worlds, one on circuit6 and one on oval4, from the same states as two one-track envs and with
+    the same actions, give the same states, gate passes, rewards and observations, step for step."""
+    both = _env(tracks[:2], worlds=2, training=False)
+    alone = [_env(tracks[i:i + 1], worlds=1, training=False) for i in range(2)]
+    assert both.world_track.tolist() == [0, 1]
+    for w, env in enumerate(alone):  # the same start: the two-track env's draw on the world's track
+        env.pos.copy_(both.pos[w:w + 1])
+        env.get_observations()
+    both.get_observations()
+    passes = 0
+    for _ in range(150):
+        obs, reward, _, _ = both.step(_towards_next_gate(both))
+        for w, env in enumerate(alone):
+            obs_1, reward_1, _, _ = env.step(_towards_next_gate(env))
+            for mine, theirs in ((both.pos[w], env.pos[0]), (both.vel[w], env.vel[0]), (reward[w], reward_1[0]),
+                                 (obs["policy"][w], obs_1["policy"][0])):
+                torch.testing.assert_close(mine, theirs, rtol=0, atol=0)
+            assert both.gates_passed[w] == env.gates_passed[0] and both.next_gate[w] == env.next_gate[0]
+        passes = int(both.gates_passed.min())
+    assert passes >= 2  # both worlds flew through gates of their own tracks
+
+
+def test_a_training_reset_draws_each_world_a_track_of_the_set_and_starts_it_there(tracks):
+    """48 training worlds of two drones on three tracks: the worlds share the tracks out, the simulator races the
+    env's choice, box starts sit in the world's track's start box, track starts head for a gate of that track, and
+    the worlds that reset draw their tracks again."""
+    env = _env(tracks, worlds=48, drones=2, training=True, episode={"track_start_prob": 0.5})
+    first = env.world_track.clone()
+    assert set(first.tolist()) == {0, 1, 2}
+    drone_track = first.repeat_interleave(2)
+    assert torch.equal(env.world_track_view.long(), first)  # exact: indices
+    counts = torch.tensor([len(t.gates) for t in tracks])
+    assert torch.equal(env.gate_count, counts[drone_track])  # exact: counts
+    assert torch.equal(env.race_passes, counts[drone_track] + 1)  # exact: counts
+    assert (env.next_gate.long() < env.gate_count).all()
+    box = (env.next_gate == 0) & (env.vel.norm(dim=-1) == 0)  # exact: box starts are at rest
+    for drone in box.nonzero().flatten().tolist():
+        start = tracks[int(drone_track[drone])].start
+        lo = torch.tensor(start.center) - torch.tensor(start.size) / 2
+        assert ((env.pos[drone] >= lo - 1e-6) & (env.pos[drone] <= lo + torch.tensor(start.size) + 1e-6)).all()
+    for _ in range(120):
+        env.step(torch.rand(env.num_envs, 4) * 2 - 1)
+    assert (env.world_track != first).any()
+    assert torch.equal(env.world_track_view.long(), env.world_track)  # exact: indices
+    assert (env.next_gate.long() < env.gate_count).all()
+
+
+def test_passage_states_of_several_tracks_start_worlds_behind_gates_of_their_own_track():
+    """Tracks of 4 and 2 gates (rows 0–3 and 4–5 of a padded layout of 8): states recorded at every gate are drawn
+    only for worlds of that gate's track, each world's drones behind different gates, heading for the next gate of
+    their track; a world of three drones on the 2-gate track gets none."""
+    buf = PassageBuffer(8, 4, device=torch.device("cpu"), gate_count=torch.tensor([4, 2]))
+    for row in (0, 1, 2, 3, 4, 5):
+        buf.record(torch.full((3,), row), torch.full((3, 3), float(row)), torch.zeros(3, 3), torch.zeros(3))
+    world_tracks = torch.tensor([0, 1] * 32)
+    pos, _, _, gate, ok = buf.sample(64, 2, torch.Generator().manual_seed(1), pos_noise=0.0, vel_noise=0.0,
+                                     world_tracks=world_tracks)
+    assert ok.all()
+    count = torch.tensor([4, 2])[world_tracks][:, None]
+    before = (gate - 1) % count
+    row = world_tracks[:, None] * 4 + before
+    torch.testing.assert_close(pos[..., 0], row.float())  # each start is a state of its gate of its track
+    assert (before[:, 0] != before[:, 1]).all()
+    _, _, _, _, ok = buf.sample(4, 3, torch.Generator().manual_seed(1), pos_noise=0.0, vel_noise=0.0,
+                                world_tracks=torch.tensor([0, 1, 0, 1]))
+    assert ok.tolist() == [True, False, True, False]
+
+
+def test_a_training_env_of_several_tracks_draws_passage_starts_on_each_worlds_track(tracks):
+    """With passage starts from the first step on, a two-track training env keeps flying: every drone always heads
+    for a gate of its world's track and the buffer fills rows of both tracks only."""
+    env = _env(tracks[:2], worlds=32, training=True,
+               episode={"track_start_prob": 0.3, "passage_starts": PassageStartsCfg(share_start=1.0, share_end=1.0)})
+    for _ in range(200):
+        env.step(_towards_next_gate(env))
+        assert (env.next_gate.long() < env.gate_count).all()
+    filled = (env.passages.buffer.count > 0).nonzero().flatten()
+    g = env.track_set.max_gates
+    assert (filled // g == 0).any() and (filled // g == 1).any()
+    assert ((filled % g) < torch.tensor([len(t.gates) for t in tracks[:2]])[filled // g]).all()
+
+
+def test_what_races_one_track_refuses_an_env_of_several(tracks):
+    """Evaluation races and absolute action targets need one track; an env of several says so."""
+    env = _env(tracks[:2], worlds=2, training=False)
+    with pytest.raises(UsageError, match="run_races needs every world on one track"):
+        run_races(env, lambda obs: torch.zeros(env.num_envs, 4))
+    with pytest.raises(UsageError, match=r"action\.mode absolute"):
+        RaceEnv(RaceSetting(tracks[0], CF2X, SimCfg(), more_tracks=(tracks[1],)), EnvCfg(action={"mode": "absolute"}),
+                world_count=2, drones_per_world=1, training=False)
