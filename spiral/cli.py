@@ -653,6 +653,7 @@ def bench_ppo(
     plan = PipelinePlan(spec, track, pipeline, Path("runs"), checkpoints_dir)
     index = _stage_index(spec, pipeline, stage)
     spec_stage = spec.stages[index] if worlds is None else spec.stages[index].model_copy(update={"worlds": worlds})
+    init = init or plan.init_file(spec.stages[index])
     inputs = None if spec_stage.scenario == "solo" else _published_inputs(spec, index, plan.publish_root, init, pool)
     with tempfile.TemporaryDirectory() as scratch:
         start = None if inputs is None else _stage_start(spec_stage, *inputs, Path(scratch), device=device,

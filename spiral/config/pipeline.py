@@ -139,8 +139,9 @@ class PipelineSpec(StrictModel):
         for i, stage in enumerate(self.stages):
             if stage.name in names[:i]:
                 raise ValueError(f"stages.{i}.name: duplicate stage name {stage.name!r}")
-            if stage.init_from is not None and stage.init_from not in names[:i]:
-                raise ValueError(f"stages.{i}.init_from: {stage.init_from!r} is not an earlier stage")
+            if stage.init_from is not None and stage.init_file is None and stage.init_from not in names[:i]:
+                raise ValueError(f"stages.{i}.init_from: {stage.init_from!r} is not an earlier stage (nor a "
+                                 f"checkpoint file, *.pt)")
             source = stage.selfplay.opponent_from
             if source is not None and source not in names[:i]:
                 raise ValueError(f"stages.{i}.selfplay.opponent_from: {source!r} is not an earlier stage")
@@ -160,8 +161,11 @@ class PipelineSpec(StrictModel):
                                  f"(evaluation: {sorted(reported)}); the final pick needs placements of its own")
 
     def init_stage(self, index: int) -> str | None:
-        """Name of the stage whose best policy stage ``index`` starts from."""
+        """Name of the stage whose best policy stage ``index`` starts from (None: it starts afresh or from a
+        checkpoint file, ``init_file``)."""
         stage = self.stages[index]
+        if stage.init_file is not None:
+            return None
         if stage.init_from is not None:
             return stage.init_from
         return self.stages[index - 1].name if index > 0 else None

@@ -158,8 +158,14 @@ class StageSpec(StrictModel):
     selection: SelectionCfg = Field(default_factory=SelectionCfg)
     selfplay: SelfPlayCfg = Field(default_factory=SelfPlayCfg)
     init_from: str | None = Field(
-        default=None, description="Stage whose best policy this stage starts from; the previous stage when absent"
+        default=None, description="Stage whose best policy this stage starts from, or a checkpoint file (`*.pt`, "
+        "relative to the pipeline file: another pipeline's policy, fine-tuned here); the previous stage when absent"
     )
+
+    @property
+    def init_file(self) -> str | None:
+        """``init_from`` when it names a checkpoint file rather than a stage."""
+        return self.init_from if self.init_from is not None and self.init_from.endswith(".pt") else None
     publish_as: str | None = Field(
         default=None, pattern=r"^[A-Za-z0-9_.-]+\.pt$", description="Also publish the best as checkpoints/<p>/<name>"
     )

@@ -15,7 +15,7 @@ from spiral.config.pipeline import PipelineSpec
 from spiral.config.stage import StageSpec
 from spiral.config.track import TrackSpec
 from spiral.core.errors import UsageError
-from spiral.core.files import atomic_write_bytes
+from spiral.core.files import atomic_write_bytes, file_sha256
 from spiral.env.setting import RaceSetting
 from spiral.eval.evaluate import RaceSet, evaluate_methods
 from spiral.pipeline.report_steps import PLANNER_STEP, report_steps
@@ -78,11 +78,27 @@ class PipelinePlan:
         return names[-1] if names else None
 
     def _train_section(self, stage: StageSpec) -> dict[str, Any]:
-        """The training step's spec: models, which its fingerprint hashes by the fields that differ from defaults."""
-        return {"stage": stage, "track": self.track,
-                "airframe": self.airframe,
-                "sim": self.spec.sim, "device": self.spec.device,
-                "seed": stage.seed if stage.seed is not None else self.spec.seed}
+        """The training step's spec: models, which its fingerprint hashes by the fields that differ from defaults,
+        and the content of a checkpoint file it starts from."""
+        section = {"stage": stage, "track": self.track,
+                   "airframe": self.airframe,
+                   "sim": self.spec.sim, "device": self.spec.device,
+                   "seed": stage.seed if stage.seed is not None else self.spec.seed}
+        init = self.init_file(stage)
+        if init is not None:
+            section["init_sha256"] = file_sha256(init)
+        return section
+
+    def init_file(self, stage: StageSpec) -> Path | None:
+        """The checkpoint file ``stage`` starts from (its ``init_from``, relative to the pipeline file), if it names
+        one; a missing file is an error naming the pipeline and the field."""
+        if stage.init_file is None:
+            return None
+        path = self.source.parent / stage.init_file
+        if not path.is_file():
+            index = [s.name for s in self.spec.stages].index(stage.name)
+            raise UsageError(f"{self.source}: stages.{index}.init_from: checkpoint {path} does not exist")
+        return path
 
     def _train_fn(self, stage: StageSpec, previous: str | None, opponent: str | None):
         def run(ctx: StepContext) -> tuple[dict[str, Path], dict[str, Any]]:
@@ -91,6 +107,7 @@ class PipelinePlan:
             spec_path = ctx.step_dir / "spec.json"
             atomic_write_bytes(spec_path, json.dumps(resolved, indent=2).encode())
             init, frozen = (Path(ctx.inputs[s]["outputs"]["best"]["path"]) if s else None for s in (previous, opponent))
+            init = init or self.init_file(stage)
             pool_dir = ctx.step_dir / "pool"
             inherited = ctx.inputs[previous]["outputs"].get("pool") if previous else None
             if inherited is not None and not pool_dir.exists():  # the pool carries over from stage to stage

@@ -431,3 +431,36 @@ def _keep_only_declared(run_root: Path, *, keep: set[str]) -> None:
             if path.name not in ("manifest.json", "fingerprint") and path.resolve() not in declared \
                     and not checkpoint_sidecar:
                 path.unlink()
+
+
+def test_a_stage_fine_tunes_a_checkpoint_file_named_by_init_from_and_reruns_when_the_file_changes(smoke_run,
+                                                                                                 tmp_path):
+    """A one-stage pipeline whose solo stage starts from another run's policy (``init_from: base.pt``, beside the
+    pipeline file): its training step reads no other step, trains on from that policy's weights (at a learning rate
+    too small to move them), reruns when the file's content changes, and a missing file is refused naming the
+    field."""
+    import torch
+
+    from spiral.core.errors import UsageError
+
+    path = write_pipeline(tmp_path, iterations=1, lr=1e-9)
+    data = yaml.safe_load(path.read_text())
+    data["stages"][0]["init_from"] = "base.pt"
+    path.write_text(yaml.safe_dump(data))
+    published = smoke_run.root / "ckpt" / "smoke"
+    with pytest.raises(UsageError, match=r"stages\.0\.init_from: checkpoint .*base\.pt does not exist"):
+        runner_for(path, tmp_path)
+    for suffix in (".pt", ".json"):
+        (tmp_path / f"base{suffix}").write_bytes((published / "solo" / f"best{suffix}").read_bytes())
+    runner = runner_for(path, tmp_path)
+    assert next(s for s in runner.steps if s.name == "train:solo").inputs == []
+    assert runner.run()[0] == "train:solo"
+    base = torch.load(tmp_path / "base.pt", weights_only=False)["actor_state_dict"]
+    last = torch.load(next((tmp_path / "runs").glob("*/train-solo/ckpt/*.pt")), weights_only=False)
+    layers = ["mlp.0.bias", "mlp.2.weight", "mlp.2.bias", "mlp.4.weight"]  # the normaliser keeps counting, and
+    # the first layer's columns of inputs constant in the policy's stage start at zero (``take_up_new_inputs``)
+    for name in layers:
+        torch.testing.assert_close(last["actor_state_dict"][name], base[name], rtol=0, atol=1e-5, msg=name)
+    for suffix in (".pt", ".json"):
+        (tmp_path / f"base{suffix}").write_bytes((published / "1v1" / f"best{suffix}").read_bytes())
+    assert runner_for(path, tmp_path).run()[0] == "train:solo"
