@@ -6,7 +6,7 @@ from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field
 
-__all__ = ["NonNegFloat", "PosFloat", "PosInt", "StrictModel", "Vec3"]
+__all__ = ["NonNegFloat", "NonNegInt", "PosFloat", "PosInt", "StrictModel", "Vec3"]
 
 
 class StrictModel(BaseModel):
@@ -21,3 +21,4 @@ Vec3 = tuple[float, float, float]
 PosFloat = Annotated[float, Field(gt=0)]
 NonNegFloat = Annotated[float, Field(ge=0)]
 PosInt = Annotated[int, Field(gt=0)]
+NonNegInt = Annotated[int, Field(ge=0)]

@@ -8,13 +8,14 @@ from typing import Any, Literal
 from pydantic import Field, field_validator, model_validator
 
 from spiral.config.airframe import AirframeSel
-from spiral.config.base import PosInt, StrictModel
+from spiral.config.base import NonNegInt, PosInt, StrictModel
 from spiral.config.env import SeparationCfg
+from spiral.config.generate import TrackGenCfg
 from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 from spiral.core.device import canonical_device
 
-__all__ = ["PIPELINE_VERSION", "EvaluationCfg", "PipelineSpec", "RacingCfg", "ReportCfg"]
+__all__ = ["PIPELINE_VERSION", "EvaluationCfg", "PipelineSpec", "RacingCfg", "ReportCfg", "TrackSetCfg"]
 
 PIPELINE_VERSION = 2
 """Schema version of pipeline files; a file of another version is refused, naming what changed since it."""
@@ -49,6 +50,30 @@ class EvaluationCfg(StrictModel):
             raise ValueError(f"holdout_seed: {self.holdout_seed} is the evaluation's own seed; held-out placements "
                              "need another")
         return self
+
+
+class TrackSetCfg(StrictModel):
+    """Generated tracks (:mod:`spiral.config.generate`, each one the point-mass reference laps within its time limit)
+    that every stage trains, selects and promotes on, a track per world, instead of the pipeline's ``track``; and
+    tracks of other generator seeds held out from all of that, written beside them for the evaluation."""
+
+    generator: TrackGenCfg = Field(default_factory=TrackGenCfg, description="Ranges the tracks are drawn in")
+    train_seeds: tuple[NonNegInt, PosInt] = Field(
+        default=(0, 64), description="First generator seed and count of the training tracks")
+    held_out_seeds: tuple[NonNegInt, PosInt] = Field(
+        default=(10_000, 20), description="First generator seed and count of the held-out tracks")
+
+    @model_validator(mode="after")
+    def _held_out_apart(self) -> TrackSetCfg:
+        (a, n), (b, m) = self.train_seeds, self.held_out_seeds
+        if a < b + m and b < a + n:
+            raise ValueError(f"held_out_seeds: seeds {b}..{b + m - 1} overlap the training seeds {a}..{a + n - 1}")
+        return self
+
+    def seeds(self, which: Literal["train", "held_out"]) -> range:
+        """The generator seeds of the training or the held-out tracks."""
+        first, count = self.train_seeds if which == "train" else self.held_out_seeds
+        return range(first, first + count)
 
 
 class RacingCfg(StrictModel):
@@ -100,6 +125,9 @@ class PipelineSpec(StrictModel):
     version: int = Field(default=PIPELINE_VERSION, description="Schema version of this file")
     name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$", description="Pipeline name (run folder name)")
     track: Path = Field(description="Track file, relative to this pipeline file")
+    training_tracks: TrackSetCfg | None = Field(
+        default=None, description="Generated tracks the stages train on instead of `track` (a track per world); "
+        "`track` is then raced zero-shot by the evaluation")
     airframe: AirframeSel = Field(default_factory=AirframeSel)
     device: str = Field(default="cpu", pattern=r"^(cpu|cuda(:\d+)?)$", description="cpu or cuda:N")
     seed: int = Field(default=0, ge=0, description="Base seed")

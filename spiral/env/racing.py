@@ -6,6 +6,7 @@ from dataclasses import dataclass, fields, replace
 
 import torch
 
+from spiral.core.errors import UsageError
 from spiral.core.policy import Policy
 from spiral.env.events import at_nearest, contact_partners, fault_share, overtakes
 from spiral.env.race_env import RaceEnv
@@ -98,7 +99,9 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
     """
     if env.training:
         raise ValueError("run_races needs a RaceEnv built with training=False")
-    env.one_track("run_races")
+    if len({track.laps for track in env.tracks}) > 1:
+        raise UsageError(f"run_races: the env's tracks race different lap counts "
+                         f"({', '.join(f'{t.name}: {t.laps}' for t in env.tracks)}); give the env one (episode.laps)")
     obs = env.reset()
     team = (env.slot_team.cpu() if teams is None else _team_of_slots(teams, env.drones_per_world)).to(env.device)
     tally = _RaceTally(env, team, record=record)

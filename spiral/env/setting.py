@@ -3,7 +3,7 @@ together."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from spiral.config.airframe import AirframeCfg
 from spiral.config.sim import SimCfg
@@ -26,6 +26,11 @@ class RaceSetting:
     more_tracks: tuple[TrackSpec, ...] = ()
     """Further tracks a training env's worlds race (a track per world): at every reset a world draws one of
     :attr:`tracks` uniformly; none: every world races ``track``."""
+
+    def with_laps(self, laps: int) -> RaceSetting:
+        """This setting with races of ``laps`` laps on every track."""
+        return replace(self, track=self.track.with_laps(laps),
+                       more_tracks=tuple(t.with_laps(laps) for t in self.more_tracks))
 
     @property
     def tracks(self) -> tuple[TrackSpec, ...]:

@@ -28,10 +28,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from spiral.config.airframe import AirframeCfg
+from spiral.config.generate import TrackGenCfg, generate_track
 from spiral.config.track import TrackSpec
 from spiral.core.errors import UsageError
 
-__all__ = ["AccelLimits", "LapBound", "format_bound", "lap_time_bound"]
+__all__ = ["AccelLimits", "LapBound", "format_bound", "generate_flyable_track", "lap_time_bound"]
 
 Model = Literal["thrust", "ball"]
 """Acceleration set: ``thrust`` (thrust ball ∩ tilt cone − g) or ``ball`` (‖a‖ ≤ level-flight maximum)."""
@@ -369,3 +370,21 @@ def format_bound(bound: LapBound) -> str:
         f"  gate passes (gate@s): {passes}",
         f"  {sum(bound.steps)} steps of {bound.step_time * 1e3:.1f} ms, {bound.solves} SOCPs in {bound.solve_s:.1f} s",
     ])
+
+
+def generate_flyable_track(cfg: TrackGenCfg, seed: int, airframe: AirframeCfg, *,
+                           name: str | None = None) -> tuple[TrackSpec, float]:
+    """The track the generator draws for ``seed`` that the point-mass reference (coarse: 4 steps per segment) laps
+    within its time limit, and that reference lap [s]: the generator keeps the first candidate of its stream this
+    accepts (:func:`~spiral.config.generate.generate_track`)."""
+    reference: dict[str, float] = {}
+
+    def flyable(track: TrackSpec) -> bool:
+        try:
+            reference["lap"] = lap_time_bound(track, airframe, steps_per_segment=4).lap_time
+        except UsageError:  # no feasible point-mass lap
+            return False
+        return reference["lap"] * track.laps <= track.time_limit_s
+
+    track = generate_track(cfg, seed, name=name, accept=flyable)
+    return track, reference["lap"]

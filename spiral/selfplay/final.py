@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 from spiral.config.stage import FinalPickCfg, StageSpec
@@ -50,7 +50,7 @@ def rank_candidates(candidates: list[Candidate]) -> Candidate:
 def _validation_envs(stage: StageSpec, setting: RaceSetting, cfg: FinalPickCfg, *, device: str) -> dict[str, RaceEnv]:
     """One self-match env per scenario (the stage's, then its mix's) and start, racing ``cfg.laps`` laps from
     ``cfg.races`` placements of ``cfg.seed``."""
-    laps = replace(setting, track=setting.track.with_laps(cfg.laps))  # the same setting (threads too), cfg.laps laps
+    laps = setting.with_laps(cfg.laps)  # the same setting (threads too), cfg.laps laps on every track
     return {f"{starts}-{scenario}": self_match_env(laps, stage.env.with_eval_starts(starts), scenario,
                                                    races=cfg.races, device=device, seed=cfg.seed)
             for scenario in [stage.scenario, *sorted(stage.mix)] for starts in cfg.starts}

@@ -1,5 +1,6 @@
 """A race env whose worlds fly different tracks: each world as it would alone, a track drawn at each training reset,
-starts and passage states on the world's own track, and the single-track users that refuse such an env."""
+starts and passage states on the world's own track, evaluation races over several tracks, and the single-track users
+that refuse such an env."""
 
 from __future__ import annotations
 
@@ -122,11 +123,22 @@ def test_a_training_env_of_several_tracks_draws_passage_starts_on_each_worlds_tr
     assert ((filled % g) < torch.tensor([len(t.gates) for t in tracks[:2]])[filled // g]).all()
 
 
-def test_what_races_one_track_refuses_an_env_of_several(tracks):
-    """Evaluation races and absolute action targets need one track; an env of several says so."""
-    env = _env(tracks[:2], worlds=2, training=False)
-    with pytest.raises(UsageError, match="run_races needs every world on one track"):
-        run_races(env, lambda obs: torch.zeros(env.num_envs, 4))
+def test_evaluation_races_each_world_on_its_track_when_the_tracks_share_a_lap_count(tracks):
+    """An evaluation env of two tracks races world w on track w mod 2: the drones fly their own track's gates; tracks
+    of different lap counts are refused by the races, and the SE-IBR planner and absolute action targets, which
+    need one arena, refuse an env of several tracks."""
+    from spiral.baselines.se_ibr import SEIBRPlanner
+
+    env = _env(tracks[:2], worlds=4, training=False)
+    results = run_races(env, lambda obs: _towards_next_gate(env))
+    assert env.world_track.tolist() == [0, 1, 0, 1]
+    assert (results.gates_passed > 0).all()
+    mixed = RaceEnv(RaceSetting(tracks[0], CF2X, SimCfg(), more_tracks=(tracks[1].with_laps(2),)), EnvCfg(),
+                    world_count=2, drones_per_world=1, training=False)
+    with pytest.raises(UsageError, match="different lap counts"):
+        run_races(mixed, lambda obs: _towards_next_gate(mixed))
+    with pytest.raises(UsageError, match="the SE-IBR planner needs every world on one track"):
+        SEIBRPlanner(env)
     with pytest.raises(UsageError, match=r"action\.mode absolute"):
         RaceEnv(RaceSetting(tracks[0], CF2X, SimCfg(), more_tracks=(tracks[1],)), EnvCfg(action={"mode": "absolute"}),
                 world_count=2, drones_per_world=1, training=False)

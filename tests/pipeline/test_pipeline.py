@@ -464,3 +464,33 @@ def test_a_stage_fine_tunes_a_checkpoint_file_named_by_init_from_and_reruns_when
     for suffix in (".pt", ".json"):
         (tmp_path / f"base{suffix}").write_bytes((published / "1v1" / f"best{suffix}").read_bytes())
     assert runner_for(path, tmp_path).run()[0] == "train:solo"
+
+
+def test_generated_training_tracks_are_a_step_every_training_step_reads_and_trains_on(tmp_path):
+    """``training_tracks`` with two training seeds and one held out: a ``tracks`` step writes the three generated
+    tracks (valid track files, the held-out one apart), the solo stage reads it and trains on the generated tracks
+    (its policy records the first), and its evaluation races the pipeline's own track, unseen in training."""
+    from spiral.config import load_track
+
+    path = write_pipeline(tmp_path, iterations=1)
+    data = yaml.safe_load(path.read_text())
+    data["training_tracks"] = {"train_seeds": [3, 2], "held_out_seeds": [100, 1]}
+    path.write_text(yaml.safe_dump(data))
+    runner = runner_for(path, tmp_path)
+    assert next(s for s in runner.steps if s.name == "train:solo").inputs == ["tracks"]
+    assert runner.run()[:2] == ["tracks", "train:solo"]
+    root = next((tmp_path / "runs").iterdir())
+    train = sorted(load_track(p).name for p in (root / "tracks" / "train").glob("*.yaml"))
+    held_out = [load_track(p).name for p in (root / "tracks" / "held_out").glob("*.yaml")]
+    assert train == ["gen-s3-g6", "gen-s4-g6"] and held_out == ["gen-s100-g6"]
+    best = json.loads((root / "train-solo" / "best.json").read_text())
+    assert best["track"] == "gen-s3-g6"
+    evaluation = json.loads((root / "eval-solo" / "eval.json").read_text())
+    assert evaluation["track"] == "oval4"
+
+
+def test_held_out_track_seeds_that_overlap_the_training_seeds_are_refused(tmp_path):
+    from spiral.config.pipeline import TrackSetCfg
+
+    with pytest.raises(ValueError, match=r"held_out_seeds: seeds 5\.\.6 overlap the training seeds 0\.\.5"):
+        TrackSetCfg(train_seeds=(0, 6), held_out_seeds=(5, 2))
