@@ -14,7 +14,7 @@ import torch
 
 from spiral.config.env import PassageStartsCfg
 from spiral.config.track import TrackSpec
-from spiral.env.starts import Starts
+from spiral.env.starts import Starts, world_tracks_or_first
 from spiral.env.state import RaceState
 from spiral.env.track_tensors import TrackTensors
 
@@ -102,8 +102,7 @@ class PassageBuffer:
         starts (W,): every drone's gate has recorded states, and the world's track has at least as many gates as
         drones. The drones of a world start behind different gates."""
         device = self.pos.device
-        tracks = torch.zeros(world_count, dtype=torch.long, device=device) if world_tracks is None else \
-            world_tracks.long()
+        tracks = world_tracks_or_first(world_tracks, world_count, device)
         count = self.gate_count[tracks][:, None]
         keys = torch.rand(world_count, self.max_gates, generator=generator, device=device)
         if self.gate_count.numel() > 1:  # a shorter track's padding rows sort last

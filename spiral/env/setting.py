@@ -24,8 +24,8 @@ class RaceSetting:
     """CPU threads that step the simulator, each a share of the worlds: how the races are computed, not what they
     are (worlds never interact, so the result is the same for any count; :class:`~spiral.sim.World`)."""
     more_tracks: tuple[TrackSpec, ...] = ()
-    """Further tracks a training env's worlds race (a track per world): at every reset a world draws one of
-    :attr:`tracks` uniformly; none: every world races ``track``."""
+    """Further tracks the worlds race, a track per world: in training a world draws one of :attr:`tracks` uniformly
+    at every reset, in evaluation world w races track w mod T; none: every world races ``track``."""
 
     def with_laps(self, laps: int) -> RaceSetting:
         """This setting with races of ``laps`` laps on every track."""
