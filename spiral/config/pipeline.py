@@ -15,7 +15,8 @@ from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 from spiral.core.device import canonical_device
 
-__all__ = ["PIPELINE_VERSION", "EvaluationCfg", "PipelineSpec", "RacingCfg", "ReportCfg", "TrackSetCfg"]
+__all__ = ["PIPELINE_VERSION", "EvaluationCfg", "PipelineSpec", "RacingCfg", "ReportCfg", "TrackSetCfg",
+           "UnseenTracksCfg"]
 
 PIPELINE_VERSION = 2
 """Schema version of pipeline files; a file of another version is refused, naming what changed since it."""
@@ -96,6 +97,17 @@ class RacingCfg(StrictModel):
     )
 
 
+class UnseenTracksCfg(StrictModel):
+    """The report's section on tracks no training step flew: each learned method's final policy in self-matches of
+    every scenario on the held-out generated tracks (with ``training_tracks``), on the pipeline's ``track`` when it
+    trained on generated ones, and on ``tracks``; its lap beside the point-mass reference of each track."""
+
+    tracks: list[Path] = Field(default=[], description="Further track files, relative to the pipeline file")
+    races: PosInt = Field(default=64, description="Races per track and scenario")
+    laps: PosInt = Field(default=3, description="Laps of every race")
+    seed: int = Field(default=1, ge=0, description="Seed of the start placements")
+
+
 class ReportCfg(StrictModel):
     """The pipeline's report (``runs/<name>/report/results.md`` and figures) and the steps that race for it."""
 
@@ -116,6 +128,8 @@ class ReportCfg(StrictModel):
         default=None, description="A racing section of races of several laps (needs evaluation.holdout_runs); null: "
         "none",
     )
+    unseen_tracks: UnseenTracksCfg | None = Field(
+        default=None, description="A section racing the final policies on tracks no training step flew; null: none")
 
 
 class PipelineSpec(StrictModel):

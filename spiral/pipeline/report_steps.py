@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from spiral.config.airframe import AirframeCfg
+from spiral.config.load import load_track
 from spiral.config.pipeline import PipelineSpec
 from spiral.config.track import TrackSpec
 from spiral.core.files import atomic_write_bytes
@@ -29,16 +30,20 @@ from spiral.eval.report import (
     race_planner_racing,
 )
 from spiral.eval.runs import MODE_OF, RunRecord, final_stage, method_stage, one_torch_thread
+from spiral.eval.unseen_tracks import race_unseen_tracks, unseen_tracks_markdown
 from spiral.pipeline.manifest import MANIFEST, read_manifest
 from spiral.pipeline.step import Step, StepContext
+from spiral.pipeline.tracks_step import TRACKS_STEP, generated_tracks
 
-__all__ = ["LEARNED_STEP", "PLANNER_RACING_STEP", "PLANNER_STEP", "read_run", "report_steps"]
+__all__ = ["LEARNED_STEP", "PLANNER_RACING_STEP", "PLANNER_STEP", "UNSEEN_STEP", "read_run", "report_steps"]
 
 PLANNER_STEP = "eval:se-ibr"
 """The step that races SE-IBR's self-matches (with ``report.se_ibr``)."""
 PLANNER_RACING_STEP = "eval:se-ibr-racing"
 """The step that races SPIRAL's final policy against SE-IBR for the racing section (with ``report.se_ibr`` and
 ``report.racing``)."""
+UNSEEN_STEP = "eval:unseen-tracks"
+"""The step that races the final policies on tracks no training step flew (with ``report.unseen_tracks``)."""
 LEARNED_STEP = "eval:report"
 """The step that races what the report races among learned policies."""
 REPORT_JOBS = os.cpu_count() or 1
@@ -72,6 +77,7 @@ def report_steps(plan: PlanView, steps: list[Step]) -> list[Step]:
         if report.cross_play or report.robustness:
             out += _pairing_steps(plan)
         out += _planner_racing_steps(plan)
+    out += _unseen_tracks_steps(plan)
     section = {"report": report, **plan.spec.evaluation.model_dump()}
     stage_steps = [s.name for s in steps if not s.name.startswith("publish:")]
     out.append(Step(LEARNED_STEP, _learned_fn(plan), stage_steps, section))
@@ -165,6 +171,44 @@ def _planner_racing_steps(plan: PlanView) -> list[Step]:
     return [Step(PLANNER_RACING_STEP, run, [f"train:{final}"], section)]
 
 
+def _final_stages(plan: PlanView) -> dict[str, str]:
+    """The stage whose best is each learned method's final policy, for the methods the pipeline trains."""
+    stages = [(s.name, s.selfplay.mode, bool(s.publish_as)) for s in plan.spec.stages if s.scenario != "solo"]
+    finals = {method: final_stage(stages, mode) for method, mode in MODE_OF.items()}
+    return {method: stage for method, stage in finals.items() if stage is not None}
+
+
+def _unseen_tracks_steps(plan: PlanView) -> list[Step]:
+    """The final policies' races on tracks no training step flew (with ``report.unseen_tracks``): the held-out
+    generated tracks and the pipeline's own track when it trained on generated ones, and the section's files."""
+    cfg = plan.spec.report.unseen_tracks
+    finals = _final_stages(plan)
+    if cfg is None or not finals:
+        return []
+    generated = plan.spec.training_tracks is not None
+    files = [(str(path), load_track(plan.source.parent / path)) for path in cfg.tracks]
+    section = {"unseen_tracks": cfg, "files": [track for _, track in files], "airframe": plan.airframe,
+               "own": plan.track if generated else None, "device": race_device(plan.spec.device, [])}
+    inputs = [f"train:{stage}" for stage in finals.values()] + ([TRACKS_STEP] if generated else [])
+
+    def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
+        tracks = []
+        if generated:
+            tracks += [("held out", t) for t in generated_tracks(ctx.inputs[TRACKS_STEP], "held_out")]
+            tracks.append(("pipeline's track", plan.track))
+        tracks += [("file", track) for _, track in files]
+        methods = {method: Path(ctx.inputs[f"train:{stage}"]["outputs"]["best"]["path"])
+                   for method, stage in finals.items()}
+        with one_torch_thread():
+            rows = race_unseen_tracks(tracks, methods, cfg, plan.airframe, device=section["device"], log=ctx.log)
+        table, text = ctx.step_dir / "unseen_tracks.json", ctx.step_dir / "unseen_tracks.md"
+        atomic_write_bytes(table, json.dumps({"unseen_tracks": rows}, indent=2).encode())
+        atomic_write_bytes(text, unseen_tracks_markdown(rows, cfg, f"spiral run {plan.source}").encode())
+        return {"rows": table, "section": text}, {"tracks": len(tracks)}
+
+    return [Step(UNSEEN_STEP, run, inputs, section)]
+
+
 def _report_options(plan: PlanView) -> ReportOptions:
     """The report's options from the pipeline's ``evaluation`` and ``report``."""
     cfg, ev = plan.spec.report, plan.spec.evaluation
@@ -196,6 +240,9 @@ def _report_fn(plan: PlanView):
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
         with one_torch_thread():  # all is raced by the steps before; anything left races as they race it
             results = build_report(_run(plan, ctx), plan.track, ctx.step_dir, _report_options(plan), log=ctx.log)
+        if UNSEEN_STEP in ctx.inputs:  # the unseen-tracks section, as its step wrote it
+            section = Path(ctx.inputs[UNSEEN_STEP]["outputs"]["section"]["path"]).read_text()
+            atomic_write_bytes(results, (results.read_text().rstrip("\n") + "\n\n" + section).encode())
         ctx.log(f"report: {results}")
         return {"results": results, "csv": results.with_name("results.csv"),
                 "headline": results.with_name("headline.json")}, {}

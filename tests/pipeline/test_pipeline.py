@@ -494,3 +494,17 @@ def test_held_out_track_seeds_that_overlap_the_training_seeds_are_refused(tmp_pa
 
     with pytest.raises(ValueError, match=r"held_out_seeds: seeds 5\.\.6 overlap the training seeds 0\.\.5"):
         TrackSetCfg(train_seeds=(0, 6), held_out_seeds=(5, 2))
+
+
+def test_the_unseen_tracks_section_races_each_methods_final_policy_once_it_and_the_tracks_exist(tmp_path):
+    """smoke.yaml on generated tracks with an unseen-tracks section: its step reads both branches' final stages and
+    the tracks step, and the report reads it."""
+    data = yaml.safe_load((ROOT / "pipelines" / "smoke.yaml").read_text())
+    data["track"] = str(ROOT / "tracks" / "oval4.yaml")
+    data["training_tracks"] = {"train_seeds": [0, 3], "held_out_seeds": [100, 1]}
+    data["report"] = {"unseen_tracks": {"races": 2, "tracks": [str(ROOT / "tracks" / "figure8.yaml")]}}
+    path = tmp_path / "g.yaml"
+    path.write_text(yaml.safe_dump(data))
+    steps = {s.name: s for s in runner_for(path, tmp_path).steps}
+    assert steps["eval:unseen-tracks"].inputs == ["train:2v2", "train:2v2-noselfplay", "tracks"]
+    assert "eval:unseen-tracks" in steps["report"].inputs
