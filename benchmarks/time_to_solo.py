@@ -43,13 +43,13 @@ def seeded_pipeline(pipeline: Path, seed: int, out: Path) -> Path:
 
 
 def run_seed(pipeline: Path, stage: str, seed: int, *, success: float, lap: float,
-             sim_threads: int = 1) -> dict[str, Any]:
+             threads: int = 1, sim_threads: int = 1) -> dict[str, Any]:
     """Train the stage for one seed and return when it first reached the target."""
     with tempfile.TemporaryDirectory() as tmp:
         spec = seeded_pipeline(pipeline, seed, Path(tmp) / "pipeline.yaml")
         cmd = [sys.executable, "-m", "spiral.cli", "train", str(spec), "--stage", stage,
                "--runs-dir", f"{tmp}/runs", "--checkpoints-dir", f"{tmp}/checkpoints",
-               "--sim-threads", str(sim_threads)]
+               "--threads", str(threads), "--sim-threads", str(sim_threads)]
         t0 = time.perf_counter()
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
         wall = time.perf_counter() - t0
@@ -69,12 +69,13 @@ def main() -> None:
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--success", type=float, default=0.95)
     parser.add_argument("--lap", type=float, default=5.5)
+    parser.add_argument("--threads", type=int, default=1, help="spiral train --threads (torch threads)")
     parser.add_argument("--sim-threads", type=int, default=1, help="spiral train --sim-threads")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
     load = os.getloadavg()
     rows = [run_seed(args.pipeline, args.stage, int(s), success=args.success, lap=args.lap,
-                     sim_threads=args.sim_threads) for s in args.seeds.split(",")]
+                     threads=args.threads, sim_threads=args.sim_threads) for s in args.seeds.split(",")]
     print("| seed | reached at iteration | after [s] | success | lap [s] | stage wall [s] |")
     print("|---|---:|---:|---:|---:|---:|")
     for r in rows:
@@ -82,7 +83,8 @@ def main() -> None:
         cells = (r["reached_at_iteration"], f"{r['reached_after_s']:.0f}", r["success"], f"{r['lap_time']:.2f}") \
             if hit else ("-",) * 4
         print(f"| {r['seed']} | " + " | ".join(map(str, cells)) + f" | {r['stage_wall_s']:.0f} |")
-    result = {"pipeline": str(args.pipeline), "stage": args.stage, "sim_threads": args.sim_threads,
+    result = {"pipeline": str(args.pipeline), "stage": args.stage, "threads": args.threads,
+              "sim_threads": args.sim_threads,
               "target": {"success": args.success, "lap": args.lap}, "load_at_start": load, "results": rows}
     if args.json:
         args.json.write_text(json.dumps(result, indent=2) + "\n")

@@ -58,6 +58,8 @@ Executor = Annotated[str, typer.Option("--executor", help="Where steps run: loca
                                       "on a cluster sharing this working directory; pip install 'spiral[ray]')")]
 Address = Annotated[str | None, typer.Option("--address", help="The Ray cluster (--executor ray): auto, host:port or "
                                              "ray://host:port; default RAY_ADDRESS or a new local Ray instance")]
+Threads = Annotated[int, typer.Option("--threads", min=1, help="Torch threads of each step (on the CPU they "
+                                      "decide its numbers to the bit, so every executor uses this count)")]
 SimThreads = Annotated[int, typer.Option("--sim-threads", min=1, help="CPU threads stepping the simulator, each a "
                                          "share of the worlds (a Warp CPU launch uses one core); same results")]
 
@@ -210,7 +212,8 @@ def run(
     runs_dir: RunsDir = Path("runs"),
     checkpoints_dir: CkptDir = Path("checkpoints"),
     jobs: Annotated[int, typer.Option("--jobs", "-j", min=1, help="Independent steps run side by side, each in its "
-                                      "own process with its share of the CPU cores")] = 1,
+                                      "own process")] = 1,
+    threads: Threads = 1,
     accept_code_changes: Annotated[bool, typer.Option(
         "--accept-code-changes", help="Keep steps that ran with other spiral source code (same spec and inputs) "
         "instead of rerunning them")] = False,
@@ -224,7 +227,7 @@ def run(
     runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device,
                             accept_code_changes=accept_code_changes, overrides=overrides or ())
     with _launcher(executor, address, runner.plan.spec.device) as launcher:
-        ran = runner.run(start=from_step, only=only, force=force, jobs=jobs, launcher=launcher)
+        ran = runner.run(start=from_step, only=only, force=force, jobs=jobs, threads=threads, launcher=launcher)
     typer.echo(f"pipeline '{runner.plan.spec.name}': {len(ran)} step(s) ran, {len(runner.steps) - len(ran)} skipped")
 
 
@@ -237,6 +240,7 @@ def sweep(
     runs_dir: RunsDir = Path("runs"),
     checkpoints_dir: CkptDir = Path("checkpoints"),
     jobs: Annotated[int, typer.Option("--jobs", "-j", min=1, help="Steps of a run side by side (as spiral run)")] = 1,
+    threads: Threads = 1,
     overrides: Overrides = None,
     executor: Executor = "local",
     address: Address = None,
@@ -253,7 +257,7 @@ def sweep(
         run_device = canonical_device(device) if device else load_pipeline(pipeline, overrides or ())[0].device
     with _launcher(executor, address, run_device) as launcher:
         summary = run_sweep(pipeline, seed_list, overrides or (), runs_dir=runs_dir, checkpoints_dir=checkpoints_dir,
-                            device=device, jobs=jobs, launcher=launcher)
+                            device=device, jobs=jobs, threads=threads, launcher=launcher)
     typer.echo(f"wrote {summary}")
 
 
@@ -303,6 +307,7 @@ def train(
     checkpoints_dir: CkptDir = Path("checkpoints"),
     distributed: Annotated[bool, typer.Option("--distributed", help="One process per GPU under torchrun "
                                               "(docs/scaling.md)")] = False,
+    threads: Threads = 1,
     sim_threads: SimThreads = 1,
     overrides: Overrides = None,
 ) -> None:
@@ -321,7 +326,7 @@ def train(
     runner = PipelineRunner(pipeline, runs_dir=runs_dir, checkpoints_dir=checkpoints_dir, device=device,
                             overrides=overrides or ())
     runner.plan.sim_threads = sim_threads
-    runner.run(only=f"train:{stage}")
+    runner.run(only=f"train:{stage}", threads=threads)
 
 
 def _parse_method(text: str) -> tuple[str, str]:

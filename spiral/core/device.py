@@ -1,12 +1,15 @@
-"""Which compute device a run asks for, checked before anything is built on it."""
+"""Which compute device a run asks for, checked before anything is built on it, and the torch threads it computes
+with."""
 
 from __future__ import annotations
 
+import contextlib
 import re
+from collections.abc import Iterator
 
 from spiral.core.errors import UsageError
 
-__all__ = ["canonical_device", "check_device"]
+__all__ = ["canonical_device", "check_device", "torch_threads"]
 
 
 def canonical_device(device: str) -> str:
@@ -48,3 +51,19 @@ def check_device(device: str) -> str:
     if index >= count:
         raise UsageError(f"device {device}: this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")
     return device
+
+
+@contextlib.contextmanager
+def torch_threads(count: int) -> Iterator[None]:
+    """Run the body with ``count`` torch threads, and restore the count after. On the CPU, torch's reductions and
+    matrix products split their work by the thread count, so it decides a result to the bit: a computation that must
+    give the same numbers wherever it runs (a training step in this process, a worker or a Ray task; races beside
+    other jobs) fixes it."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)

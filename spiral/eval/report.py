@@ -23,6 +23,7 @@ from spiral.config.airframe import AirframeCfg
 from spiral.config.env import SeparationCfg
 from spiral.config.pipeline import RacingCfg
 from spiral.config.track import TrackSpec
+from spiral.core.device import torch_threads
 from spiral.core.errors import UsageError
 from spiral.eval.bound import LapBound, lap_time_bound
 from spiral.eval.evaluate import SE_IBR, EvalLayout, check_sides
@@ -38,7 +39,6 @@ from spiral.eval.runs import (
     RunRecord,
     StageRun,
     crosses_in_workers,
-    one_torch_thread,
     read_train_log,
     run_protocol,
     run_setup,
@@ -147,7 +147,7 @@ def race_learned_policies(run: RunRecord, track: TrackSpec, out_dir: Path, optio
     it once declared. A pipeline runs it as a step of its own, beside the planner's pairings. Returns that cache
     folder."""
     ev = _protocol(run, track, Path(out_dir), options, se_ibr=False, log=log)
-    with one_torch_thread():
+    with torch_threads(1):
         table = {s: [ev.self_match(s, method) for method in METHODS if method in MODE_OF] for s in SCENARIOS}
         holdout = options.holdout
         _race_learned(ev, None if holdout is None else ev.held_out(*holdout), table, options)
@@ -164,7 +164,7 @@ def race_planner_pairing(run: RunRecord, track: TrackSpec, out_dir: Path, scenar
     checkpoint = ev.checkpoint(scenario, method)
     if checkpoint is None:
         raise FileNotFoundError(f"{run.root}: no best.pt of a {MODE_OF[method]}-mode {scenario} stage")
-    with one_torch_thread():
+    with torch_threads(1):
         return ev.cross(scenario, (method, checkpoint), ("se-ibr", SE_IBR))
 
 
@@ -176,7 +176,7 @@ def race_planner_racing(run: RunRecord, track: TrackSpec, out_dir: Path, options
     if options.racing is None or options.holdout is None:
         raise UsageError("race_planner_racing: options without a racing section")
     ev = _protocol(run, track, Path(out_dir), options, se_ibr=True, log=log)
-    with one_torch_thread():
+    with torch_threads(1):
         return race_planner_duels(ev.held_out(*options.holdout), ev.stages, options.racing)
 
 

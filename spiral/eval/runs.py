@@ -25,6 +25,7 @@ from typing import Any, Literal
 from spiral.config.airframe import AIRFRAMES, AirframeCfg
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
+from spiral.core.device import torch_threads
 from spiral.core.files import atomic_write_bytes, file_sha256
 from spiral.eval.evaluate import (
     SE_IBR,
@@ -47,7 +48,6 @@ __all__ = [
     "final_stage",
     "load_json",
     "method_stage",
-    "one_torch_thread",
     "read_train_log",
     "run_protocol",
     "run_setup",
@@ -101,20 +101,6 @@ def final_stage(stages: Iterable[tuple[str, str, bool]], mode: str) -> str | Non
     own = [(name, published) for name, stage_mode, published in stages if stage_mode == mode]
     chosen = [name for name, published in own if published] or [name for name, _ in own]
     return chosen[-1] if chosen else None
-
-
-@contextlib.contextmanager
-def one_torch_thread() -> Iterator[None]:
-    """Run the body on one torch thread (and restore the count after): races give the same numbers whatever else
-    runs beside them."""
-    import torch
-
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
 
 
 @dataclass(frozen=True)
@@ -368,7 +354,7 @@ def crosses_in_workers(ev: Evaluations, pairings: list[tuple[str, tuple[str, str
     context = multiprocessing.get_context("spawn")
     pool = concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=context)
     try:
-        with one_torch_thread():  # the workers take the cores: this process's races must not oversubscribe them
+        with torch_threads(1):  # the workers take the cores: this process's races must not oversubscribe them
             futures = []
             for scenario, a, b in missing:
                 ev.log(f"report: running {ev.prefix}{_cross_tag(scenario, a, b, '')} in a worker process")
@@ -382,7 +368,7 @@ def crosses_in_workers(ev: Evaluations, pairings: list[tuple[str, tuple[str, str
 
 def _cross_in_worker(job: tuple[Evaluations, tuple[str, tuple[str, str], tuple[str, str]]]) -> None:
     ev, (scenario, a, b) = job
-    with one_torch_thread():
+    with torch_threads(1):
         ev.cross(scenario, a, b)
 
 

@@ -2,10 +2,11 @@
 
 The parent holds the pipeline lock and schedules: a step starts once every step it depends on has finished, at
 most N at a time, training steps first. Each worker process runs one step exactly as the sequential runner would
-(same folder, fingerprint, resume and manifest), with its torch threads set to its share of the CPU cores: all of
-them when it is the only step that can run (nothing else can become ready before it ends), ``cores // N``
-otherwise, so the workers never oversubscribe the CPU (torch's thread pools slow down many times over when they
-do). Worker output is relayed line by line, prefixed with the step's name, and kept in ``<run>/logs/<step>.log``.
+(same folder, fingerprint, resume and manifest), with the run's torch threads (``--threads``, one by default): on
+the CPU they decide a step's numbers to the bit, so a worker trains what the sequential runner trains, whatever
+else runs beside it. N workers of T threads want N·T cores (with fewer, torch's thread pools contend and slow down
+many times over; the run says so when it starts). Worker output is relayed line by line, prefixed with the step's
+name, and kept in ``<run>/logs/<step>.log``.
 
 Where the workers run is the launcher's: :class:`LocalLauncher` starts them as child processes of this one;
 :class:`spiral.pipeline.ray_executor.RayLauncher` as Ray tasks on a cluster whose nodes share the working directory.
@@ -29,19 +30,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Protocol
 
+from spiral.core.errors import UsageError
 from spiral.pipeline.step import PipelineError, Step
 
-__all__ = ["Launcher", "LocalLauncher", "StepJob", "WorkerHandle", "run_parallel", "thread_share", "worker_command"]
+__all__ = ["Launcher", "LocalLauncher", "StepJob", "WorkerHandle", "check_cores", "run_parallel", "worker_command"]
 
 POLL_S = 0.2
 WORKER_RETRIES = 2
 """Times a step whose worker was killed (by a signal: out of memory, a lost machine, a user) starts again, resuming
 from what it left (a training step from its newest checkpoint); a worker that exits with an error is not retried."""
-
-
-def thread_share(cores: int, jobs: int, alone: bool) -> int:
-    """Torch threads for a worker: every core when it runs alone, else an equal share of at least one."""
-    return max(1, cores if alone else cores // jobs)
 
 
 class WorkerHandle(Protocol):
@@ -57,8 +54,10 @@ class WorkerHandle(Protocol):
 class Launcher(Protocol):
     """Starts workers: ``command`` is the worker's arguments after the Python interpreter."""
 
-    def threads(self, jobs: int, alone: bool) -> int:
-        """Torch threads for a worker of a run with ``jobs`` workers (``alone``: the only step that can run)."""
+    cores: int
+    """CPU cores of the largest machine a worker can run on."""
+    total_cores: int
+    """CPU cores of all the machines together."""
 
     def start(self, command: list[str], env: dict[str, str], threads: int, log_path: Path,
               log: Callable[[str], None]) -> WorkerHandle:
@@ -107,11 +106,8 @@ class _LocalWorker:
 class LocalLauncher:
     """Workers as child processes of this one, on this machine."""
 
-    def __init__(self, cores: int | None = None) -> None:
-        self.cores = cores or os.cpu_count() or 1
-
-    def threads(self, jobs: int, alone: bool) -> int:
-        return thread_share(self.cores, jobs, alone)
+    def __init__(self) -> None:
+        self.cores = self.total_cores = os.cpu_count() or 1
 
     def start(self, command: list[str], env: dict[str, str], threads: int, log_path: Path,
               log: Callable[[str], None]) -> WorkerHandle:
@@ -130,10 +126,10 @@ def _relay(stream: IO[str], log_file: Path, log: Callable[[str], None]) -> None:
             log(line.rstrip())
 
 
-def run_parallel(runner, todo: list[Step], fresh: set[str], jobs: int, *,
+def run_parallel(runner, todo: list[Step], fresh: set[str], jobs: int, threads: int, *,
                  launcher: Launcher | None = None) -> list[str]:
     """Run ``todo`` (steps of ``runner``, a ``PipelineRunner``, in dependency order) with at most ``jobs`` workers
-    started by ``launcher`` (child processes by default); return those run.
+    of ``threads`` torch threads each, started by ``launcher`` (child processes by default); return those run.
 
     Raises:
         PipelineError: a step failed (after the other running steps finished) or the run was interrupted.
@@ -150,8 +146,6 @@ def run_parallel(runner, todo: list[Step], fresh: set[str], jobs: int, *,
             ready = [] if failed else [s for s in pending if all(i not in names or i in done for i in s.inputs)]
             ready.sort(key=lambda s: not s.resumable)  # training first: the long steps set the wall time
             for step in ready[: jobs - len(running)]:
-                alone = not running and len(ready) == 1
-                threads = launcher.threads(jobs, alone)
                 running[step.name] = _spawn(runner, launcher, step, step.name in fresh, threads, log_dir)
                 pending.remove(step)
             time.sleep(POLL_S)
@@ -168,6 +162,21 @@ def run_parallel(runner, todo: list[Step], fresh: set[str], jobs: int, *,
         raise PipelineError(f"step '{job.step.name}' {how}; its output: {job.log_path})\n"
                             f"resume with: {runner.command} --jobs {jobs}")
     return done
+
+
+def check_cores(launcher: Launcher, jobs: int, threads: int, log: Callable[[str], None]) -> None:
+    """Refuse steps of more torch threads than the largest machine has cores; say when ``jobs`` steps side by side
+    want more cores than there are.
+
+    Raises:
+        UsageError: ``threads`` is more than the largest machine's cores.
+    """
+    if threads > launcher.cores:
+        raise UsageError(f"--threads {threads}: a step runs on one machine, and the largest has {launcher.cores} "
+                         "cores")
+    if jobs * threads > launcher.total_cores:
+        log(f"{jobs} steps of {threads} torch thread{'s' if threads > 1 else ''} side by side want {jobs * threads} "
+            f"cores and there are {launcher.total_cores}: they run slower side by side than one at a time")
 
 
 def _reap(running: dict[str, StepJob], done: list[str], failed: list[StepJob]) -> None:

@@ -26,7 +26,6 @@ from pathlib import Path
 from typing import Any
 
 from spiral.core.errors import UsageError
-from spiral.pipeline.parallel import thread_share
 
 __all__ = ["RAY_EXTRA", "RayLauncher", "import_ray"]
 
@@ -63,14 +62,10 @@ class RayLauncher:
                            **({"_system_config": {"worker_niceness": 0}} if local else {}))
         nodes = [n["Resources"] for n in self._ray.nodes() if n.get("Alive")]
         self.cores = int(max(n.get("CPU", 0) for n in nodes))
-        """The largest node's CPU cores: no step asks for more threads than one node has."""
+        """The largest node's CPU cores: no step can ask for more threads than one node has."""
         self.total_cores = int(sum(n.get("CPU", 0) for n in nodes))
         self.gpus = 1 if device.startswith("cuda") else 0
         self._task = self._ray.remote(_run_worker)
-
-    def threads(self, jobs: int, alone: bool) -> int:
-        """A step's threads: its share of the cluster's cores, at most one node's."""
-        return min(self.cores, thread_share(self.total_cores, jobs, alone))
 
     def start(self, command: list[str], env: dict[str, str], threads: int, log_path: Path,
               log: Callable[[str], None]) -> _RayWorker:

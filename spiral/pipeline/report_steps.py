@@ -19,6 +19,7 @@ from spiral.config.airframe import AirframeCfg
 from spiral.config.load import load_track
 from spiral.config.pipeline import PipelineSpec
 from spiral.config.track import TrackSpec
+from spiral.core.device import torch_threads
 from spiral.core.files import atomic_write_bytes
 from spiral.eval.evaluate import SE_IBR, EvalLayout, RaceSet, evaluate_methods, race_device
 from spiral.eval.report import (
@@ -29,7 +30,7 @@ from spiral.eval.report import (
     race_planner_pairing,
     race_planner_racing,
 )
-from spiral.eval.runs import MODE_OF, RunRecord, final_stage, method_stage, one_torch_thread
+from spiral.eval.runs import MODE_OF, RunRecord, final_stage, method_stage
 from spiral.eval.unseen_tracks import race_unseen_tracks, unseen_tracks_markdown
 from spiral.pipeline.manifest import MANIFEST, read_manifest
 from spiral.pipeline.step import Step, StepContext
@@ -199,7 +200,7 @@ def _unseen_tracks_steps(plan: PlanView) -> list[Step]:
         tracks += [("file", track) for _, track in files]
         methods = {method: Path(ctx.inputs[f"train:{stage}"]["outputs"]["best"]["path"])
                    for method, stage in finals.items()}
-        with one_torch_thread():
+        with torch_threads(1):
             rows = race_unseen_tracks(tracks, methods, cfg, plan.airframe, device=section["device"], log=ctx.log)
         table, text = ctx.step_dir / "unseen_tracks.json", ctx.step_dir / "unseen_tracks.md"
         atomic_write_bytes(table, json.dumps({"unseen_tracks": rows}, indent=2).encode())
@@ -238,7 +239,7 @@ def _learned_fn(plan: PlanView):
 
 def _report_fn(plan: PlanView):
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
-        with one_torch_thread():  # all is raced by the steps before; anything left races as they race it
+        with torch_threads(1):  # all is raced by the steps before; anything left races as they race it
             results = build_report(_run(plan, ctx), plan.track, ctx.step_dir, _report_options(plan), log=ctx.log)
         if UNSEEN_STEP in ctx.inputs:  # the unseen-tracks section, as its step wrote it
             section = Path(ctx.inputs[UNSEEN_STEP]["outputs"]["section"]["path"]).read_text()

@@ -14,7 +14,7 @@ from typing import Any
 
 from spiral.config.load import load_pipeline
 from spiral.core.checkpoint import list_checkpoints
-from spiral.core.device import canonical_device, check_device
+from spiral.core.device import canonical_device, check_device, torch_threads
 from spiral.core.errors import UsageError
 from spiral.core.files import atomic_write_bytes
 from spiral.pipeline.graph import PipelinePlan, select_steps
@@ -28,7 +28,7 @@ from spiral.pipeline.manifest import (
     step_state,
     write_manifest,
 )
-from spiral.pipeline.parallel import Launcher, run_parallel
+from spiral.pipeline.parallel import Launcher, LocalLauncher, check_cores, run_parallel
 from spiral.pipeline.step import PipelineError, Step, StepContext
 
 __all__ = ["PipelineRunner", "StepStatus"]
@@ -91,13 +91,16 @@ class PipelineRunner:
         return out
 
     def run(self, *, start: str | None = None, only: str | None = None, force: list[str] | None = None,
-            jobs: int = 1, launcher: Launcher | None = None) -> list[str]:
-        """Run the selected steps, up to ``jobs`` independent ones at a time; return the names of those that ran.
+            jobs: int = 1, threads: int = 1, launcher: Launcher | None = None) -> list[str]:
+        """Run the selected steps, up to ``jobs`` independent ones at a time, each with ``threads`` torch threads;
+        return the names of those that ran.
 
         With a ``launcher`` (e.g. Ray's) every step runs in a worker it starts; without one, a step at a time runs
-        in this process and several in child processes."""
-        if jobs < 1:
-            raise UsageError(f"jobs must be at least 1, got {jobs}")
+        in this process and several in child processes. Every executor computes a step with the same ``threads``
+        (they decide its numbers to the bit): this process, a worker and a Ray task train the same policy."""
+        if jobs < 1 or threads < 1:
+            raise UsageError(f"jobs and threads must be at least 1, got {jobs} and {threads}")
+        check_cores(launcher or LocalLauncher(), jobs, threads, self.log)
         check_device(self.plan.spec.device)
         selected = {s.name for s in select_steps(self.steps, start=start, only=only)}
         forced = set(force or [])
@@ -122,9 +125,10 @@ class PipelineRunner:
                 self._refuse_missing_inputs(step, todo, fps)
                 todo[step.name] = (step, state)  # running upstream steps leaves a step's own folder as it is
             if launcher is not None or (jobs > 1 and len(todo) > 1):
-                return run_parallel(self, [step for step, _ in todo.values()], forced, jobs, launcher=launcher)
+                return run_parallel(self, [step for step, _ in todo.values()], forced, jobs, threads,
+                                    launcher=launcher)
             for step, state in todo.values():
-                self._run_step(step, fps[step.name], state, fresh=step.name in forced)
+                self._run_step(step, fps[step.name], state, fresh=step.name in forced, threads=threads)
         return list(todo)
 
     def _refuse_missing_inputs(self, step: Step, todo: dict[str, Any], fps: dict[str, Fingerprint]) -> None:
@@ -135,15 +139,16 @@ class PipelineRunner:
             raise UsageError(f"step '{step.name}' reads {', '.join(missing)}, not complete: run it first "
                              f"(--only {missing[0]}), or the pipeline without --only")
 
-    def run_step(self, name: str, *, fresh: bool = False) -> None:
-        """Run one step now, resuming it if it was interrupted (the caller holds the pipeline lock)."""
+    def run_step(self, name: str, *, fresh: bool = False, threads: int = 1) -> None:
+        """Run one step now with ``threads`` torch threads, resuming it if it was interrupted (the caller holds the
+        pipeline lock)."""
         step, fp = self._step(name), self._fingerprints()[name]
-        self._run_step(step, fp, self._state(step, fp), fresh=fresh)
+        self._run_step(step, fp, self._state(step, fp), fresh=fresh, threads=threads)
 
     def _state(self, step: Step, fp: Fingerprint) -> StepState:
         return step_state(self._dir(step), fp, accept_code_changes=self.accept_code_changes)
 
-    def _run_step(self, step: Step, fp: Fingerprint, state: StepState, *, fresh: bool) -> None:
+    def _run_step(self, step: Step, fp: Fingerprint, state: StepState, *, fresh: bool, threads: int) -> None:
         step_dir = self._dir(step)
         resume = step.resumable and not fresh and state.status == "partial" and self._started_as(step_dir, fp)
         if not resume and step_dir.exists():
@@ -154,12 +159,13 @@ class PipelineRunner:
         self.log(f"step '{step.name}' {'resuming' if resume else 'running'}")
         t0 = time.perf_counter()
         try:
-            outputs, info = step.fn(StepContext(step_dir, inputs, self.log, self.progress))
+            with torch_threads(threads):
+                outputs, info = step.fn(StepContext(step_dir, inputs, self.log, self.progress))
         except KeyboardInterrupt:
             raise PipelineError(self._resume_hint(step, "interrupted")) from None
         except Exception as exc:
             raise PipelineError(self._resume_hint(step, f"failed: {type(exc).__name__}: {exc}")) from exc
-        info = {"wall_time_s": time.perf_counter() - t0, "device": self.plan.spec.device,
+        info = {"wall_time_s": time.perf_counter() - t0, "device": self.plan.spec.device, "torch_threads": threads,
                 **({"overrides": list(self.overrides)} if self.overrides else {}), **info}
         write_manifest(step_dir, step.name, fp, outputs, info)
         self.log(f"step '{step.name}' done in {info['wall_time_s']:.1f} s")

@@ -42,11 +42,12 @@ def parse_seeds(text: str) -> list[int]:
 
 
 def run_sweep(path: Path, seeds: Sequence[int], overrides: Sequence[str] = (), *, jobs: int = 1,
-              launcher: Launcher | None = None, log: Callable[[str], None] = print, **runner_options: Any) -> Path:
+              threads: int = 1, launcher: Launcher | None = None, log: Callable[[str], None] = print,
+              **runner_options: Any) -> Path:
     """Run the pipeline at ``path`` with ``overrides`` once per seed (``seed=S`` added; complete steps are skipped,
     as by ``spiral run``), then write ``summary.json`` and ``summary.md`` into ``<runs_dir>/sweeps/<variant>``.
-    Returns the markdown's path. ``runner_options`` (``runs_dir``, ``checkpoints_dir``, ``device``) go to each draw's
-    :class:`PipelineRunner`.
+    Returns the markdown's path. ``jobs`` and ``threads`` are :meth:`PipelineRunner.run`'s; ``runner_options``
+    (``runs_dir``, ``checkpoints_dir``, ``device``) go to each draw's :class:`PipelineRunner`.
 
     The draws run one after another, or, with a ``launcher`` (a cluster's), all at once, each scheduling its steps
     onto it (log lines then start with the seed)."""
@@ -59,11 +60,11 @@ def run_sweep(path: Path, seeds: Sequence[int], overrides: Sequence[str] = (), *
         log(f"sweep: seed {seed} in {runner.plan.run_root}")
     if together:
         with ThreadPoolExecutor(len(runners)) as pool:
-            for future in [pool.submit(r.run, jobs=jobs, launcher=launcher) for r in runners]:
+            for future in [pool.submit(r.run, jobs=jobs, threads=threads, launcher=launcher) for r in runners]:
                 future.result()
     else:
         for runner in runners:
-            runner.run(jobs=jobs, launcher=launcher)
+            runner.run(jobs=jobs, threads=threads, launcher=launcher)
     draws = [SweepDraw(seed, r.plan.run_root, _headline(r.plan.run_root))
              for seed, r in zip(seeds, runners, strict=True)]
     name = load_pipeline(path, overrides)[0].name

@@ -9,8 +9,6 @@ import signal
 import sys
 from pathlib import Path
 
-import torch
-
 from spiral.pipeline.runner import PipelineRunner
 from spiral.pipeline.step import PipelineError
 
@@ -33,12 +31,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.parent is not None:
         end_with_parent(args.parent)
-    torch.set_num_threads(args.threads)
     runner = PipelineRunner(args.pipeline, runs_dir=args.runs_dir, checkpoints_dir=args.checkpoints_dir,
                             device=args.device, progress=False, log=lambda m: print(m, flush=True),
                             accept_code_changes=args.accept_code_changes, overrides=args.overrides)
     try:
-        runner.run_step(args.step, fresh=args.fresh)
+        runner.run_step(args.step, fresh=args.fresh, threads=args.threads)
     except PipelineError as exc:
         print(str(exc).splitlines()[0], file=sys.stderr, flush=True)
         return 1

@@ -21,6 +21,7 @@ from spiral.config.load import load_track
 from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
 from spiral.core.checkpoint import load_checkpoint
+from spiral.core.device import torch_threads
 from spiral.core.numerics import TORCH_AVX2_ENV, cpu_target, portable_build
 from spiral.env.setting import RaceSetting
 from spiral.sim.bench import DEFAULT_TRACK, _make_world, machine_info, time_warp
@@ -61,15 +62,10 @@ def training_digest(*, worlds: int = 64, iterations: int = 3, seed: int = 0) -> 
         "name": "digest", "worlds": worlds, "iterations": iterations,
         "env": {"obs": {"history_len": 1, "gate_normals": True, "pid_integral": True}},
         "ppo": {"save_interval": iterations}, "selection": {"interval": 10_000}})
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        with tempfile.TemporaryDirectory() as tmp:
-            StageTrainer(RaceSetting(load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"], SimCfg()), stage, Path(tmp),
-                         seed=seed, progress=False).train(lambda trainer, it: {})
-            weights = load_checkpoint(Path(tmp) / "ckpt" / f"model_{iterations - 1}.pt")["actor_state_dict"]
-    finally:
-        torch.set_num_threads(threads)
+    with torch_threads(1), tempfile.TemporaryDirectory() as tmp:
+        StageTrainer(RaceSetting(load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"], SimCfg()), stage, Path(tmp),
+                     seed=seed, progress=False).train(lambda trainer, it: {})
+        weights = load_checkpoint(Path(tmp) / "ckpt" / f"model_{iterations - 1}.pt")["actor_state_dict"]
     digest = hashlib.sha256()
     for key in sorted(weights):
         digest.update(key.encode())

@@ -236,9 +236,9 @@ def test_failed_parallel_step_keeps_the_work_of_the_steps_running_beside_it(tmp_
 
 def test_parallel_run_trains_branches_side_by_side_restarts_a_killed_worker_then_skips_like_a_sequential_run(
         tmp_path, worker_pid, kill_once):
-    """With --jobs 2, train:1v1 and train:1v1-noselfplay start together once train:solo (alone, with every core) is
-    done. train:1v1's worker, killed (SIGKILL) once it has saved a checkpoint, starts again and resumes from that
-    checkpoint; every step completes, and a sequential rerun finds nothing to do."""
+    """With --jobs 2, train:1v1 and train:1v1-noselfplay start together once train:solo is done, every worker on the
+    run's one torch thread. train:1v1's worker, killed (SIGKILL) once it has saved a checkpoint, starts again and
+    resumes from that checkpoint; every step completes, and a sequential rerun finds nothing to do."""
 
     path = write_branching_pipeline(tmp_path)
     data = yaml.safe_load(path.read_text())
@@ -251,15 +251,33 @@ def test_parallel_run_trains_branches_side_by_side_restarts_a_killed_worker_then
     runner = runner_for(path, tmp_path)
     assert sorted(ran) == sorted(s.name for s in runner.steps)
     started = [line for line in logs if "started in a worker" in line]
-    cores = os.cpu_count() or 1
-    assert started[0].startswith(f"step 'train:solo' started in a worker ({cores} torch thread")
+    assert started[0].startswith("step 'train:solo' started in a worker")
     pair = {"step 'train:1v1' started", "step 'train:1v1-noselfplay' started"}
     first_pair = [i for i, line in enumerate(started) if any(line.startswith(p) for p in pair)][:2]
-    assert first_pair == [1, 2] and f"({max(1, cores // 2)} torch thread" in started[1]
+    assert first_pair == [1, 2] and all("(1 torch thread;" in line for line in started)
     assert any(line.startswith("[train:1v1-noselfplay] ") for line in logs)
     assert killed and any("train:1v1': its worker was killed (signal 9); starting it again" in line for line in logs)
     assert "resuming stage '1v1' from model_" in (runner.plan.run_root / "logs" / "train-1v1.log").read_text()
     assert runner.run() == []
+
+
+def test_a_step_computes_with_the_runs_torch_threads_and_more_than_the_cores_are_refused(tmp_path):
+    """The sequential runner trains a step with the run's torch threads (recorded in its manifest) and gives the
+    process its own count back; a step of more threads than the machine has cores is refused before anything runs."""
+    import torch
+
+    from spiral.core.errors import UsageError
+    from spiral.pipeline.manifest import read_manifest
+
+    path = write_branching_pipeline(tmp_path)
+    runner = runner_for(path, tmp_path)
+    with pytest.raises(UsageError, match=r"--threads \d+: a step runs on one machine"):
+        runner.run(jobs=2, threads=(os.cpu_count() or 1) + 1)
+    assert not (runner.plan.run_root / "train-solo").exists()
+    before = torch.get_num_threads()
+    assert runner.run(only="train:solo", threads=1) == ["train:solo"]
+    assert torch.get_num_threads() == before
+    assert (read_manifest(runner.plan.run_root / "train-solo") or {})["info"]["torch_threads"] == 1
 
 
 def test_held_out_check_and_head_to_head_sides_are_the_reports_alone(tmp_path):
