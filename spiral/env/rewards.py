@@ -101,19 +101,13 @@ REWARD_TERMS = {
 """Reward term functions by the name of their weight in ``RewardCfg``."""
 
 
-SUMMED_AT_ONCE = ("progress", "gate", "collision", "alignment", "proximity", "lap", "win")
-"""Terms summed in one reduction, as when the shipped checkpoints were trained. Terms added since are added to its
-result one at a time: a reduction over more rows groups its additions otherwise (for some drone counts), so a new
-term at weight 0 would change the totals in their last bits and training would not repeat bit for bit."""
-
-ADDED_AFTER = tuple(name for name in REWARD_TERMS if name not in SUMMED_AT_ONCE)
-"""Terms added one at a time to the sum of :data:`SUMMED_AT_ONCE`, in :data:`REWARD_TERMS` order."""
-
-
 def compute_rewards(outcome: StepOutcome, cfg: RewardCfg) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """Total reward per drone and each weighted term."""
+    """Total reward per drone and each weighted term. The terms are added one at a time in :data:`REWARD_TERMS` order,
+    so a term at weight 0 adds an exact zero and leaves every total bit for bit (one reduction over a stack of the
+    terms would group its additions by the stack's size)."""
     terms = {name: fn(outcome, cfg) * getattr(cfg, name) for name, fn in REWARD_TERMS.items()}
-    total = torch.stack([terms[name] for name in SUMMED_AT_ONCE]).sum(0)
-    for name in ADDED_AFTER:
+    names = iter(REWARD_TERMS)
+    total = terms[next(names)]
+    for name in names:
         total = total + terms[name]
     return total, terms
