@@ -4,6 +4,7 @@ a killed worker resumes; without Ray, one clear error names the extra."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -54,22 +55,27 @@ def test_an_address_without_the_ray_executor_is_refused():
 
 
 @pytest.mark.bitwise
-def test_smoke_pipeline_on_ray_trains_what_the_local_executor_trains(ray_instance, smoke_run, tmp_path):
-    """smoke.yaml's steps as Ray tasks, two at a time: every step ends with the manifests (the same fingerprints but
-    where the checkpoints folder enters: publishing, the report) and, tensor for tensor, the checkpoints of the smoke
-    pipeline run step by step in this process."""
+def test_smoke_pipeline_on_ray_trains_what_the_local_executor_trains(ray_instance, smoke_run, tmp_path, monkeypatch):
+    """smoke.yaml's 2v2 stages and every step after them as Ray tasks, two at a time, in a copy of the smoke pipeline
+    run step by step in this process: every step ends with the manifests (the same fingerprints but where the
+    checkpoints folder enters: publishing, the report) and, tensor for tensor, the checkpoints of that run."""
     from spiral.pipeline import PipelineRunner
     from spiral.pipeline.ray_executor import RayLauncher
 
+    smoke_run.copy_to(tmp_path)
+    monkeypatch.chdir(tmp_path)  # the copied manifests name their files relative to the run's root
+    for step in ("train-2v2", "train-2v2-noselfplay"):
+        shutil.rmtree(Path("runs") / "smoke" / step)
+    again = [name for name in smoke_run.ran if "2v2" in name or name.endswith("report")]
     logs: list[str] = []
-    runner = PipelineRunner(SMOKE, runs_dir=tmp_path / "runs", checkpoints_dir=tmp_path / "ckpt", progress=False,
+    runner = PipelineRunner(SMOKE, runs_dir=Path("runs"), checkpoints_dir=Path("ckpt"), progress=False,
                             log=logs.append)
     with RayLauncher() as launcher:
-        assert sorted(runner.run(jobs=2, launcher=launcher)) == sorted(smoke_run.ran)
+        assert sorted(runner.run(jobs=2, launcher=launcher)) == sorted(again) and len(again) == 8
     assert runner.run() == []  # complete, as a local run sees it
-    assert any(line.startswith("[train:1v1] ") for line in logs)  # worker output relayed
+    assert any(line.startswith("[train:2v2] ") for line in logs)  # worker output relayed
 
-    local, ray_run = smoke_run.root / "runs" / "smoke", tmp_path / "runs" / "smoke"
+    local, ray_run = smoke_run.root / "runs" / "smoke", Path("runs") / "smoke"
     steps = sorted(p.name for p in local.iterdir() if (p / "manifest.json").exists())
     assert steps == sorted(p.name for p in ray_run.iterdir() if (p / "manifest.json").exists())
     for step in steps:
