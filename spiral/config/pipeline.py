@@ -106,6 +106,12 @@ class UnseenTracksCfg(StrictModel):
     races: PosInt = Field(default=64, description="Races per track and scenario")
     laps: PosInt = Field(default=3, description="Laps of every race")
     seed: int = Field(default=1, ge=0, description="Seed of the start placements")
+    head_to_head: bool = Field(
+        default=True, description="Also race the first learned method (SPIRAL) against each other one in 1v1 and 2v2 "
+        "duels on every track, from both sides")
+    specialists: dict[str, Path] = Field(
+        default={}, description="Policies trained on one track, raced beside the final policies on it: track name "
+        "-> checkpoint file, relative to the pipeline file (e.g. circuit6: ../checkpoints/full/spiral.pt)")
 
 
 class ReportCfg(StrictModel):

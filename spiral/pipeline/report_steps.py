@@ -10,6 +10,7 @@ learned policies (``eval:report``) need every stage. They race on one torch thre
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -20,7 +21,8 @@ from spiral.config.load import load_track
 from spiral.config.pipeline import PipelineSpec
 from spiral.config.track import TrackSpec
 from spiral.core.device import torch_threads
-from spiral.core.files import atomic_write_bytes
+from spiral.core.errors import UsageError
+from spiral.core.files import atomic_write_bytes, file_sha256
 from spiral.eval.evaluate import SE_IBR, EvalLayout, RaceSet, evaluate_methods, race_device
 from spiral.eval.report import (
     SCENARIOS,
@@ -188,8 +190,11 @@ def _unseen_tracks_steps(plan: PlanView) -> list[Step]:
         return []
     generated = plan.spec.training_tracks is not None
     files = [(str(path), load_track(plan.source.parent / path)) for path in cfg.tracks]
+    specialists = {name: _specialist_file(plan, name, path) for name, path in cfg.specialists.items()}
     section = {"unseen_tracks": cfg, "files": [track for _, track in files], "airframe": plan.airframe,
                "own": plan.track if generated else None, "device": race_device(plan.spec.device, [])}
+    if specialists:
+        section["specialist_sha256"] = {name: file_sha256(path) for name, path in specialists.items()}
     inputs = [f"train:{stage}" for stage in finals.values()] + ([TRACKS_STEP] if generated else [])
 
     def run(ctx: StepContext) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -200,14 +205,29 @@ def _unseen_tracks_steps(plan: PlanView) -> list[Step]:
         tracks += [("file", track) for _, track in files]
         methods = {method: Path(ctx.inputs[f"train:{stage}"]["outputs"]["best"]["path"])
                    for method, stage in finals.items()}
+        unraced = sorted(set(specialists) - {track.name for _, track in tracks})
+        if unraced:
+            raise UsageError(f"{plan.source}: report.unseen_tracks.specialists: no track of the section is named "
+                             f"{', '.join(unraced)}")
         with torch_threads(1):
-            rows = race_unseen_tracks(tracks, methods, cfg, plan.airframe, device=section["device"], log=ctx.log)
+            races = race_unseen_tracks(tracks, methods, cfg, plan.airframe, specialists=specialists,
+                                       device=section["device"], log=ctx.log)
         table, text = ctx.step_dir / "unseen_tracks.json", ctx.step_dir / "unseen_tracks.md"
-        atomic_write_bytes(table, json.dumps({"unseen_tracks": rows}, indent=2).encode())
-        atomic_write_bytes(text, unseen_tracks_markdown(rows, cfg, f"spiral run {plan.source}").encode())
+        atomic_write_bytes(table, json.dumps(dataclasses.asdict(races), indent=2).encode())
+        atomic_write_bytes(text, unseen_tracks_markdown(races, cfg, f"spiral run {plan.source}").encode())
         return {"rows": table, "section": text}, {"tracks": len(tracks)}
 
     return [Step(UNSEEN_STEP, run, inputs, section)]
+
+
+def _specialist_file(plan: PlanView, track: str, path: Path) -> Path:
+    """A specialist's checkpoint (``report.unseen_tracks.specialists``, relative to the pipeline file); a missing
+    file is an error naming the pipeline and the field."""
+    found = plan.source.parent / path
+    if not found.is_file():
+        raise UsageError(f"{plan.source}: report.unseen_tracks.specialists.{track}: checkpoint {found} does not "
+                         "exist")
+    return found
 
 
 def _report_options(plan: PlanView) -> ReportOptions:

@@ -530,3 +530,25 @@ def test_the_unseen_tracks_section_races_each_methods_final_policy_once_it_and_t
     steps = {s.name: s for s in runner_for(path, tmp_path).steps}
     assert steps["eval:unseen-tracks"].inputs == ["train:2v2", "train:2v2-noselfplay", "tracks"]
     assert "eval:unseen-tracks" in steps["report"].inputs
+
+
+def test_an_unseen_tracks_specialist_is_fingerprinted_by_its_content_and_a_missing_one_is_refused(tmp_path):
+    """A specialist named in report.unseen_tracks enters the section's fingerprint by its checkpoint's content (a
+    retrained specialist races again); a missing file is refused naming the field, before anything runs."""
+    import shutil
+
+    from spiral.core.errors import UsageError
+
+    data = yaml.safe_load((ROOT / "pipelines" / "smoke.yaml").read_text())
+    data["track"] = str(ROOT / "tracks" / "oval4.yaml")
+    data["report"] = {"unseen_tracks": {"races": 2, "tracks": [str(ROOT / "tracks" / "circuit6.yaml")],
+                                        "specialists": {"circuit6": "spec.pt"}}}
+    path = tmp_path / "g.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(UsageError, match=r"report\.unseen_tracks\.specialists\.circuit6: checkpoint .*spec\.pt"):
+        runner_for(path, tmp_path)
+    fingerprints = []
+    for source in ("spiral.pt", "ppo-noselfplay.pt"):
+        shutil.copy(ROOT / "checkpoints" / "full" / source, tmp_path / "spec.pt")
+        fingerprints.append(runner_for(path, tmp_path)._fingerprints()["eval:unseen-tracks"].full)
+    assert fingerprints[0] != fingerprints[1]
