@@ -3,10 +3,12 @@ geometric checks that reject what cannot be raced.
 
 A candidate circuit goes once round an ellipse whose size gives the wanted mean gate spacing: each gate at a jittered
 angle and radius, at a random height. Every gate faces along the circuit (its normal along the line from the gate
-before it to the gate after it), tilted by a random pitch within ``tilt_deg`` of that line and rolled within
-``roll_deg``. The start box sits behind gate 0. A candidate is kept when :func:`track_faults` finds nothing (and, when
-given, ``accept`` says yes, e.g. the point-mass reference flies it within the time limit); else the next candidate of
-the same random stream is drawn, so a seed always gives the same track.
+before it to the gate after it), turned by a random yaw within ``yaw_deg`` and a random pitch within ``tilt_deg`` of
+that line, and rolled within ``roll_deg``: a gate set at an angle to the line through it is approached on a curve, as
+on the shipped tracks. The default ranges hold every shipped track. The start box sits behind gate 0. A candidate is
+kept when :func:`track_faults` finds nothing (and, when given, ``accept`` says yes, e.g. the point-mass reference flies
+it within the time limit); else the next candidate of the same random stream is drawn, so a seed always gives the same
+track.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from pydantic import Field, model_validator
 from spiral.config.base import PosFloat, StrictModel
 from spiral.config.track import TrackSpec, gate_rotation
 
-__all__ = ["TrackGenCfg", "generate_track", "track_faults", "track_yaml"]
+__all__ = ["TrackGenCfg", "gate_offsets", "generate_track", "track_faults", "track_yaml"]
 
 START_SIZE = (0.6, 0.6, 0.3)
 """Sides of a generated track's start box [m] (as the shipped tracks')."""
@@ -30,14 +32,16 @@ class TrackGenCfg(StrictModel):
     """The ranges a generated track is drawn in and held to."""
 
     gates: int = Field(default=6, ge=3, le=16, description="Gates in the circuit")
-    spacing: tuple[PosFloat, PosFloat] = Field(default=(1.6, 4.0), description="Range of the distance between "
+    spacing: tuple[PosFloat, PosFloat] = Field(default=(1.6, 5.2), description="Range of the distance between "
                                                "consecutive gate centres [m]")
-    max_turn_deg: float = Field(default=120.0, gt=0, le=180, description="Largest turn of the centreline at a gate "
+    max_turn_deg: float = Field(default=140.0, gt=0, le=180, description="Largest turn of the centreline at a gate "
                                 "(between the segment into it and the one out of it) [deg]")
-    max_climb_deg: float = Field(default=35.0, ge=0, lt=90, description="Steepest segment [deg]")
+    max_climb_deg: float = Field(default=50.0, ge=0, lt=90, description="Steepest segment [deg]")
     height: tuple[PosFloat, PosFloat] = Field(default=(0.6, 2.2), description="Range of the gate centres' height [m]")
-    tilt_deg: float = Field(default=30.0, ge=0, le=60, description="Largest pitch of a gate away from the "
-                            "centreline's direction through it [deg]")
+    yaw_deg: float = Field(default=45.0, ge=0, le=60, description="Largest yaw of a gate's passing direction away "
+                           "from the line through it (from the gate before it to the gate after it) [deg]")
+    tilt_deg: float = Field(default=40.0, ge=0, le=60, description="Largest pitch of a gate's passing direction "
+                            "away from the line through it [deg]")
     roll_deg: float = Field(default=45.0, ge=0, le=90, description="Largest roll of a gate's square opening [deg]")
     min_gap: PosFloat = Field(default=1.5, description="Least distance between two gate centres [m]")
     clearance: PosFloat = Field(default=0.4, description="Least distance from a segment's line to the frame of a gate "
@@ -86,13 +90,13 @@ def _candidate(cfg: TrackGenCfg, rng: np.random.Generator, name: str) -> TrackSp
     centers = np.stack([r * np.cos(angle), aspect * r * np.sin(angle), rng.uniform(*cfg.height, n)], axis=1)
     through = np.roll(centers, -1, axis=0) - np.roll(centers, 1, axis=0)
     through /= np.linalg.norm(through, axis=1, keepdims=True)
-    yaw = np.degrees(np.arctan2(through[:, 1], through[:, 0]))
     pitch = -np.degrees(np.arcsin(through[:, 2])) + rng.uniform(-cfg.tilt_deg, cfg.tilt_deg, n)
     roll = rng.uniform(-cfg.roll_deg, cfg.roll_deg, n)
+    yaw = np.degrees(np.arctan2(through[:, 1], through[:, 0])) + rng.uniform(-cfg.yaw_deg, cfg.yaw_deg, n)
     gates = [{"position": _rounded(c), "rpy_deg": _rounded((rl, p, y), 1)}
              for c, rl, p, y in zip(centers, roll, pitch, yaw, strict=True)]
     forward = gate_rotation((0.0, float(pitch[0]), float(yaw[0])))[:, 0]
-    start = centers[0] - 1.2 * forward * np.sign(forward @ through[0])
+    start = centers[0] - 1.2 * forward * np.sign(forward @ through[0])  # behind gate 0, on its passing line
     start[2] = max(start[2], cfg.floor + START_SIZE[2])
     lo, hi = _extent(centers, start, cfg)
     return TrackSpec.model_validate({
@@ -129,12 +133,31 @@ def track_faults(track: TrackSpec, cfg: TrackGenCfg) -> list[str]:
               for i, v in enumerate(length) if not cfg.spacing[0] <= v <= cfg.spacing[1]]
     faults += [f"gate {i}: turn of {v:.0f} deg" for i, v in enumerate(turn) if v > cfg.max_turn_deg]
     faults += [f"segment {i}: climb of {v:.0f} deg" for i, v in enumerate(climb) if v > cfg.max_climb_deg]
+    yaw, pitch = gate_offsets(track)
+    faults += [f"gate {i}: yawed {abs(v):.0f} deg off the line through it" for i, v in enumerate(yaw)
+               if abs(v) > cfg.yaw_deg + 0.5]
+    faults += [f"gate {i}: pitched {abs(v):.0f} deg off the line through it" for i, v in enumerate(pitch)
+               if abs(v) > cfg.tilt_deg + 0.5]
+    faults += [f"gate {i}: rolled {abs(g.rpy_deg[0]):.0f} deg" for i, g in enumerate(track.gates)
+               if abs(g.rpy_deg[0]) > cfg.roll_deg + 0.5]
     gaps = np.linalg.norm(c[:, None] - c[None], axis=-1)
     np.fill_diagonal(gaps, np.inf)
     faults += [f"gates {i} and {j}: {gaps[i, j]:.2f} m apart" for i, j in zip(*np.nonzero(gaps < cfg.min_gap),
                                                                                  strict=True) if i < j]
     faults += _frame_faults(track, cfg)
     return faults
+
+
+def gate_offsets(track: TrackSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Each gate's passing direction against the line through it (from the gate before it to the gate after it):
+    the difference of their headings and of their elevations [deg], each ``(G,)``."""
+    c = track.gate_centers()
+    through = np.roll(c, -1, axis=0) - np.roll(c, 1, axis=0)
+    through /= np.linalg.norm(through, axis=1, keepdims=True)
+    passing = track.gate_forward()
+    yaw = np.degrees(np.arctan2(passing[:, 1], passing[:, 0]) - np.arctan2(through[:, 1], through[:, 0]))
+    pitch = np.degrees(np.arcsin(np.clip(passing[:, 2], -1, 1)) - np.arcsin(np.clip(through[:, 2], -1, 1)))
+    return (yaw + 180.0) % 360.0 - 180.0, pitch
 
 
 def _frame_faults(track: TrackSpec, cfg: TrackGenCfg) -> list[str]:

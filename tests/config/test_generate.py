@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from pydantic import ValidationError
 
 from spiral.config import load_track
-from spiral.config.generate import TrackGenCfg, generate_track, track_faults, track_yaml
+from spiral.config.generate import TrackGenCfg, gate_offsets, generate_track, track_faults, track_yaml
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_a_seed_gives_one_track_and_another_seed_another():
@@ -50,6 +54,32 @@ def test_track_faults_name_gates_too_close_a_frame_on_a_segment_and_a_sharp_turn
     gates = [g.model_copy() for g in circuit6.gates]
     gates[5] = gates[5].model_copy(update={"position": tuple(middle)})  # gate 5 on the segment from 2 to 3
     assert any("gate 5: within" in f for f in track_faults(circuit6.model_copy(update={"gates": gates}), cfg))
+
+
+@pytest.mark.parametrize("name", ["circuit6", "figure8", "oval4", "splits3d"])
+def test_the_default_ranges_hold_every_shipped_track(name):
+    """Spacing, turns, climbs, each gate's yaw, pitch and roll off the line through it, frames clear of the segments
+    they do not join: every shipped track is one the generator could draw (circuit6's diamond gate sits 0.1 m above
+    the ground, below the generator's floor)."""
+    track = load_track(ROOT / "tracks" / f"{name}.yaml")
+    assert track_faults(track, TrackGenCfg(floor=0.1)) == []
+
+
+def test_a_gate_turned_off_the_line_through_it_is_named_and_a_generated_one_stays_in_range():
+    """circuit6's gate 3 passes 40 deg to the side of the line from gate 2 to gate 4 and 22 deg below it; a range
+    tighter than that names it. Generated gates lie within the yaw, pitch and roll ranges."""
+    circuit6 = load_track(ROOT / "tracks" / "circuit6.yaml")
+    yaw, pitch = gate_offsets(circuit6)
+    assert yaw[3] == pytest.approx(-40.0, abs=1.0) and pitch[3] == pytest.approx(-22.0, abs=1.0)
+    faults = track_faults(circuit6, TrackGenCfg(floor=0.1, yaw_deg=30.0, tilt_deg=30.0, roll_deg=30.0))
+    assert "gate 3: yawed 40 deg off the line through it" in faults
+    assert "gate 2: pitched 37 deg off the line through it" in faults and "gate 5: rolled 45 deg" in faults
+    cfg = TrackGenCfg(yaw_deg=20.0, tilt_deg=10.0, roll_deg=5.0)
+    for seed in range(5):
+        track = generate_track(cfg, seed)
+        yaw, pitch = gate_offsets(track)
+        assert np.abs(yaw).max() <= 20.5 and np.abs(pitch).max() <= 10.5
+        assert max(abs(g.rpy_deg[0]) for g in track.gates) <= 5.0
 
 
 def test_impossible_ranges_are_refused_naming_the_field():
