@@ -8,7 +8,8 @@ from pydantic import Field, model_validator
 
 from spiral.config.base import NonNegFloat, PosFloat, PosInt, StrictModel
 
-__all__ = ["ActionCfg", "EnvCfg", "EpisodeCfg", "ObsCfg", "PassageStartsCfg", "RewardCfg", "SeparationCfg"]
+__all__ = ["ActionCfg", "EnvCfg", "EpisodeCfg", "HardTracksCfg", "ObsCfg", "PassageStartsCfg", "RewardCfg",
+           "SeparationCfg"]
 
 
 class ObsCfg(StrictModel):
@@ -131,6 +132,17 @@ class PassageStartsCfg(StrictModel):
                                    "axis [m/s]")
 
 
+class HardTracksCfg(StrictModel):
+    """Training tracks drawn by how often the learner fails them (with a track per world, ``training_tracks``): each
+    track's success is smoothed over the learner's recent episodes on it, and a share of the draws is weighted by its
+    failure rate, so that the tracks the policy cannot yet fly come up more often."""
+
+    share: float = Field(default=0.5, ge=0, le=1, description="Share of the track draws weighted by each track's "
+                         "failure rate (1 − its smoothed success); the rest are uniform")
+    decay: float = Field(default=0.9, gt=0, lt=1, description="Weight each training iteration leaves on the episodes "
+                         "counted before it (0.9: a half-life of about 7 iterations)")
+
+
 class EpisodeCfg(StrictModel):
     """Episode starts and limits in training (evaluation starts in the start box unless ``eval_starts`` says)."""
 
@@ -151,6 +163,9 @@ class EpisodeCfg(StrictModel):
         "that more of the samples come from the start, where the drones race as a pack",
     )
     start_cut_s: PosFloat = Field(default=1.5, description="Race time after which a cut episode ends [s]")
+    hard_tracks: HardTracksCfg | None = Field(
+        default=None, description="With a track per world, draw the tracks the learner fails more often (not in the "
+        "paper); null: every track alike")
     eval_starts: Literal["box", "track", "file"] = Field(
         default="box",
         description="Where evaluation races start: in the start box (the protocol), every drone at its own random "

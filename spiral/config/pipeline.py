@@ -193,6 +193,9 @@ class PipelineSpec(StrictModel):
             source = stage.selfplay.opponent_from
             if source is not None and source not in names[:i]:
                 raise ValueError(f"stages.{i}.selfplay.opponent_from: {source!r} is not an earlier stage")
+            if stage.env.episode.hard_tracks is not None and self.training_tracks is None:
+                raise ValueError(f"stages.{i}.env.episode.hard_tracks: draws among the training tracks of a track "
+                                 "per world; set training_tracks")
         if self.report.racing is not None and not self.evaluation.holdout_runs:
             raise ValueError("report.racing: races the held-out placements; set evaluation.holdout_runs")
         self._final_picks_on_their_own_placements()

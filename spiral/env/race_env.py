@@ -26,7 +26,7 @@ from spiral.env.starts import Starts, draw_starts
 from spiral.env.state import RaceState
 from spiral.env.track_tensors import TrackTensors
 
-__all__ = ["EpisodeEnds", "RaceEnv", "draw_world_tracks", "restart_worlds"]
+__all__ = ["EpisodeEnds", "RaceEnv", "draw_tracks", "draw_world_tracks", "restart_worlds"]
 
 
 @dataclass(frozen=True)
@@ -70,11 +70,21 @@ def draw_world_tracks(env: RaceEnv, worlds: torch.Tensor, idx: torch.Tensor | No
         return None
     if env.training:
         count = env.world_count if idx is None else idx.numel()
-        generator = env.generator
-        drawn = torch.randint(0, len(env.tracks), (count,), generator=generator, device=generator.device)
-        put_rows(env.world_track, drawn.to(env.device), worlds, idx)
+        put_rows(env.world_track, draw_tracks(env, count).to(env.device), worlds, idx)
         env.follow_world_tracks()
     return env.world_track if idx is None else env.world_track[idx]
+
+
+def draw_tracks(env: RaceState, count: int) -> torch.Tensor:
+    """``count`` track indices drawn with the env's generator: uniformly, or with ``episode.hard_tracks`` a share of
+    the draws weighted by each track's failure rate, its success smoothed as (finished + 1) / (ended + 2) over the
+    learner's recent episodes on it."""
+    generator, hard, tracks = env.generator, env.cfg.episode.hard_tracks, len(env.tracks)
+    if hard is None:
+        return torch.randint(0, tracks, (count,), generator=generator, device=generator.device)
+    fail = 1.0 - (env.track_finished + 1.0) / (env.track_ended + 2.0)
+    weights = (1.0 - hard.share) / tracks + hard.share * fail / fail.sum()
+    return torch.multinomial(weights.to(generator.device), count, replacement=True, generator=generator)
 
 
 def contests(env: RaceState) -> bool:
@@ -149,8 +159,13 @@ class RaceEnv(RaceState):
             self.opponent_observer.record(self.last_action, torch.ones_like(self.finished))
 
     def set_training_progress(self, fraction: float) -> None:
-        """Tell the env how far its training stage is (fraction of its iterations): schedules follow it."""
+        """Tell the env how far its training stage is (fraction of its iterations; once per iteration): schedules
+        follow it, and the per-track episode counts of ``episode.hard_tracks`` decay."""
         self.passages.set_training_progress(fraction)
+        hard = self.cfg.episode.hard_tracks
+        if hard is not None:
+            self.track_ended.mul_(hard.decay)
+            self.track_finished.mul_(hard.decay)
 
     # Step: the hooks in their order
 

@@ -75,7 +75,8 @@ class RaceState:
         self._alloc_buffers()
 
     def _set_race_lengths(self) -> None:
-        """Each track's time limit and the gate passages that finish its race, and the longest of them."""
+        """Each track's time limit and the gate passages that finish its race, the longest of them, and the counts of
+        the learner's episodes on it."""
         limits = [self.cfg.episode.time_limit_s or t.time_limit_s for t in self.tracks]
         passes = [len(t.gates) * t.laps + 1 for t in self.tracks]
         self.time_limit = max(limits)
@@ -85,6 +86,10 @@ class RaceState:
         """Gate passages that finish the longest race of any track (its start line's included)."""
         self._track_limits = torch.tensor(limits, device=self.device)
         self._track_passes = torch.tensor(passes, device=self.device)
+        self.track_ended = torch.zeros(len(self.tracks), device=self.device)
+        """Learner episodes ended on each track (with a track per world), decayed every training iteration."""
+        self.track_finished = torch.zeros_like(self.track_ended)
+        """Those of them that finished (``episode.hard_tracks`` draws by the two)."""
 
     def _bind_views(self) -> None:
         s, r, t = self.world.state, self.world.race, wp.to_torch
@@ -204,6 +209,10 @@ class RaceState:
         idx = self.learner_idx
         add_ended_episodes(self.stats, dones, finished=self.finished[idx], lap_time=self.lap_time[idx],
                            crash_kind=self.crash_kind[idx], term_sums={k: v[idx] for k, v in self.term_sums.items()})
+        if len(self.tracks) > 1:
+            track = self.world_track[idx // self.drones_per_world]
+            self.track_ended.index_add_(0, track, dones.float())
+            self.track_finished.index_add_(0, track, (dones & self.finished[idx]).float())
 
     def pop_stats(self) -> dict[str, float]:
         """Means over the learner episodes ended since the last call, then start counting afresh."""

@@ -142,3 +142,37 @@ def test_evaluation_races_each_world_on_its_track_when_the_tracks_share_a_lap_co
     with pytest.raises(UsageError, match=r"action\.mode absolute"):
         RaceEnv(RaceSetting(tracks[0], CF2X, SimCfg(), more_tracks=(tracks[1],)), EnvCfg(action={"mode": "absolute"}),
                 world_count=2, drones_per_world=1, training=False)
+
+
+def test_hard_tracks_draw_a_track_the_learner_fails_more_often_in_proportion_to_its_failure_rate(tracks):
+    """Of two tracks, the learner finished 100 of 100 episodes on the first and none of 100 on the second: with every
+    draw weighted by failure rate nearly all draws are the second track; with half of them, about 0.5 · 0.5 +
+    0.5 · 0.99; without the option, half."""
+    from spiral.env.race_env import draw_tracks
+
+    share = {}
+    for weighted in (1.0, 0.5, None):
+        episode = {"track_start_prob": 0.0, **({"hard_tracks": {"share": weighted}} if weighted else {})}
+        env = _env(tracks[:2], worlds=4, training=True, episode=episode)
+        env.track_ended.fill_(100.0)
+        env.track_finished.copy_(torch.tensor([100.0, 0.0]))
+        share[weighted] = draw_tracks(env, 4000).float().mean().item()
+    assert share[1.0] > 0.97
+    assert share[0.5] == pytest.approx(0.25 + 0.5 * (1 - 1 / 102) / (1 / 102 + 101 / 102), abs=0.03)
+    assert share[None] == pytest.approx(0.5, abs=0.03)
+
+
+def test_ended_learner_episodes_are_counted_on_their_worlds_track_and_decay_every_iteration(tracks):
+    """Flying at the next gate on circuit6 and oval4, the learner's ended episodes are counted on the track their
+    world raced (the counts add up to the dones); an iteration's progress call scales them by the decay."""
+    env = _env(tracks[:2], worlds=8, training=True, episode={"track_start_prob": 0.0, "hard_tracks": {"decay": 0.5}})
+    dones = torch.zeros(2)
+    for _ in range(400):
+        ended = env.world_track.clone()
+        _, _, done, _ = env.step(_towards_next_gate(env))
+        dones.index_add_(0, ended, done.float())
+    assert dones.sum() > 8 and env.track_ended.tolist() == pytest.approx(dones.tolist())
+    assert (env.track_finished <= env.track_ended).all() and env.track_finished.sum() > 0
+    before = env.track_ended.clone()
+    env.set_training_progress(0.5)
+    torch.testing.assert_close(env.track_ended, before * 0.5)

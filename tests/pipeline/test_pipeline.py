@@ -491,11 +491,16 @@ def test_a_stage_fine_tunes_a_checkpoint_file_named_by_init_from_and_reruns_when
 def test_generated_training_tracks_are_a_step_every_training_step_reads_and_trains_on(tmp_path):
     """``training_tracks`` with two training seeds and one held out: a ``tracks`` step writes the three generated
     tracks (valid track files, the held-out one apart), the solo stage reads it and trains on the generated tracks
-    (its policy records the first), and its evaluation races the pipeline's own track, unseen in training."""
+    (its policy records the first; it draws the tracks it fails more often), and its evaluation races the pipeline's
+    own track, unseen in training. Without training tracks, drawing the hard ones is refused naming the field."""
     from spiral.config import load_track
 
     path = write_pipeline(tmp_path, iterations=1)
     data = yaml.safe_load(path.read_text())
+    data["stages"][0].setdefault("env", {}).setdefault("episode", {})["hard_tracks"] = {"share": 0.5}
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(SpecError, match=r"stages\.0\.env\.episode\.hard_tracks: .*set training_tracks"):
+        runner_for(path, tmp_path)
     data["training_tracks"] = {"train_seeds": [3, 2], "held_out_seeds": [100, 1]}
     path.write_text(yaml.safe_dump(data))
     runner = runner_for(path, tmp_path)
