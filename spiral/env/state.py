@@ -87,7 +87,8 @@ class RaceState:
         self._track_limits = torch.tensor(limits, device=self.device)
         self._track_passes = torch.tensor(passes, device=self.device)
         self.track_ended = torch.zeros(len(self.tracks), device=self.device)
-        """Learner episodes ended on each track (with a track per world), decayed every training iteration."""
+        """Learner episodes ended on each track (with a track per world and ``episode.hard_tracks``), decayed every
+        training iteration."""
         self.track_finished = torch.zeros_like(self.track_ended)
         """Those of them that finished (``episode.hard_tracks`` draws by the two)."""
 
@@ -209,7 +210,7 @@ class RaceState:
         idx = self.learner_idx
         add_ended_episodes(self.stats, dones, finished=self.finished[idx], lap_time=self.lap_time[idx],
                            crash_kind=self.crash_kind[idx], term_sums={k: v[idx] for k, v in self.term_sums.items()})
-        if len(self.tracks) > 1:
+        if self.cfg.episode.hard_tracks is not None and len(self.tracks) > 1:  # only its draws read them
             track = self.world_track[idx // self.drones_per_world]
             self.track_ended.index_add_(0, track, dones.float())
             self.track_finished.index_add_(0, track, (dones & self.finished[idx]).float())

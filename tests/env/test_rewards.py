@@ -47,7 +47,7 @@ def test_a_term_at_weight_zero_leaves_every_total_bit_for_bit(drones):
     without = others[0]
     for term in others[1:]:
         without = without + term
-    assert torch.equal(total, without)
+    assert torch.equal(total, without)  # exact: one process, the same tensors; adding 0.0 is exact
 
 
 def test_proximity_penalty_grows_linearly_inside_the_safe_distance(oval2):
