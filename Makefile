@@ -18,8 +18,10 @@ $(STAMP): pyproject.toml
 run: install
 	$(BIN)/spiral run pipelines/full.yaml --jobs 2
 
+# The suite's modules spread over the machine's cores (at most 4 worker processes), each module on one worker so
+# that its fixtures are built once; `pytest` alone runs it in one process.
 test: install
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n auto --maxprocesses 4 --dist loadfile
 
 smoke: install
 	$(BIN)/spiral run pipelines/smoke.yaml
