@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, field_validator, model_validator
 
@@ -63,6 +63,9 @@ class TrackSetCfg(StrictModel):
         default=(0, 64), description="First generator seed and count of the training tracks")
     held_out_seeds: tuple[NonNegInt, PosInt] = Field(
         default=(10_000, 20), description="First generator seed and count of the held-out tracks")
+    gate_counts: list[Annotated[int, Field(ge=3, le=16)]] = Field(
+        default=[], description="Gate counts the circuits take in turn: generator seed s draws a circuit of "
+        "gate_counts[s mod len] gates; empty: the generator's gates for every seed")
 
     @model_validator(mode="after")
     def _held_out_apart(self) -> TrackSetCfg:
@@ -75,6 +78,12 @@ class TrackSetCfg(StrictModel):
         """The generator seeds of the training or the held-out tracks."""
         first, count = self.train_seeds if which == "train" else self.held_out_seeds
         return range(first, first + count)
+
+    def generator_for(self, seed: int) -> TrackGenCfg:
+        """The generator's ranges for ``seed``'s circuit: its gate count from ``gate_counts``."""
+        if not self.gate_counts:
+            return self.generator
+        return self.generator.model_copy(update={"gates": self.gate_counts[seed % len(self.gate_counts)]})
 
 
 class RacingCfg(StrictModel):

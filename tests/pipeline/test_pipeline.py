@@ -489,10 +489,11 @@ def test_a_stage_fine_tunes_a_checkpoint_file_named_by_init_from_and_reruns_when
 
 
 def test_generated_training_tracks_are_a_step_every_training_step_reads_and_trains_on(tmp_path):
-    """``training_tracks`` with two training seeds and one held out: a ``tracks`` step writes the three generated
-    tracks (valid track files, the held-out one apart), the solo stage reads it and trains on the generated tracks
-    (its policy records the first; it draws the tracks it fails more often), and its evaluation races the pipeline's
-    own track, unseen in training. Without training tracks, drawing the hard ones is refused naming the field."""
+    """``training_tracks`` with two training seeds and one held out, of 5 and 6 gates in turn: a ``tracks`` step
+    writes the three generated tracks (valid track files, the held-out one apart, each seed's gate count), the solo
+    stage reads it and trains on the generated tracks (its policy records the first; it draws the tracks it fails more
+    often), and its evaluation races the pipeline's own track, unseen in training. Without training tracks, drawing
+    the hard ones is refused naming the field."""
     from spiral.config import load_track
 
     path = write_pipeline(tmp_path, iterations=1)
@@ -501,7 +502,7 @@ def test_generated_training_tracks_are_a_step_every_training_step_reads_and_trai
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(SpecError, match=r"stages\.0\.env\.episode\.hard_tracks: .*set training_tracks"):
         runner_for(path, tmp_path)
-    data["training_tracks"] = {"train_seeds": [3, 2], "held_out_seeds": [100, 1]}
+    data["training_tracks"] = {"train_seeds": [3, 2], "held_out_seeds": [100, 1], "gate_counts": [5, 6]}
     path.write_text(yaml.safe_dump(data))
     runner = runner_for(path, tmp_path)
     assert next(s for s in runner.steps if s.name == "train:solo").inputs == ["tracks"]
@@ -509,7 +510,7 @@ def test_generated_training_tracks_are_a_step_every_training_step_reads_and_trai
     root = next((tmp_path / "runs").iterdir())
     train = sorted(load_track(p).name for p in (root / "tracks" / "train").glob("*.yaml"))
     held_out = [load_track(p).name for p in (root / "tracks" / "held_out").glob("*.yaml")]
-    assert train == ["gen-s3-g6", "gen-s4-g6"] and held_out == ["gen-s100-g6"]
+    assert train == ["gen-s3-g6", "gen-s4-g5"] and held_out == ["gen-s100-g5"]
     best = json.loads((root / "train-solo" / "best.json").read_text())
     assert best["track"] == "gen-s3-g6"
     evaluation = json.loads((root / "eval-solo" / "eval.json").read_text())
