@@ -7,10 +7,10 @@ before it to the gate after it), turned by a random yaw within ``yaw_deg`` and a
 that line, and rolled within ``roll_deg``: a gate set at an angle to the line through it is approached on a curve, as
 on the shipped tracks. Each offset is the range times ``u ** offset_power`` (``u`` uniform in [0, 1], a random sign):
 with the default power 2 most gates sit near their line and a few are set at a steep angle, the shipped tracks' mix
-(their gates are turned 12 deg and pitched 10 deg off the line on average, at most 41 and 37 deg). The default ranges hold every shipped track. The start box sits behind gate 0. A candidate is
-kept when :func:`track_faults` finds nothing (and, when given, ``accept`` says yes, e.g. the point-mass reference flies
-it within the time limit); else the next candidate of the same random stream is drawn, so a seed always gives the same
-track.
+(their gates are turned 12 deg and pitched 10 deg off the line on average, at most 41 and 37 deg). The default ranges
+hold every shipped track. The start box sits behind gate 0. A candidate is kept when :func:`track_faults` finds
+nothing (and, when given, ``accept`` says yes, e.g. the point-mass reference flies it within the time limit); else the
+next candidate of the same random stream is drawn, so a seed always gives the same track.
 """
 
 from __future__ import annotations
