@@ -49,11 +49,11 @@ class _RaceEnvWithFinalObs(RaceEnv):
 
     def before_auto_reset(self, worlds: torch.Tensor) -> None:
         """Record :attr:`final_obs` and :attr:`final_outcome` of the learner rows before ``worlds`` reset."""
-        idx = self.learner_idx
+        idx, rec = self.learner_idx, self.records
         self.final_obs = self.peek_observations()[idx]
-        self.final_outcome = {"success": self.finished[idx].clone(), "crashed": self.crashed[idx].clone(),
-                              "lap_time": torch.where(self.finished[idx], self.lap_time[idx],
-                                                      torch.full_like(self.lap_time[idx], float("nan")))}
+        self.final_outcome = {"success": rec.finished[idx].clone(), "crashed": rec.crashed[idx].clone(),
+                              "lap_time": torch.where(rec.finished[idx], rec.lap_time[idx],
+                                                      torch.full_like(rec.lap_time[idx], float("nan")))}
 
 
 def _spaces(obs_dim: int) -> tuple[spaces.Box, spaces.Box]:

@@ -137,7 +137,7 @@ class SEIBRPlanner:
     def __init__(self, env: RaceEnv, *, own_slots: Sequence[int] | None = None, cfg: SEIBRCfg | None = None,
                  **overrides: Any) -> None:
         self.env = env
-        env.one_track("the SE-IBR planner")
+        env.world_tracks.one("the SE-IBR planner")
         self.own_slots = set(range(env.drones_per_world) if own_slots is None else own_slots)
         """Slots this planner flies; the others are predicted in its game but flown by someone else."""
         self.cfg = SEIBRCfg(**{**(cfg.model_dump() if cfg is not None else {}), **overrides})

@@ -93,17 +93,9 @@ class MixedRaceEnv:
         actions = policies[0].act_together(policies, [env.opponent_observations() for env in parts.values()])
         return dict(zip(parts, actions, strict=True))
 
-    def take_stats(self) -> dict[str, float]:
-        """Sums over the learner episodes of every part ended since the last call."""
-        total: dict[str, float] = {}
-        for env in self.parts.values():
-            for key, value in env.take_stats().items():
-                total[key] = total.get(key, 0.0) + value
-        return total
-
     def pop_stats(self) -> dict[str, float]:
         """Means over every part's ended learner episodes, and ``success/<part>`` of each part."""
-        per_part = {name: env.take_stats() for name, env in self.parts.items()}
+        per_part = {name: env.stats.take() for name, env in self.parts.items()}
         total = {key: sum(s[key] for s in per_part.values()) for key in next(iter(per_part.values()))}
         out = summarize_stats(total)
         for name, s in per_part.items():

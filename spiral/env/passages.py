@@ -15,8 +15,8 @@ import torch
 from spiral.config.env import PassageStartsCfg
 from spiral.config.track import TrackSpec
 from spiral.env.starts import Starts, world_tracks_or_first
-from spiral.env.state import RaceState
 from spiral.env.track_tensors import TrackTensors
+from spiral.env.world_tracks import WorldTracks
 
 __all__ = ["PassageBuffer", "PassageStarts", "clear_of_gates", "passage_share"]
 
@@ -135,23 +135,19 @@ class PassageStarts:
         self.buffer = None if self.cfg is None else PassageBuffer(
             g.track_count * g.max_gates, self.cfg.capacity, device=device, gate_count=g.gate_count)
 
-    @classmethod
-    def of(cls, env: RaceState, radius: float) -> PassageStarts:
-        """The passage starts of ``env`` (its ``episode.passage_starts``; training only), for drones of ``radius``."""
-        return cls(env.cfg.episode.passage_starts, env.track_set, radius, training=env.training, device=env.device)
-
     def set_training_progress(self, fraction: float) -> None:
         """Move the share of passage starts along the stage's schedule."""
         if self.cfg is not None:
             self.share = passage_share(self.cfg, fraction)
 
-    def record(self, env: RaceState, racing: torch.Tensor, crashed_now: torch.Tensor) -> None:
-        """Keep the state after this step of each drone of ``env`` that raced the step (``racing``), did not crash in
-        it and passed a gate, as a state of the gate before its next one (nothing without a buffer)."""
+    def record(self, racing: torch.Tensor, step_passes: torch.Tensor, next_gate: torch.Tensor, tracks: WorldTracks,
+               pos: torch.Tensor, vel: torch.Tensor, yaw: torch.Tensor) -> None:
+        """Keep the state after this step (``pos``, ``vel``, ``yaw``) of each drone that raced the step without a
+        crash (``racing``) and passed a gate in it (``step_passes``), as a state of the gate before its
+        ``next_gate`` on its track (nothing without a buffer)."""
         if self.buffer is not None:
-            passed = racing & ~crashed_now & (env.step_passes > 0)
-            before = (env.next_gate.long() - 1) % env.gate_count + env.gate_base
-            self.buffer.record(torch.where(passed, before, -1), env.pos, env.vel, env.rpy[:, 2])
+            passed = racing & (step_passes > 0)
+            self.buffer.record(torch.where(passed, tracks.gate_rows(next_gate.long() - 1), -1), pos, vel, yaw)
 
     def apply(self, starts: Starts, generator: torch.Generator, world_tracks: torch.Tensor | None = None) -> Starts:
         """``starts`` with a share of its worlds started from passage states instead (those worlds are not box

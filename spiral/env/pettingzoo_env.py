@@ -88,8 +88,9 @@ class RaceParallelEnv(ParallelEnv):
             batch[self._index[agent]] = torch.as_tensor(np.asarray(action, dtype=np.float32), device=race.device)
         obs, rewards, _, _ = race.step(batch)
         idx = race.learner_idx
-        out = (race.crashed | race.finished)[idx].cpu()
-        time_up = bool(race.world_time()[0] >= race.world_time_limit[0] - 1e-6) or bool(race.world_nonfinite[0] != 0)
+        out = (race.records.crashed | race.records.finished)[idx].cpu()
+        limit = race.world_tracks.world_time_limit[0]
+        time_up = bool(race.world_time()[0] >= limit - 1e-6) or bool(race.world_nonfinite[0] != 0)
         live, reward = self.agents, rewards.cpu()
         terminated = {a: bool(out[self._index[a]]) for a in live}
         truncated = {a: time_up and not terminated[a] for a in live}
@@ -97,8 +98,9 @@ class RaceParallelEnv(ParallelEnv):
         for a in live:
             if terminated[a] or truncated[a]:
                 i = idx[self._index[a]]
-                infos[a] = {"success": bool(race.finished[i]), "crashed": bool(race.crashed[i]),
-                            "lap_time": float(race.lap_time[i]) if bool(race.finished[i]) else float("nan")}
+                rec = race.records
+                infos[a] = {"success": bool(rec.finished[i]), "crashed": bool(rec.crashed[i]),
+                            "lap_time": float(rec.lap_time[i]) if bool(rec.finished[i]) else float("nan")}
         self.agents = [a for a in live if not (terminated[a] or truncated[a])]
         return (self._obs(obs["policy"], live), {a: float(reward[self._index[a]]) for a in live}, terminated,
                 truncated, infos)

@@ -1,4 +1,7 @@
-"""Batched drone races on torch tensors over zero-copy views of the Warp simulator state."""
+"""Batched drone races on torch tensors over zero-copy views of the Warp simulator state: what a race env holds (the
+simulator's views, who drives each slot, each drone's race so far, the episode statistics) and how it steps. Term math
+is in :mod:`spiral.env.events` and :mod:`spiral.env.rewards`; which track each world flies in
+:mod:`spiral.env.world_tracks`."""
 
 from __future__ import annotations
 
@@ -11,22 +14,27 @@ import warp as wp
 from tensordict import TensorDict
 
 from spiral.config.env import EnvCfg, ObsCfg
+from spiral.core.errors import UsageError
 from spiral.core.host_syncs import put_rows
+from spiral.core.outcome import race_winner
 from spiral.core.policy import OpponentPolicy, RecordingOpponent, ResettingOpponent
 from spiral.core.scenario import race_teams, team_slots
 from spiral.env.actions import ActionMap
-from spiral.env.events import RaceEvents, lap_splits, race_result
+from spiral.env.events import RaceEvents, closing_in, heading, lap_splits, nearest_distance, race_result
 from spiral.env.observations import Observer, ObsSource
-from spiral.env.outcome import step_outcome
 from spiral.env.passages import PassageStarts
-from spiral.env.rewards import compute_rewards
+from spiral.env.records import RaceRecords
+from spiral.env.rewards import StepOutcome, compute_rewards
 from spiral.env.setting import RaceSetting
-from spiral.env.slots import per_row
-from spiral.env.starts import Starts, draw_starts
-from spiral.env.state import RaceState
+from spiral.env.slots import per_row, slot_map
+from spiral.env.starts import Starts, draw_device, draw_starts
+from spiral.env.stats import EpisodeStats
 from spiral.env.track_tensors import TrackTensors
+from spiral.env.world_tracks import WorldTracks
+from spiral.sim import World
 
-__all__ = ["EpisodeEnds", "RaceEnv", "draw_tracks", "draw_world_tracks", "restart_worlds"]
+__all__ = ["EpisodeEnds", "RaceEnv", "draw_world_tracks", "learner_won", "restart_worlds", "step_outcome",
+           "track_place"]
 
 
 @dataclass(frozen=True)
@@ -39,20 +47,43 @@ class EpisodeEnds:
     worlds: torch.Tensor
 
 
-def observed_tensors(state: RaceState) -> ObsSource:
-    """The tensors of ``state`` that the observations are made of, named one by one."""
-    return ObsSource(pos=state.pos, vel=state.vel, rpy=state.rpy, omega=state.omega, integral=state.integral,
-                     out=state.out, next_gate=state.next_gate, gates_passed=state.gates_passed,
-                     race_team=state.race_team, gate_center=state.gate_center,
-                     gate_forward=state.gate_forward, gate_count=state.gate_count, gate_base=state.gate_base,
-                     other_slots=state.other_slots)
+def observed_tensors(env: RaceEnv) -> ObsSource:
+    """The tensors of ``env`` that the observations are made of, named one by one."""
+    t = env.world_tracks
+    return ObsSource(pos=env.pos, vel=env.vel, rpy=env.rpy, omega=env.omega, integral=env.integral, out=env.out,
+                     next_gate=env.next_gate, gates_passed=env.gates_passed, race_team=env.race_team,
+                     gate_center=t.gate_center, gate_forward=t.gate_forward, gate_count=t.gate_count,
+                     gate_base=t.gate_base, other_slots=env.other_slots)
+
+
+def step_outcome(env: RaceEnv, ev: RaceEvents) -> StepOutcome:
+    """The reward terms' view of the step of ``env`` (progress distances, headings, the nearest drones, closing in);
+    frozen drones make no progress."""
+    racing, zero = ev.racing, torch.zeros_like(ev.dist_before)
+    reward, w, d = env.cfg.reward, env.world_count, env.drones_per_world
+    nearest = None
+    if reward.proximity > 0:
+        nearest = nearest_distance(env.pos, env.out, world_count=w, drones_per_world=d)
+    return StepOutcome(
+        dist_before=torch.where(racing, ev.dist_before, zero),
+        dist_after=torch.where(racing, progress_distance(env, ev.gate), zero),
+        gates_passed=torch.where(racing, env.step_passes, torch.zeros_like(env.step_passes)),
+        crashed_now=ev.crashed_now,
+        heading=heading(env.quat),
+        to_gate=env.world_tracks.to_gate(env.pos, env.next_gate),
+        lap_time=ev.lap_split,
+        nearest=nearest,
+        race_result=ev.race_result,
+        closing=closing_in(env.pos, env.vel, env.out, distance=reward.closing_distance, world_count=w,
+                           drones_per_world=d) if reward.closing > 0 else None,
+    )
 
 
 def draw_env_starts(env: RaceEnv, world_count: int, *, checked: bool = True,
                     world_tracks: torch.Tensor | None = None) -> Starts:
     """Starts of ``world_count`` worlds of ``env`` (passage starts among them in training) on their tracks
     (``world_tracks`` (W,); default: the first), drawn with its generator on the generator's device
-    (:func:`~spiral.env.state.draw_device`) and moved to the env's; ``checked``: the box draw's
+    (:func:`~spiral.env.starts.draw_device`) and moved to the env's; ``checked``: the box draw's
     (:func:`~spiral.env.starts.sample_box_starts`)."""
     if world_tracks is not None:
         world_tracks = world_tracks.to(env.generator.device)
@@ -64,34 +95,128 @@ def draw_env_starts(env: RaceEnv, world_count: int, *, checked: bool = True,
 
 def draw_world_tracks(env: RaceEnv, worlds: torch.Tensor, idx: torch.Tensor | None) -> torch.Tensor | None:
     """The tracks of the worlds of ``env`` that the bool mask ``worlds`` selects (``idx``: its indices; None: every
-    world's), drawn anew for those worlds in training (uniformly, with the env's generator; with ``idx`` None drawn
-    for every world and kept where the mask is set); None for an env of one track (nothing is drawn)."""
+    world's), drawn anew for those worlds in training (:meth:`~spiral.env.world_tracks.WorldTracks.draw`, with the
+    env's generator; with ``idx`` None drawn for every world and kept where the mask is set); None for an env of one
+    track (nothing is drawn)."""
     if len(env.tracks) == 1:
         return None
+    tracks = env.world_tracks
     if env.training:
         count = env.world_count if idx is None else idx.numel()
-        put_rows(env.world_track, draw_tracks(env, count).to(env.device), worlds, idx)
-        env.follow_world_tracks()
-    return env.world_track if idx is None else env.world_track[idx]
+        put_rows(tracks.world_track, tracks.draw(count, env.generator).to(env.device), worlds, idx)
+        tracks.follow()
+    return tracks.world_track if idx is None else tracks.world_track[idx]
 
 
-def draw_tracks(env: RaceState, count: int) -> torch.Tensor:
-    """``count`` track indices drawn with the env's generator: uniformly, or with ``episode.hard_tracks`` a share of
-    the draws weighted by each track's failure rate, its success smoothed as (finished + 1) / (ended + 2) over the
-    learner's recent episodes on it."""
-    generator, hard, tracks = env.generator, env.cfg.episode.hard_tracks, len(env.tracks)
-    if hard is None:
-        return torch.randint(0, tracks, (count,), generator=generator, device=generator.device)
-    fail = 1.0 - (env.track_finished + 1.0) / (env.track_ended + 2.0)
-    weights = (1.0 - hard.share) / tracks + hard.share * fail / fail.sum()
-    return torch.multinomial(weights.to(generator.device), count, replacement=True, generator=generator)
-
-
-def contests(env: RaceState) -> bool:
+def contests(env: RaceEnv) -> bool:
     """Whether the drones that race in ``env`` are of more than one team: a start-box race has a winner to find."""
     driven = env.learner_slots + (env.opponent_slots if env.opponent_policy is not None else [])
     teams = race_teams(env.drones_per_world)
     return len({teams[s] for s in driven}) > 1
+
+
+def progress_distance(env: RaceEnv, gate: torch.Tensor) -> torch.Tensor:
+    """Progress distance of every drone of ``env`` to ``gate`` (N,) (:func:`~spiral.env.events.gate_distance`)."""
+    return env.world_tracks.gate_distance(env.pos, gate, env.cfg.reward.progress_lateral)
+
+
+def track_place(env: RaceEnv) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where each drone of ``env`` is in the race: gates passed and distance to the next gate's centre [m] (N,)
+    each."""
+    return env.gates_passed.clone(), env.world_tracks.to_gate(env.pos, env.next_gate).norm(dim=-1)
+
+
+def learner_won(env: RaceEnv) -> torch.Tensor:
+    """Per world of ``env``, whether the learner's team won the race against the opponent slots (bool, (W,))."""
+    w, d = env.world_count, env.drones_per_world
+    teams = [env.learner_slots, env.opponent_slots]
+    return race_winner(env.records.finished.view(w, d), env.records.lap_time.view(w, d), teams) == 0
+
+
+# The step's phases, in their order (:meth:`RaceEnv.step`)
+
+
+def apply_actions(env: RaceEnv, actions: torch.Tensor, opponent_actions: torch.Tensor | None = None) -> None:
+    """Apply action: the learner's ``actions`` (num_envs, 4) and the opponent policy's (on the last observations,
+    unless ``opponent_actions`` gives them) become the PID targets of the drones still racing."""
+    commanded = torch.zeros(env.drone_count, 4, device=env.device)
+    commanded[env.learner_idx] = actions.to(env.device)
+    if opponent_actions is None and env.opponent_policy is not None and env.opponent_idx.numel():
+        with torch.no_grad():
+            opponent_actions = env.opponent_policy(env.opponent_observations())
+    if opponent_actions is not None:
+        commanded[env.opponent_idx] = opponent_actions.to(env.device)
+    env.commanded = commanded
+    all_actions = commanded.clamp(-1.0, 1.0)
+    racing = ~(env.out.bool())
+    target = env.action_map.targets(all_actions, env.pos, env.vel, env.rpy[:, 2], racing)
+    env.cmd.copy_(torch.where(racing[:, None], target, env.cmd))
+    env.last_action = all_actions
+
+
+def simulate(env: RaceEnv) -> tuple[torch.Tensor, torch.Tensor]:
+    """Simulate one control step; return the gate each drone targeted and its progress distance from before."""
+    gate = env.next_gate.long().clone()
+    dist_before = progress_distance(env, gate)
+    env.world.step()
+    return gate, dist_before
+
+
+def race_events(env: RaceEnv, gate: torch.Tensor, dist_before: torch.Tensor) -> RaceEvents:
+    """Race events: a collision ends a drone's race, its last lap finishes it (frozen, no longer an obstacle),
+    each lap's split is taken; a contested race is decided by its first finisher."""
+    rec = env.records
+    racing = rec.racing()
+    crashed_now = racing & (env.step_collision != 0)
+    finished_now = racing & ~crashed_now & (env.gates_passed >= env.world_tracks.race_passes)
+    rec.end(crashed_now, env.step_collision, finished_now, env.pass_time)
+    env.out.masked_fill_(finished_now, 1)
+    split, rec.lap_start = lap_splits(env.gates_passed, env.step_passes, env.pass_time, rec.lap_start,
+                                      racing & ~crashed_now, env.world_tracks.gate_count)
+    env.passages.record(racing & ~crashed_now, env.step_passes, env.next_gate, env.world_tracks, env.pos, env.vel,
+                        env.rpy[:, 2])
+    result = None
+    if env.cfg.reward.win > 0:
+        result, decided = race_result(finished_now, rec.lap_time, racing & ~crashed_now, env.contested,
+                                      env.race_team, team_slots(env.drones_per_world))
+        env.contested &= ~decided
+    return RaceEvents(racing, crashed_now, finished_now, gate, dist_before, result, split)
+
+
+def step_rewards(env: RaceEnv, ev: RaceEvents) -> torch.Tensor:
+    """Rewards: the weighted reward terms of every drone (N,); each term's episode sum is kept."""
+    rewards, terms = compute_rewards(step_outcome(env, ev), env.cfg.reward)
+    for name, value in terms.items():
+        env.records.term_sums[name] += value
+    return rewards
+
+
+def episode_ends(env: RaceEnv, ev: RaceEvents) -> EpisodeEnds:
+    """Dones: a learner drone's crash or finish terminates its episode; its world ends with it, at the time limit
+    (or a start's cut) or on a non-finite state, and the world's other learner episodes time out."""
+    terminated = (ev.crashed_now | ev.finished_now)[env.learner_idx]
+    time_up = env.world_time() >= torch.minimum(env.cut_time, env.world_tracks.world_time_limit) - 1e-6
+    worlds = terminated.view(env.world_count, -1).any(dim=1) | time_up | (env.world_nonfinite != 0)
+    time_outs = per_row(worlds, len(env.learner_slots)) & ~terminated
+    dones = terminated | time_outs
+    env.episode_length_buf += 1
+    env.stats.add(dones, env.records, env.learner_idx)
+    env.world_tracks.count_ended(env.learner_idx, dones, env.records.finished[env.learner_idx])
+    return EpisodeEnds(dones, time_outs, worlds)
+
+
+def reset_ended(env: RaceEnv, ends: EpisodeEnds) -> None:
+    """Reset: tell the opponent policy who won the ended races, then (training) start new ones after
+    :meth:`RaceEnv.before_auto_reset`."""
+    if isinstance(env.opponent_policy, RecordingOpponent):
+        env.opponent_policy.record(ends.worlds, learner_won(env))
+    if env.training and (env.sync_free or ends.worlds.any()):
+        env.stats.sums["nonfinite_resets"] += ((env.world_nonfinite != 0) & ends.worlds).sum()
+        env.before_auto_reset(ends.worlds)
+        restart_worlds(env, ends.worlds, every_world=env.sync_free)
+        env.episode_length_buf.masked_fill_(per_row(ends.worlds, len(env.learner_slots)), 0)
+    else:
+        env.fresh = torch.zeros_like(env.records.finished)
 
 
 def restart_worlds(env: RaceEnv, worlds: torch.Tensor, *, every_world: bool = False) -> None:
@@ -119,23 +244,55 @@ def restart_worlds(env: RaceEnv, worlds: torch.Tensor, *, every_world: bool = Fa
         env.opponent_policy.reset(worlds)
 
 
-class RaceEnv(RaceState):
-    """``world_count`` races of ``drones_per_world`` drones; the learner drives ``learner_slots`` of each world.
+class RaceEnv:
+    """``world_count`` races of ``drones_per_world`` drones, flat and world-major (drone ``i`` is slot ``i % D`` of
+    world ``i // D``); the learner drives ``learner_slots`` of each world.
 
     Each learner drone is one PPO environment (``num_envs = world_count · len(learner_slots)``); opponent slots act
     from an injected :class:`~spiral.core.policy.OpponentPolicy`, or are absent without one. A world resets when one
     of its learner drones crashes or finishes, at its time limit, or on a non-finite state (``nonfinite_resets``);
     learner drones cut short by another's end get ``time_outs``. ``training=False`` is evaluation mode (starts from
-    ``episode.eval_starts``, no start cuts): every world races once, done drones stay
-    frozen. :meth:`step` runs apply action → simulate → race events → rewards → dones → reset → observe."""
+    ``episode.eval_starts``, no start cuts): every world races once, done drones stay frozen. :meth:`step` runs apply
+    action → simulate → race events → rewards → dones → reset → observe."""
 
     def __init__(self, setting: RaceSetting, cfg: EnvCfg, *, world_count: int, drones_per_world: int,
                  learner_slots: Sequence[int] = (0,), device: str = "cpu", seed: int = 0,
                  training: bool = True) -> None:
-        super().__init__(setting, cfg, world_count=world_count, drones_per_world=drones_per_world,
-                         learner_slots=learner_slots, device=device, seed=seed, training=training)
-        arena = self.one_track("action.mode absolute") if cfg.action.mode == "absolute" else self.track
-        self.action_map = ActionMap(cfg, arena, world_count=world_count, drones_per_world=drones_per_world,
+        if setting.sim.control_mode != "pid":
+            raise UsageError("RaceEnv drives the PID: sim.control_mode must be 'pid'")
+        self.cfg, self.training, self.world_count, self.drones_per_world = cfg, training, world_count, drones_per_world
+        self.drone_count, self.device = world_count * drones_per_world, torch.device(device)
+        self.world = World(list(setting.tracks), setting.airframe, setting.sim, world_count=world_count,
+                           drones_per_world=drones_per_world, device=device, cpu_threads=setting.sim_threads)
+        self.world_tracks = WorldTracks(setting.tracks, cfg.episode, world_count=world_count,
+                                        drones_per_world=drones_per_world, device=self.device,
+                                        simulator_tracks=wp.to_torch(self.world.race.world_track))
+        self.tracks, self.track = self.world_tracks.tracks, self.world_tracks.track
+        """The tracks the worlds race, with the env's laps, and the first of them."""
+        self.slots = s = slot_map(world_count, drones_per_world, learner_slots, device=self.device)
+        """Who drives which slot; its fields are attributes of the env too (``learner_idx``, ``race_team``, ...)."""
+        self.learner_slots, self.opponent_slots, self.learner_idx, self.opponent_idx = (
+            s.learner_slots, s.opponent_slots, s.learner_idx, s.opponent_idx)
+        self.slot_team, self.race_team, self.other_slots = s.slot_team, s.race_team, s.other_slots
+        self.num_envs, self.dt = self.learner_idx.numel(), self.world.time_step
+        self.max_episode_length = self.world_tracks.max_steps(self.dt)
+        self.passes_needed = self.world_tracks.passes_needed
+        self.generator = torch.Generator(device=draw_device(self.device, training=training)).manual_seed(seed)
+        self.opponent_policy: OpponentPolicy | None = None
+        self.sync_free = self.device.type != "cpu"
+        """Steps without a host synchronisation (the default off a CPU): every auto-reset draws starts for every
+        world and keeps those of the ended ones (:func:`restart_worlds`), and no shortcut reads a flag back; on a CPU,
+        where a read costs nothing, the env finds the ended worlds and draws for them alone. The two paths are valid
+        training runs of different draws."""
+        self._bind_views()
+        self._alloc_buffers()
+        self._build_parts(setting)
+        self.reset()
+
+    def _build_parts(self, setting: RaceSetting) -> None:
+        cfg = self.cfg
+        arena = self.world_tracks.one("action.mode absolute") if cfg.action.mode == "absolute" else self.track
+        self.action_map = ActionMap(cfg, arena, world_count=self.world_count, drones_per_world=self.drones_per_world,
                                     device=self.device)
         self._obs_source = observed_tensors(self)
         self.observer = Observer(cfg, self._obs_source, device=self.device)
@@ -143,31 +300,58 @@ class RaceEnv(RaceState):
         """The observation layout and history buffer."""
         self.opponent_observer: Observer | None = None
         """The opponent slots' own observer when their policy reads another observation layout (cross-play)."""
-        self.passages = PassageStarts.of(self, setting.airframe.radius)
-        self.track_geometry = TrackTensors.of(self.track_set, self.generator.device)
+        self.passages = PassageStarts(cfg.episode.passage_starts, self.world_tracks.geometry,
+                                      setting.airframe.radius, training=self.training, device=self.device)
+        self.track_geometry = TrackTensors.of(self.world_tracks.geometry, self.generator.device)
         """The tracks' geometry where starts are drawn, so that a draw copies nothing from the host."""
-        self.reset()
+
+    def _bind_views(self) -> None:
+        s, r, t = self.world.state, self.world.race, wp.to_torch
+        self.pos, self.vel, self.quat, self.omega = t(s.pos), t(s.vel), t(s.quat), t(s.omega)
+        self.rpy, self.integral, self.cmd = t(self.world.rpy), t(self.world.integral), t(self.world.cmd)
+        self.next_gate, self.gates_passed, self.step_passes = t(r.next_gate), t(r.gates_passed), t(r.step_passes)
+        self.pass_time, self.step_collision, self.out = t(r.pass_time), t(r.step_collision), t(r.out)
+        self.crash_time = t(r.crash_time)
+        self.world_substeps, self.world_nonfinite = t(r.world_substeps), t(r.world_nonfinite)
+
+    def _alloc_buffers(self) -> None:
+        n, w, dev = self.drone_count, self.world_count, self.device
+        self.last_action = torch.zeros(n, 4, device=dev)
+        """Actions applied at the last control step, clamped to [-1, 1]."""
+        self.commanded = torch.zeros(n, 4, device=dev)
+        """Actions the policies commanded at the last control step, before that clamp."""
+        self.records = RaceRecords(n, dev)
+        """Each drone's race since its world's reset."""
+        self.episode_length_buf = torch.zeros(self.num_envs, dtype=torch.long, device=dev)
+        self.cut_time = torch.full((w,), math.inf, device=dev)
+        """Race time at which each world's episode is cut short (``episode.start_cut_prob``), else inf [s]."""
+        self.contested = torch.zeros(w, dtype=torch.bool, device=dev)
+        """Start-box race against opponents whose winner is not known yet."""
+        self.start_buffers = {name: wp.zeros(size, dtype=dtype, device=self.world.device) for name, size, dtype in (
+            ("mask", w, wp.int32), ("pos", n, wp.vec3), ("vel", n, wp.vec3), ("yaw", n, wp.float32),
+            ("gate", n, wp.int32))}
+        """Warp buffers of the start states a reset hands the simulator."""
+        self.stats = EpisodeStats(dev)
+        """Sums over the learner episodes that ended since training last read them."""
+        self.world_tracks.follow()
 
     def set_opponent_policy(self, policy: OpponentPolicy | None, *, obs: ObsCfg | None = None) -> None:
         """Drive the opponent slots with ``policy`` from the next reset on (``None``: absent); ``obs``: the layout
         ``policy`` reads if not the env's (cross-play), with which its slots are then observed too."""
-        super().set_opponent_policy(policy)
+        self.opponent_policy = policy
         self.opponent_observer = None
         if obs is not None and obs != self.cfg.obs:  # observes the current state at once, each history afresh
             cfg = self.cfg.model_copy(update={"obs": obs, "critic": "policy"})
             self.opponent_observer = Observer(cfg, self._obs_source, device=self.device)
-            self.opponent_observer.record(self.last_action, torch.ones_like(self.finished))
+            self.opponent_observer.record(self.last_action, torch.ones_like(self.records.finished))
 
     def set_training_progress(self, fraction: float) -> None:
         """Tell the env how far its training stage is (fraction of its iterations; once per iteration): schedules
         follow it, and the per-track episode counts of ``episode.hard_tracks`` decay."""
         self.passages.set_training_progress(fraction)
-        hard = self.cfg.episode.hard_tracks
-        if hard is not None:
-            self.track_ended.mul_(hard.decay)
-            self.track_finished.mul_(hard.decay)
+        self.world_tracks.decay()
 
-    # Step: the hooks in their order
+    # Step: the phases in their order (module functions)
 
     def step(self, actions: torch.Tensor, opponent_actions: torch.Tensor | None = None
              ) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
@@ -177,91 +361,14 @@ class RaceEnv(RaceState):
         Returns:
             Learner observations, rewards (num_envs,), dones (num_envs,) and extras with ``time_outs``.
         """
-        self.apply_actions(actions, opponent_actions)
-        gate, dist_before = self.simulate()
-        events = self.race_events(gate, dist_before)
-        rewards = self.rewards(events)
-        ends = self.dones(events)
-        self.reset_ended(ends)
+        apply_actions(self, actions, opponent_actions)
+        gate, dist_before = simulate(self)
+        events = race_events(self, gate, dist_before)
+        rewards = step_rewards(self, events)
+        ends = episode_ends(self, events)
+        reset_ended(self, ends)
         obs = self.get_observations()
         return obs, rewards[self.learner_idx], ends.dones, {"time_outs": ends.time_outs}
-
-    def apply_actions(self, actions: torch.Tensor, opponent_actions: torch.Tensor | None = None) -> None:
-        """Apply action: the learner's ``actions`` (num_envs, 4) and the opponent policy's (on the last observations,
-        unless ``opponent_actions`` gives them) become the PID targets of the drones still racing."""
-        commanded = torch.zeros(self.drone_count, 4, device=self.device)
-        commanded[self.learner_idx] = actions.to(self.device)
-        if opponent_actions is None and self.opponent_policy is not None and self.opponent_idx.numel():
-            with torch.no_grad():
-                opponent_actions = self.opponent_policy(self.opponent_observations())
-        if opponent_actions is not None:
-            commanded[self.opponent_idx] = opponent_actions.to(self.device)
-        self.commanded = commanded
-        all_actions = commanded.clamp(-1.0, 1.0)
-        racing = ~(self.out.bool())
-        target = self.action_map.targets(all_actions, self.pos, self.vel, self.rpy[:, 2], racing)
-        self.cmd.copy_(torch.where(racing[:, None], target, self.cmd))
-        self.last_action = all_actions
-
-    def simulate(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Simulate one control step; return the gate each drone targeted and its progress distance from before."""
-        gate = self.next_gate.long().clone()
-        dist_before = self.gate_distance(gate)
-        self.world.step()
-        return gate, dist_before
-
-    def race_events(self, gate: torch.Tensor, dist_before: torch.Tensor) -> RaceEvents:
-        """Race events: a collision ends a drone's race, its last lap finishes it (frozen, no longer an obstacle),
-        each lap's split is taken; a contested race is decided by its first finisher."""
-        racing = ~(self.crashed | self.finished | self.absent)
-        crashed_now = racing & (self.step_collision != 0)
-        self.crashed |= crashed_now
-        self.crash_kind = torch.where(crashed_now, self.step_collision, self.crash_kind)
-        finished_now = racing & ~crashed_now & (self.gates_passed >= self.race_passes)
-        self.finished |= finished_now
-        self.lap_time = torch.where(finished_now, self.pass_time, self.lap_time)
-        self.out.masked_fill_(finished_now, 1)
-        split, self.lap_start = lap_splits(self.gates_passed, self.step_passes, self.pass_time, self.lap_start,
-                                           racing & ~crashed_now, self.gate_count)
-        self.passages.record(self, racing, crashed_now)
-        result = None
-        if self.cfg.reward.win > 0:
-            result, decided = race_result(finished_now, self.lap_time, racing & ~crashed_now, self.contested,
-                                          self.race_team, team_slots(self.drones_per_world))
-            self.contested &= ~decided
-        return RaceEvents(racing, crashed_now, finished_now, gate, dist_before, result, split)
-
-    def rewards(self, ev: RaceEvents) -> torch.Tensor:
-        """Rewards: the weighted reward terms of every drone (N,); each term's episode sum is kept."""
-        rewards, terms = compute_rewards(step_outcome(self, ev), self.cfg.reward)
-        for name, value in terms.items():
-            self.term_sums[name] += value
-        return rewards
-
-    def dones(self, ev: RaceEvents) -> EpisodeEnds:
-        """Dones: a learner drone's crash or finish terminates its episode; its world ends with it, at the time limit
-        (or a start's cut) or on a non-finite state, and the world's other learner episodes time out."""
-        terminated = (ev.crashed_now | ev.finished_now)[self.learner_idx]
-        time_up = self.world_time() >= torch.minimum(self.cut_time, self.world_time_limit) - 1e-6
-        worlds = terminated.view(self.world_count, -1).any(dim=1) | time_up | (self.world_nonfinite != 0)
-        time_outs = per_row(worlds, len(self.learner_slots)) & ~terminated
-        dones = terminated | time_outs
-        self.episode_length_buf += 1
-        self._count_ended(dones)
-        return EpisodeEnds(dones, time_outs, worlds)
-
-    def reset_ended(self, ends: EpisodeEnds) -> None:
-        """Reset: tell the opponent policy who won the ended races, then (training) start new ones after
-        :meth:`before_auto_reset`."""
-        if isinstance(self.opponent_policy, RecordingOpponent):
-            self.opponent_policy.record(ends.worlds, self.learner_won())
-        if self.training and (self.sync_free or ends.worlds.any()):
-            self.stats["nonfinite_resets"] += ((self.world_nonfinite != 0) & ends.worlds).sum()
-            self.before_auto_reset(ends.worlds)
-            restart_worlds(self, ends.worlds, every_world=self.sync_free)
-            self.episode_length_buf.masked_fill_(per_row(ends.worlds, len(self.learner_slots)), 0)
-        else:
-            self._fresh = torch.zeros_like(self.finished)
 
     def before_auto_reset(self, worlds: torch.Tensor) -> None:
         """Hook: called in :meth:`step` just before the worlds in the bool mask ``worlds`` reset, with the step's end
@@ -270,9 +377,9 @@ class RaceEnv(RaceState):
     def get_observations(self) -> TensorDict:
         """Observe: record this step in the history and return the learner drones' ``policy`` and ``critic`` groups
         (the same tensor unless the environment's ``critic`` is ``race``)."""
-        self.observer.record(self.last_action, self._fresh)
+        self.observer.record(self.last_action, self.fresh)
         if self.opponent_observer is not None:
-            self.opponent_observer.record(self.last_action, self._fresh)
+            self.opponent_observer.record(self.last_action, self.fresh)
         return self.observer.rows(self.learner_idx)
 
     # Reset
@@ -282,6 +389,18 @@ class RaceEnv(RaceState):
         restart_worlds(self, torch.ones(self.world_count, dtype=torch.bool, device=self.device))
         self.episode_length_buf.zero_()
         return self.get_observations()
+
+    def reset_drone_buffers(self, drones: torch.Tensor) -> None:
+        """Start the race afresh for the drones in the bool mask ``drones``; opponent slots without a policy are out."""
+        self.last_action.masked_fill_(drones[:, None], 0)
+        absent = torch.zeros_like(drones)
+        if self.opponent_policy is None and self.opponent_idx.numel():
+            absent[self.opponent_idx] = True
+        self.records.restart(drones, absent)
+        self.out.masked_fill_(drones & absent, 1)
+        self.cmd.copy_(torch.where(drones[:, None], torch.cat([self.pos, self.rpy[:, 2:3]], dim=-1), self.cmd))
+        self.fresh = drones
+        """Drones whose observation history starts afresh at the next observation."""
 
     # Observations
 
@@ -302,3 +421,13 @@ class RaceEnv(RaceState):
         """Observation rows of every drone (N, obs_dim) for the current state, as if it were observed now, without
         recording it in the history (what :meth:`get_observations` would return, leaving the env unchanged)."""
         return self.observer.peek(self.last_action)
+
+    # Queries
+
+    def world_time(self) -> torch.Tensor:
+        """Simulated time of each world since its reset [s]."""
+        return self.world_substeps.float() * self.world.sim.dt
+
+    def pop_stats(self) -> dict[str, float]:
+        """Means over the learner episodes ended since the last call, then start counting afresh."""
+        return self.stats.pop()

@@ -9,7 +9,7 @@ import torch
 from spiral.core.errors import UsageError
 from spiral.core.policy import Policy
 from spiral.env.events import at_nearest, contact_partners, fault_share, overtakes
-from spiral.env.race_env import RaceEnv
+from spiral.env.race_env import RaceEnv, track_place
 from spiral.sim import COLLISION_KINDS
 
 __all__ = ["BEARINGS", "RaceResults", "concat_results", "contact_bearing", "run_races"]
@@ -107,11 +107,11 @@ def run_races(env: RaceEnv, policy: Policy, *, record: bool = False,
     tally = _RaceTally(env, team, record=record)
     for _ in range(env.max_episode_length):
         before, vel_before = env.pos.clone(), env.vel.clone()
-        racing = ~(env.finished | env.crashed | env.absent)
+        racing = env.records.racing()
         with torch.no_grad():
             obs, _, _, _ = env.step(policy(obs))
         tally.note_step(env, racing, before, vel_before)
-        if bool((env.finished | env.crashed | env.absent).all()):
+        if not bool(env.records.racing().any()):
             break
     return tally.results(env)
 
@@ -128,7 +128,7 @@ class _RaceTally:
         self.splits = torch.zeros(n, env.passes_needed, device=dev)
         self.steps = torch.zeros(n, dtype=torch.long, device=dev)
         self.beyond = torch.zeros_like(env.commanded, dtype=torch.long)
-        self.passed, self.place = env.gates_passed.clone(), env.track_place()
+        self.passed, self.place = env.gates_passed.clone(), track_place(env)
         self.team = team
         """Team of each slot, (D,)."""
         self.passes = torch.zeros(n, 2, dtype=torch.long, device=dev)
@@ -155,15 +155,15 @@ class _RaceTally:
             return x.view(w, d).cpu()
 
         return RaceResults(
-            finished=grid(env.finished),
-            crashed=grid(env.crashed),
-            crash_kind=grid(env.crash_kind),
-            lap_time=grid(env.lap_time),
+            finished=grid(env.records.finished),
+            crashed=grid(env.records.crashed),
+            crash_kind=grid(env.records.crash_kind),
+            lap_time=grid(env.records.lap_time),
             gates_passed=grid(env.gates_passed),
             distance=grid(self.distance),
-            present=grid(~env.absent),
+            present=grid(~env.records.absent),
             trajectory=torch.stack(self.frames).view(-1, w, d, 3).cpu() if self.frames is not None else None,
-            crash_time=grid(torch.where(env.crashed, env.crash_time, 0.0)),
+            crash_time=grid(torch.where(env.records.crashed, env.crash_time, 0.0)),
             crash_partner=grid(self.partner),
             contact_bearing=grid(self.bearing),
             contact_fault=grid(self.fault),
@@ -188,10 +188,11 @@ def _note_splits(env: RaceEnv, passed: torch.Tensor, splits: torch.Tensor) -> tu
 def _note_passes(env: RaceEnv, place: tuple[torch.Tensor, torch.Tensor], racing: torch.Tensor, team: torch.Tensor,
                  passes: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
     """``passes`` (N, 2) plus the drones of other teams each ``racing`` drone passed and was passed by in this step,
-    from its :meth:`~spiral.env.RaceEnv.track_place` before it (``place``; ``team`` per slot, (D,)), and the place
+    from its :func:`~spiral.env.race_env.track_place` before it (``place``; ``team`` per slot, (D,)), and the place
     after the step, which is the next step's place before it."""
-    after = env.track_place()
-    gained = overtakes(place, after, racing & ~(env.finished | env.crashed), team, world_count=env.world_count,
+    after = track_place(env)
+    still = racing & ~(env.records.finished | env.records.crashed)
+    gained = overtakes(place, after, still, team, world_count=env.world_count,
                        drones_per_world=env.drones_per_world).long()
     return passes + torch.stack([gained.clamp(min=0), (-gained).clamp(min=0)], dim=-1), after
 
@@ -202,7 +203,7 @@ def _note_contacts(env: RaceEnv, racing: torch.Tensor, before: torch.Tensor, vel
     """``partner``, ``bearing`` and ``fault`` with this step's drone–drone crashes of ``racing`` drones filled in:
     the other drone (the nearest one that was still racing), where it was at ``before`` / ``vel_before``, and how
     much of the contact the drone flew into."""
-    contact = racing & env.crashed & ((env.crash_kind & COLLISION_KINDS["drone"]) != 0)
+    contact = racing & env.records.crashed & ((env.records.crash_kind & COLLISION_KINDS["drone"]) != 0)
     if not contact.any():
         return partner, bearing, fault
     near, found, rel = contact_partners(env.pos, before, racing, world_count=env.world_count,

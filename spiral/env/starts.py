@@ -12,7 +12,7 @@ from spiral.config.track import TrackSpec
 from spiral.core.errors import UsageError
 from spiral.env.track_tensors import TrackTensors
 
-__all__ = ["FILE_GAP", "FILE_JITTER", "UNCHECKED_ROUNDS", "Starts", "draw_starts", "sample_box_starts",
+__all__ = ["FILE_GAP", "FILE_JITTER", "UNCHECKED_ROUNDS", "Starts", "draw_device", "draw_starts", "sample_box_starts",
            "sample_file_starts", "sample_track_starts", "world_tracks_or_first"]
 
 FILE_GAP = (0.4, 1.0)
@@ -21,6 +21,13 @@ FILE_JITTER = 0.05
 """Standard deviation [m] of the random offset of each drone of a file start from its place on the line."""
 UNCHECKED_ROUNDS = 3
 """Placement rounds of an unchecked box draw (:func:`sample_box_starts`), which never reads a flag back."""
+
+
+def draw_device(device: torch.device, *, training: bool) -> torch.device:
+    """Where an env on ``device`` makes its random draws: on ``device`` in training (no copy to the device at every
+    reset), on the CPU in evaluation, so that a seed means the same placements on any device (a CUDA generator draws
+    other numbers than the CPU's for the same seed)."""
+    return device if training else torch.device("cpu")
 
 
 def _place_sequentially(

@@ -8,10 +8,35 @@ from __future__ import annotations
 
 import torch
 
+from spiral.env.records import RaceRecords
 from spiral.env.rewards import REWARD_TERMS
 from spiral.sim import COLLISION_KINDS
 
-__all__ = ["add_ended_episodes", "empty_stats", "read_stats", "summarize_stats"]
+__all__ = ["EpisodeStats", "add_ended_episodes", "empty_stats", "read_stats", "summarize_stats"]
+
+
+class EpisodeStats:
+    """The sums of a race env's ended learner episodes, on its device."""
+
+    def __init__(self, device: torch.device) -> None:
+        self.device = device
+        self.sums = empty_stats(device)
+
+    def add(self, ended: torch.Tensor, records: RaceRecords, rows: torch.Tensor) -> None:
+        """Add the episodes of the drones ``rows`` of ``records`` that end where ``ended`` (a bool mask over
+        ``rows``)."""
+        add_ended_episodes(self.sums, ended, finished=records.finished[rows], lap_time=records.lap_time[rows],
+                           crash_kind=records.crash_kind[rows],
+                           term_sums={k: v[rows] for k, v in records.term_sums.items()})
+
+    def take(self) -> dict[str, float]:
+        """The sums since the last call, read from the device; counting restarts."""
+        s, self.sums = self.sums, empty_stats(self.device)
+        return read_stats(s)
+
+    def pop(self) -> dict[str, float]:
+        """Means over the episodes ended since the last call (:func:`summarize_stats`); counting restarts."""
+        return summarize_stats(self.take())
 
 
 def empty_stats(device: torch.device) -> dict[str, torch.Tensor]:

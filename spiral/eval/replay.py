@@ -120,17 +120,18 @@ def record_race(track: TrackSpec, scenario: str, method: tuple[str, str], agains
         with torch.no_grad():
             obs, _, _, _ = env.step(learner(obs))
         snaps.append(_snapshot(env))
-        if bool((env.finished | env.crashed | env.absent).all()):
+        if not bool(env.records.racing().any()):
             break
     pos, gates, crashed, finished = (np.stack(x) for x in zip(*snaps, strict=True))
     names = [method[0]] + ([against[0]] if against is not None else [])
     return RaceRecording(track, scenario, names, float(env.dt), pos, gates, crashed, finished,
-                         env.crash_kind.cpu().numpy(), env.lap_time.cpu().numpy(), env.passes_needed)
+                         env.records.crash_kind.cpu().numpy(), env.records.lap_time.cpu().numpy(), env.passes_needed)
 
 
 def _snapshot(env: RaceEnv) -> tuple[np.ndarray, ...]:
-    return (env.pos.cpu().numpy().copy(), env.gates_passed.cpu().numpy().copy(), env.crashed.cpu().numpy().copy(),
-            env.finished.cpu().numpy().copy())
+    rec = env.records
+    return (env.pos.cpu().numpy().copy(), env.gates_passed.cpu().numpy().copy(), rec.crashed.cpu().numpy().copy(),
+            rec.finished.cpu().numpy().copy())
 
 
 def frame_count(duration: float, fps: float, *, speed: float = 1.0) -> int:

@@ -1,9 +1,9 @@
 """Where one PPO iteration's time goes, and how far the update is from the CPU's matmul rate.
 
-The rollout is split by the environment's hooks (apply action, simulate, race events, rewards, dones, reset,
-observe; summed over the parts of a stage that mixes scenarios), the opponents' policies in multi-drone stages
-(apart from the hook that calls them) and the policy's part (acting, storing the transition, returns). The update
-is split from a ``torch.profiler`` trace of rsl-rl's ``PPO.update`` into forward (losses included), backward,
+The rollout is split by the phases of the environment's step (apply action, simulate, race events, rewards, episode
+ends, reset, observe; summed over the parts of a stage that mixes scenarios), the opponents' policies in multi-drone
+stages (apart from the phase that calls them) and the policy's part (acting, storing the transition, returns). The
+update is split from a ``torch.profiler`` trace of rsl-rl's ``PPO.update`` into forward (losses included), backward,
 gradient clipping, optimizer step and the observation normaliser. Its samples per second are set against the
 *matmul limit*: the rate at which the same update would run if it did nothing but the plain matrix products of its
 linear layers (forward, gradient of the input, gradient of the weights) at the speed this CPU reaches on them, timed
@@ -31,15 +31,18 @@ from torch import nn
 from spiral.config.stage import StageSpec
 from spiral.core.errors import UsageError
 from spiral.core.policy import OpponentPolicy
+from spiral.env import race_env
 from spiral.env.mixed import MixedRaceEnv
 from spiral.env.setting import RaceSetting
 from spiral.train.runner import StageStart, StageTrainer
 
-__all__ = ["ENV_HOOKS", "device_clock", "linear_layers", "matmul_seconds", "profile_iteration", "timed_methods",
+__all__ = ["ENV_PHASES", "device_clock", "linear_layers", "matmul_seconds", "profile_iteration", "timed_methods",
            "update_flops_per_sample"]
 
-ENV_HOOKS = ("apply_actions", "simulate", "race_events", "rewards", "dones", "reset_ended", "get_observations")
-"""RaceEnv's step hooks, in the order ``RaceEnv.step`` calls them."""
+ENV_PHASES = ("apply_actions", "simulate", "race_events", "step_rewards", "episode_ends", "reset_ended",
+              "get_observations")
+"""The phases of ``RaceEnv.step``, in its order: functions of :mod:`spiral.env.race_env`, and the env's
+``get_observations``."""
 
 
 def device_clock(device: str | torch.device) -> Callable[[], float]:
@@ -109,8 +112,8 @@ def matmul_seconds(layers: list[tuple[int, int]], first: set[int], batch: int, *
 def timed_methods(obj: Any, names: tuple[str, ...], totals: dict[str, float], *,
                   clock: Callable[[], float] = time.perf_counter) -> Iterator[None]:
     """Accumulate the wall time of ``obj``'s methods ``names`` into ``totals`` while the context is open (``obj`` an
-    instance, or a class to time the methods of all its instances), read off ``clock`` (a :func:`device_clock` for
-    methods that queue work on a GPU)."""
+    instance, a class to time the methods of all its instances, or a module to time its functions), read off
+    ``clock`` (a :func:`device_clock` for methods that queue work on a GPU)."""
     def wrap(name: str, fn: Callable[..., Any]) -> Callable[..., Any]:
         def timed(*args: Any, **kwargs: Any) -> Any:
             t0 = clock()
@@ -135,14 +138,16 @@ def timed_methods(obj: Any, names: tuple[str, ...], totals: dict[str, float], *,
 
 def _rollout(trainer: StageTrainer, obs: Any, totals: dict[str, float],
              opponents: dict[str, OpponentPolicy]) -> Any:
-    """One rollout of :meth:`StageTrainer.collect`, with the policy's and the env's parts timed (the hooks of every
-    part of a mixed env, and the opponents' policies apart from the ``apply_actions`` hook that calls them)."""
+    """One rollout of :meth:`StageTrainer.collect`, with the policy's and the env's parts timed (the step's phases,
+    summed over the parts of a mixed env, and the opponents' policies apart from the ``apply_actions`` phase that
+    calls them)."""
     parts = trainer.env.parts.values() if isinstance(trainer.env, MixedRaceEnv) else [trainer.env]
     timed = functools.partial(timed_methods, clock=device_clock(trainer.device))
     with contextlib.ExitStack() as stack:
         stack.enter_context(timed(trainer.runner.alg, ("act", "process_env_step", "compute_returns"), totals))
+        stack.enter_context(timed(race_env, ENV_PHASES[:-1], totals))  # every part's: step looks them up there
         for env in parts:
-            stack.enter_context(timed(env, ENV_HOOKS, totals))
+            stack.enter_context(timed(env, ENV_PHASES[-1:], totals))
         inside: dict[str, float] = defaultdict(float)
         for kind in {type(policy) for policy in opponents.values()}:  # a call looks __call__ up on the class
             stack.enter_context(timed(kind, ("__call__",), inside))

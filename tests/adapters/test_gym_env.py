@@ -94,7 +94,7 @@ def test_checkpoint_opponent_flies_the_opponent_slot(policy_checkpoint):
     assert race.obs_builder.layout() == race.opponent_policy.obs_layout
     envs.reset(seed=0)
     envs.step(np.zeros((2, 4), dtype=np.float32))
-    assert race.opponent_idx.tolist() == [1, 3] and not race.absent[race.opponent_idx].any()
+    assert race.opponent_idx.tolist() == [1, 3] and not race.records.absent[race.opponent_idx].any()
     assert race.last_action[race.opponent_idx].abs().sum() > 0
 
 
@@ -104,7 +104,7 @@ def test_se_ibr_opponent_is_the_planner(small_env):
 
     env = RaceSingleEnv(track="oval4", scenario="1v1", opponent="SE-IBR", env_cfg=small_env)
     assert isinstance(env.race.opponent_policy, PlannerPolicy)
-    assert not env.race.absent[1]
+    assert not env.race.records.absent[1]
 
 
 def test_opponent_without_an_opponent_slot_is_refused():

@@ -53,7 +53,7 @@ def test_pid_follows_a_straight_plan_within_45_millimetres(line2):
         errors.append(np.linalg.norm(env.pos[0].numpy() - ref))
         env.step(planner.follow(torch.arange(1)))
     assert max(errors) < 0.045
-    assert int(env.gates_passed[0]) == 1 and not bool(env.crashed[0])
+    assert int(env.gates_passed[0]) == 1 and not bool(env.records.crashed[0])
 
 
 def test_saturation_shortens_the_along_track_part_first():

@@ -40,7 +40,7 @@ def waypoint_policy(env: RaceEnv, drones: torch.Tensor | None = None):
     def act(obs):
         idx = env.learner_idx if drones is None else drones
         gate = env.next_gate.long()[idx]
-        center, forward = env.gate_center[gate], env.gate_forward[gate]
+        center, forward = env.world_tracks.gate_center[gate], env.world_tracks.gate_forward[gate]
         rel_gate = env.pos[idx] - center
         along = (rel_gate * forward).sum(-1, keepdim=True)
         lateral = (rel_gate - along * forward).norm(dim=-1, keepdim=True)

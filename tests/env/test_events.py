@@ -76,17 +76,17 @@ def test_race_outcome_pays_the_first_finishers_team_and_charges_the_other_once(o
     place(env, [[-1.2, -1.0, 1.0], [2.5, -2.5, 1.0]] if flyer == 0 else [[2.5, -2.5, 1.0], [-1.2, -1.0, 1.0]])
     paid_at = []
     for step in range(env.max_episode_length):
-        before = env.term_sums["win"].clone()
+        before = env.records.term_sums["win"].clone()
         obs, _, _, _ = env.step(fly(obs) if flyer == 0 else hold)
-        if (env.term_sums["win"] != before).any():
+        if (env.records.term_sums["win"] != before).any():
             paid_at.append(step)
-        if env.finished[flyer]:
+        if env.records.finished[flyer]:
             break
     for _ in range(5):
         env.step(hold)
-    assert bool(env.finished[flyer]) and not bool(env.crashed.any())
+    assert bool(env.records.finished[flyer]) and not bool(env.records.crashed.any())
     assert paid_at == [step]
-    assert env.term_sums["win"].tolist() == pytest.approx([5.0, -5.0] if flyer == 0 else [-5.0, 5.0])
+    assert env.records.term_sums["win"].tolist() == pytest.approx([5.0, -5.0] if flyer == 0 else [-5.0, 5.0])
     assert not env.contested.any()
 
 
@@ -101,7 +101,7 @@ def test_race_outcome_between_two_learner_drones_pays_by_race_team(oval2):
     place(env, [[2.5, -2.5, 1.0], [-1.2, -1.0, 1.0]])
     for _ in range(env.max_episode_length):
         obs, _, _, _ = env.step(torch.cat([torch.zeros(1, 4), fly(obs)]))
-        if env.finished[1]:
+        if env.records.finished[1]:
             break
-    assert bool(env.finished[1]) and not bool(env.crashed.any())
-    assert env.term_sums["win"].tolist() == pytest.approx([-5.0, 5.0])
+    assert bool(env.records.finished[1]) and not bool(env.records.crashed.any())
+    assert env.records.term_sums["win"].tolist() == pytest.approx([-5.0, 5.0])

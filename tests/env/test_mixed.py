@@ -62,8 +62,8 @@ def test_mixed_env_puts_each_scenarios_drones_in_its_slots_and_routes_actions_to
     env.set_opponent_policies({"2v2": opponent, "1v1": opponent})
     obs = env.reset()
     assert obs["policy"].shape == (12, env.obs_dim)
-    assert env.parts["solo"].absent.tolist() == [False, False]
-    assert env.parts["1v1"].absent.tolist() == [False] * 4
+    assert env.parts["solo"].records.absent.tolist() == [False, False]
+    assert env.parts["1v1"].records.absent.tolist() == [False] * 4
     actions = torch.linspace(-0.9, 0.9, 12)[:, None].expand(12, 4)
     obs, rewards, dones, extras = env.step(actions)
     assert rewards.shape == dones.shape == extras["time_outs"].shape == (12,)
@@ -78,8 +78,8 @@ def test_mixed_env_statistics_add_up_and_report_each_scenarios_success(line2):
     env = training_env(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), mixed_stage(), device="cpu", seed=0)
     parts = list(env.parts.values())
     for part, (episodes, successes) in zip(parts, [(4, 3), (2, 2), (2, 0)], strict=True):
-        part.stats["episodes"] += episodes  # the sums the parts keep on their device
-        part.stats["successes"] += successes
+        part.stats.sums["episodes"] += episodes  # the sums the parts keep on their device
+        part.stats.sums["successes"] += successes
     stats = env.pop_stats()
     assert stats["episodes"] == 8 and stats["success"] == pytest.approx(5 / 8)
     assert (stats["success/2v2"], stats["success/solo"], stats["success/1v1"]) == pytest.approx((0.75, 1.0, 0.0))

@@ -64,7 +64,7 @@ def scripted(env: RaceEnv):
     """Fly each drone through the centre of its next gate and 0.6 m past it."""
     def act(obs):
         gate = env.next_gate.long()
-        target = env.gate_center[gate] + 0.6 * env.gate_forward[gate]
+        target = env.world_tracks.gate_center[gate] + 0.6 * env.world_tracks.gate_forward[gate]
         rel = (target - env.pos) / env.cfg.action.pos_scale
         return torch.cat([rel.clamp(-1, 1), torch.zeros(env.drone_count, 1)], dim=-1)
     return act

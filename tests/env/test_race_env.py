@@ -34,16 +34,16 @@ def test_crash_pays_the_penalty_once_and_ends_the_episode(oval2):
     down = torch.tensor([[0.0, 0.0, -1.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
     penalties, done_at = [], None
     for step in range(120):
-        before = env.term_sums["collision"].clone()
+        before = env.records.term_sums["collision"].clone()
         _, _, done, extras = env.step(down)
-        penalties.append(float(env.term_sums["collision"][0] - before[0]) if not done[0] else None)
+        penalties.append(float(env.records.term_sums["collision"][0] - before[0]) if not done[0] else None)
         if done[0]:
             done_at = step
             break
     assert done_at is not None
     assert not bool(extras["time_outs"][0])
-    assert float(env.stats["crash_ground"]) == pytest.approx(1.0)  # a count
-    assert float(env.stats["term_collision"]) == pytest.approx(-env.cfg.reward.collision)
+    assert float(env.stats.sums["crash_ground"]) == pytest.approx(1.0)  # a count
+    assert float(env.stats.sums["term_collision"]) == pytest.approx(-env.cfg.reward.collision)
     assert float(env.world_time()[0]) == pytest.approx(0.0, abs=1e-12) and float(env.world_time()[1]) > 0.0  # reset
 
 
@@ -72,7 +72,7 @@ def test_absent_opponent_slots_do_not_race(oval2):
     """Park opponent slots out of the race when no opponent policy is set."""
     env = make_env(oval2, worlds=2, drones=2, learners=(0,))
     assert env.num_envs == 2
-    assert env.absent.view(2, 2)[:, 1].all() and not env.absent.view(2, 2)[:, 0].any()
+    assert env.records.absent.view(2, 2)[:, 1].all() and not env.records.absent.view(2, 2)[:, 0].any()
     res = run_races(make_env(oval2, worlds=2, drones=2, learners=(0,), training=False), lambda o: torch.zeros(2, 4))
     assert not res.present[:, 1].any()
 

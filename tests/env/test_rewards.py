@@ -63,7 +63,7 @@ def test_proximity_penalty_grows_linearly_inside_the_safe_distance(oval2):
         assert rewards.tolist() == pytest.approx([expected, expected], abs=2e-3)
     solo = make_env(oval2, worlds=1, training=False, reward=reward)
     _, rewards, _, _ = solo.step(torch.zeros(1, 4))
-    assert float(solo.term_sums["proximity"][0]) == pytest.approx(0.0, abs=1e-12)  # clamped to 0
+    assert float(solo.records.term_sums["proximity"][0]) == pytest.approx(0.0, abs=1e-12)  # clamped to 0
 
 
 def test_closing_penalty_is_weighted_into_the_reward(oval2):
@@ -84,13 +84,13 @@ def test_scripted_lap_pays_each_gate_once_and_the_lap_bonus_once(oval2):
     policy = waypoint_policy(env)
     obs = env.reset()
     steps = 0
-    while not (env.finished | env.crashed).all() and steps < env.max_episode_length:
+    while not (env.records.finished | env.records.crashed).all() and steps < env.max_episode_length:
         obs, _, _, _ = env.step(policy(obs))
         steps += 1
-    assert bool(env.finished[0]) and not bool(env.crashed[0])
-    assert float(env.term_sums["gate"][0]) == pytest.approx(3.0 * env.cfg.reward.gate)
-    lap = float(env.lap_time[0])
-    assert float(env.term_sums["lap"][0]) == pytest.approx(100.0 / lap, rel=1e-5)
+    assert bool(env.records.finished[0]) and not bool(env.records.crashed[0])
+    assert float(env.records.term_sums["gate"][0]) == pytest.approx(3.0 * env.cfg.reward.gate)
+    lap = float(env.records.lap_time[0])
+    assert float(env.records.term_sums["lap"][0]) == pytest.approx(100.0 / lap, rel=1e-5)
     assert (steps - 1) * env.dt < lap <= steps * env.dt + 1e-6
 
 
@@ -104,5 +104,5 @@ def test_three_lap_race_pays_the_lap_bonus_for_each_lap_by_its_own_time(oval2):
     ends = res.split_time[0, 0, [2, 4, 6]]  # passages closing laps 1, 2 and 3
     laps = torch.cat([ends[:1], ends.diff()])
     assert float(laps.sum()) == pytest.approx(float(res.lap_time[0, 0]), rel=1e-6)
-    assert float(env.term_sums["lap"][0]) == pytest.approx(float((100.0 / laps).sum()), rel=1e-5)
-    assert float(env.term_sums["gate"][0]) == pytest.approx(7.0 * env.cfg.reward.gate)
+    assert float(env.records.term_sums["lap"][0]) == pytest.approx(float((100.0 / laps).sum()), rel=1e-5)
+    assert float(env.records.term_sums["gate"][0]) == pytest.approx(7.0 * env.cfg.reward.gate)

@@ -103,7 +103,7 @@ def test_filter_keeps_two_drones_flying_into_each_other_apart(line2: TrackSpec, 
         env.step(fly(env.learner_idx))
         closest = min(closest, float((env.pos[0] - env.pos[1]).norm()))
     if separation is None:
-        assert env.crashed.all()
+        assert env.records.crashed.all()
     else:
-        assert not env.crashed.any() and closest > 2 * AIRFRAMES["cf2x"].radius
+        assert not env.records.crashed.any() and closest > 2 * AIRFRAMES["cf2x"].radius
         assert float((env.pos - goal).norm(dim=-1).max()) < 0.2

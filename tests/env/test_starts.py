@@ -100,7 +100,7 @@ def test_evaluation_draws_on_the_cpu_and_training_on_the_envs_device():
     """A CUDA generator draws other numbers than the CPU's for one seed: evaluation placements are drawn on the CPU
     whatever the env's device, so that a seed means the same races on any device; training draws stay on the device
     (no copy to it at every reset)."""
-    from spiral.env.state import draw_device
+    from spiral.env.starts import draw_device
 
     gpu = torch.device("cuda:0")  # a name only: nothing is built on it
     assert draw_device(gpu, training=False) == CPU

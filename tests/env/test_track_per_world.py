@@ -35,7 +35,7 @@ def _env(tracks, *, worlds: int, drones: int = 1, training: bool, episode: dict 
 
 def _towards_next_gate(env: RaceEnv) -> torch.Tensor:
     """Actions that fly every learner drone at its next gate's centre (and through it)."""
-    rel = env.to_next_gate()[env.learner_idx] / env.cfg.action.pos_scale
+    rel = env.world_tracks.to_gate(env.pos, env.next_gate)[env.learner_idx] / env.cfg.action.pos_scale
     return torch.cat([rel.clamp(-1, 1), torch.zeros(len(rel), 1)], dim=-1)
 
 
@@ -45,7 +45,7 @@ def test_worlds_on_different_tracks_step_as_each_would_alone(tracks):
     the same actions, give the same states, gate passes, rewards and observations, step for step."""
     both = _env(tracks[:2], worlds=2, training=False)
     alone = [_env(tracks[i:i + 1], worlds=1, training=False) for i in range(2)]
-    assert both.world_track.tolist() == [0, 1]
+    assert both.world_tracks.world_track.tolist() == [0, 1]
     for w, env in enumerate(alone):  # the same start: the two-track env's draw on the world's track
         env.pos.copy_(both.pos[w:w + 1])
         env.get_observations()
@@ -68,14 +68,14 @@ def test_a_training_reset_draws_each_world_a_track_of_the_set_and_starts_it_ther
     env's choice, box starts sit in the world's track's start box, track starts head for a gate of that track, and
     the worlds that reset draw their tracks again."""
     env = _env(tracks, worlds=48, drones=2, training=True, episode={"track_start_prob": 0.5})
-    first = env.world_track.clone()
+    first = env.world_tracks.world_track.clone()
     assert set(first.tolist()) == {0, 1, 2}
     drone_track = first.repeat_interleave(2)
-    assert env.world_track_view.tolist() == first.tolist()
+    assert env.world_tracks.simulator_tracks.tolist() == first.tolist()
     counts = torch.tensor([len(t.gates) for t in tracks])
-    assert env.gate_count.tolist() == counts[drone_track].tolist()
-    assert env.race_passes.tolist() == (counts[drone_track] + 1).tolist()
-    assert (env.next_gate.long() < env.gate_count).all()
+    assert env.world_tracks.gate_count.tolist() == counts[drone_track].tolist()
+    assert env.world_tracks.race_passes.tolist() == (counts[drone_track] + 1).tolist()
+    assert (env.next_gate.long() < env.world_tracks.gate_count).all()
     box = (env.next_gate == 0) & (env.vel.norm(dim=-1) == 0)  # exact: box starts are at rest
     for drone in box.nonzero().flatten().tolist():
         start = tracks[int(drone_track[drone])].start
@@ -83,9 +83,9 @@ def test_a_training_reset_draws_each_world_a_track_of_the_set_and_starts_it_ther
         assert ((env.pos[drone] >= lo - 1e-6) & (env.pos[drone] <= lo + torch.tensor(start.size) + 1e-6)).all()
     for _ in range(120):
         env.step(torch.rand(env.num_envs, 4) * 2 - 1)
-    assert (env.world_track != first).any()
-    assert env.world_track_view.tolist() == env.world_track.tolist()
-    assert (env.next_gate.long() < env.gate_count).all()
+    assert (env.world_tracks.world_track != first).any()
+    assert env.world_tracks.simulator_tracks.tolist() == env.world_tracks.world_track.tolist()
+    assert (env.next_gate.long() < env.world_tracks.gate_count).all()
 
 
 def test_passage_states_of_several_tracks_start_worlds_behind_gates_of_their_own_track():
@@ -116,9 +116,9 @@ def test_a_training_env_of_several_tracks_draws_passage_starts_on_each_worlds_tr
                episode={"track_start_prob": 0.3, "passage_starts": PassageStartsCfg(share_start=1.0, share_end=1.0)})
     for _ in range(200):
         env.step(_towards_next_gate(env))
-        assert (env.next_gate.long() < env.gate_count).all()
+        assert (env.next_gate.long() < env.world_tracks.gate_count).all()
     filled = (env.passages.buffer.count > 0).nonzero().flatten()
-    g = env.track_set.max_gates
+    g = env.world_tracks.geometry.max_gates
     assert (filled // g == 0).any() and (filled // g == 1).any()
     assert ((filled % g) < torch.tensor([len(t.gates) for t in tracks[:2]])[filled // g]).all()
 
@@ -131,7 +131,7 @@ def test_evaluation_races_each_world_on_its_track_when_the_tracks_share_a_lap_co
 
     env = _env(tracks[:2], worlds=4, training=False)
     results = run_races(env, lambda obs: _towards_next_gate(env))
-    assert env.world_track.tolist() == [0, 1, 0, 1]
+    assert env.world_tracks.world_track.tolist() == [0, 1, 0, 1]
     assert (results.gates_passed > 0).all()
     mixed = RaceEnv(RaceSetting(tracks[0], CF2X, SimCfg(), more_tracks=(tracks[1].with_laps(2),)), EnvCfg(),
                     world_count=2, drones_per_world=1, training=False)
@@ -148,15 +148,13 @@ def test_hard_tracks_draw_a_track_the_learner_fails_more_often_in_proportion_to_
     """Of two tracks, the learner finished 100 of 100 episodes on the first and none of 100 on the second: with every
     draw weighted by failure rate nearly all draws are the second track; with half of them, about 0.5 · 0.5 +
     0.5 · 0.99; without the option, half."""
-    from spiral.env.race_env import draw_tracks
-
     share = {}
     for weighted in (1.0, 0.5, None):
         episode = {"track_start_prob": 0.0, **({"hard_tracks": {"share": weighted}} if weighted else {})}
         env = _env(tracks[:2], worlds=4, training=True, episode=episode)
-        env.track_ended.fill_(100.0)
-        env.track_finished.copy_(torch.tensor([100.0, 0.0]))
-        share[weighted] = draw_tracks(env, 4000).float().mean().item()
+        env.world_tracks.ended.fill_(100.0)
+        env.world_tracks.finished.copy_(torch.tensor([100.0, 0.0]))
+        share[weighted] = env.world_tracks.draw(4000, env.generator).float().mean().item()
     assert share[1.0] > 0.97
     assert share[0.5] == pytest.approx(0.25 + 0.5 * (1 - 1 / 102) / (1 / 102 + 101 / 102), abs=0.03)
     assert share[None] == pytest.approx(0.5, abs=0.03)
@@ -168,11 +166,11 @@ def test_ended_learner_episodes_are_counted_on_their_worlds_track_and_decay_ever
     env = _env(tracks[:2], worlds=8, training=True, episode={"track_start_prob": 0.0, "hard_tracks": {"decay": 0.5}})
     dones = torch.zeros(2)
     for _ in range(400):
-        ended = env.world_track.clone()
+        ended = env.world_tracks.world_track.clone()
         _, _, done, _ = env.step(_towards_next_gate(env))
         dones.index_add_(0, ended, done.float())
-    assert dones.sum() > 8 and env.track_ended.tolist() == pytest.approx(dones.tolist())
-    assert (env.track_finished <= env.track_ended).all() and env.track_finished.sum() > 0
-    before = env.track_ended.clone()
+    assert dones.sum() > 8 and env.world_tracks.ended.tolist() == pytest.approx(dones.tolist())
+    assert (env.world_tracks.finished <= env.world_tracks.ended).all() and env.world_tracks.finished.sum() > 0
+    before = env.world_tracks.ended.clone()
     env.set_training_progress(0.5)
-    torch.testing.assert_close(env.track_ended, before * 0.5)
+    torch.testing.assert_close(env.world_tracks.ended, before * 0.5)

@@ -21,7 +21,7 @@ from spiral.selfplay import Pool, PoolOpponents, StageSources, run_stage
 from spiral.selfplay.curriculum import published_opponents
 from spiral.train import StageStart
 from spiral.train.profile import (
-    ENV_HOOKS,
+    ENV_PHASES,
     _update_parts,
     device_clock,
     linear_layers,
@@ -50,7 +50,7 @@ def test_profiled_iteration_splits_rollout_by_hook_and_update_by_part_and_unwrap
         "ppo": {"num_steps_per_env": 4, "actor_hidden_dims": [16], "critic_hidden_dims": [16]},
         "selection": {"races": 2}})
     r = profile_iteration(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), stage, iterations=1)
-    assert set(r["rollout_parts_s"]) == {*ENV_HOOKS, "act", "process_env_step", "compute_returns"}
+    assert set(r["rollout_parts_s"]) == {*ENV_PHASES, "act", "process_env_step", "compute_returns"}
     assert sum(r["rollout_parts_s"].values()) <= r["rollout_s"]
     parts = set(r["update_parts_share"])
     assert {"forward", "backward", "optimizer", "clip_grad_norm", "update_normalization"} <= parts
@@ -96,7 +96,7 @@ def test_a_profiled_self_play_stage_races_a_copy_of_the_pool_and_times_the_oppon
     opponents = published_opponents(duel, init, tmp_path / "scratch", pool_dir=tmp_path / "pool").worlds
     r = profile_iteration(RaceSetting(line2, AIRFRAMES["cf2x"], SimCfg()), duel, iterations=1,
                           start=StageStart(init, opponents))
-    assert set(r["rollout_parts_s"]) == {*ENV_HOOKS, "act", "process_env_step", "compute_returns", "opponents"}
+    assert set(r["rollout_parts_s"]) == {*ENV_PHASES, "act", "process_env_step", "compute_returns", "opponents"}
     assert r["rollout_parts_s"]["opponents"] > 0 and r["rollout_parts_s"]["apply_actions"] > 0
     assert sum(r["rollout_parts_s"].values()) <= r["rollout_s"]
     assert r["samples_per_iteration"] == (4 + 2 * 4) * 4  # 4 duels and 4 team races with 2 learner drones each
