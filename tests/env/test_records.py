@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from spiral.env.records import RaceRecords
@@ -14,7 +15,7 @@ def test_a_crash_and_a_finish_end_only_their_drones_races_with_the_kind_and_the_
     rec.end(torch.tensor([True, False, False]), torch.tensor([2, 0, 0], dtype=torch.int32),
             torch.tensor([False, False, True]), torch.tensor([1.0, 2.0, 4.5]))
     assert rec.crashed.tolist() == [True, False, False] and rec.finished.tolist() == [False, False, True]
-    assert rec.crash_kind.tolist() == [2, 0, 0] and rec.lap_time.tolist() == [0.0, 0.0, 4.5]
+    assert rec.crash_kind.tolist() == [2, 0, 0] and rec.lap_time.tolist() == pytest.approx([0.0, 0.0, 4.5])
     assert rec.racing().tolist() == [False, True, False]
 
 
@@ -27,6 +28,6 @@ def test_a_restart_clears_the_restarted_drones_races_and_keeps_the_others():
         sums += 1.0
     rec.restart(torch.tensor([True, True, False]), absent=torch.tensor([False, True, False]))
     assert rec.crashed.tolist() == [False, False, False] and rec.crash_kind.tolist() == [0, 0, 0]
-    assert rec.finished.tolist() == [False, False, True] and rec.lap_time.tolist() == [0.0, 0.0, 4.5]
+    assert rec.finished.tolist() == [False, False, True] and rec.lap_time.tolist() == pytest.approx([0.0, 0.0, 4.5])
     assert rec.absent.tolist() == [False, True, False] and rec.racing().tolist() == [True, False, False]
-    assert all(sums.tolist() == [0.0, 0.0, 1.0] for sums in rec.term_sums.values())
+    assert all(sums.tolist() == pytest.approx([0.0, 0.0, 1.0]) for sums in rec.term_sums.values())
