@@ -168,16 +168,17 @@ def race_events(env: RaceEnv, gate: torch.Tensor, dist_before: torch.Tensor) -> 
     rec = env.records
     racing = rec.racing()
     crashed_now = racing & (env.step_collision != 0)
-    finished_now = racing & ~crashed_now & (env.gates_passed >= env.world_tracks.race_passes)
+    flying = racing & ~crashed_now
+    finished_now = flying & (env.gates_passed >= env.world_tracks.race_passes)
     rec.end(crashed_now, env.step_collision, finished_now, env.pass_time)
     env.out.masked_fill_(finished_now, 1)
     split, rec.lap_start = lap_splits(env.gates_passed, env.step_passes, env.pass_time, rec.lap_start,
-                                      racing & ~crashed_now, env.world_tracks.gate_count)
-    env.passages.record(racing & ~crashed_now, env.step_passes, env.next_gate, env.world_tracks, env.pos, env.vel,
+                                      flying, env.world_tracks.gate_count)
+    env.passages.record(flying, env.step_passes, env.next_gate, env.world_tracks, env.pos, env.vel,
                         env.rpy[:, 2])
     result = None
     if env.cfg.reward.win > 0:
-        result, decided = race_result(finished_now, rec.lap_time, racing & ~crashed_now, env.contested,
+        result, decided = race_result(finished_now, rec.lap_time, flying, env.contested,
                                       env.race_team, team_slots(env.drones_per_world))
         env.contested &= ~decided
     return RaceEvents(racing, crashed_now, finished_now, gate, dist_before, result, split)
@@ -201,7 +202,7 @@ def episode_ends(env: RaceEnv, ev: RaceEvents) -> EpisodeEnds:
     dones = terminated | time_outs
     env.episode_length_buf += 1
     env.stats.add(dones, env.records, env.learner_idx)
-    env.world_tracks.count_ended(env.learner_idx, dones, env.records.finished[env.learner_idx])
+    env.world_tracks.count_ended(env.learner_idx, dones, env.records.finished)
     return EpisodeEnds(dones, time_outs, worlds)
 
 

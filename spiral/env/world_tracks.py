@@ -91,12 +91,12 @@ class WorldTracks:
         return torch.multinomial(weights.to(generator.device), count, replacement=True, generator=generator)
 
     def count_ended(self, drones: torch.Tensor, dones: torch.Tensor, finished: torch.Tensor) -> None:
-        """Count the episodes of ``drones`` (indices) ending where ``dones``, and those of them ``finished``, on their
-        worlds' tracks (with ``episode.hard_tracks`` only: nothing else reads the counts)."""
+        """Count the episodes of ``drones`` (indices) ending where ``dones``, and those of them ``finished`` (a mask
+        over every drone), on their worlds' tracks (with ``episode.hard_tracks`` only: nothing else reads them)."""
         if self.hard is not None:
             track = self.world_track[drones // self.drones_per_world]
             self.ended.index_add_(0, track, dones.float())
-            self.finished.index_add_(0, track, (dones & finished).float())
+            self.finished.index_add_(0, track, (dones & finished[drones]).float())
 
     def decay(self) -> None:
         """Scale the episode counts by ``episode.hard_tracks.decay`` (once per training iteration)."""
