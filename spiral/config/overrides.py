@@ -46,7 +46,7 @@ def apply_overrides(data: dict[str, Any], overrides: Sequence[str], *, source: s
         SpecError: naming ``source`` and the override when its path runs through a value that is not a table or
             names no entry of a list.
     """
-    data = copy.deepcopy(data)
+    data = _unshared(data)
     for text in overrides:
         keys, value = parse_override(text)
         node: Any = data
@@ -59,6 +59,17 @@ def apply_overrides(data: dict[str, Any], overrides: Sequence[str], *, source: s
             raise SpecError([f"{where}: is {type(node).__name__}, not a table"])
         node[keys[-1]] = value
     return data
+
+
+def _unshared(node: Any) -> Any:
+    """A copy of ``node`` in which no two places hold the same table or list. A YAML anchor (``*env2v2``) or merge key
+    (``<<: *multi``) loads as one object referenced from every place that names it, and ``copy.deepcopy`` keeps that
+    sharing; a setting given for one stage must not reach the others that named the same anchor."""
+    if isinstance(node, dict):
+        return {key: _unshared(value) for key, value in node.items()}
+    if isinstance(node, list):
+        return [_unshared(value) for value in node]
+    return copy.copy(node)
 
 
 def _child(node: Any, key: str, where: str) -> Any:

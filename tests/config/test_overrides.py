@@ -36,9 +36,23 @@ def test_a_nested_field_set_on_the_command_line_reaches_only_the_stage_it_names(
     assert stages["2v2"].env.action.separation.distance == pytest.approx(0.4)
     assert stages["2v2"].env.action.separation.horizon_s == pytest.approx(0.4)  # the block's default
     assert before["2v2"].env.action.separation is None
+    assert stages["2v2-noselfplay"].env.action.separation is None  # it names the same YAML anchor as 2v2
     data = {"stages": [{"name": "solo", "iterations": 3}]}
     assert apply_overrides(data, ["stages.solo.iterations=4"], source="p.yaml")["stages"][0]["iterations"] == 4
     assert data["stages"][0]["iterations"] == 3
+
+
+def test_an_override_of_a_stage_does_not_reach_the_stages_that_share_its_yaml_anchor():
+    """`full.yaml`'s 2v2 stages of both branches name one `env` anchor, and its multi-drone stages merge one `<<:`
+    table: setting a field of one stage leaves the others' values, including those they share, as the file gives them."""
+    spec, _ = load_pipeline(FULL, ["stages.2v2.env.episode.start_cut_prob=0.8", "stages.1v1.ppo.entropy_coef=0.01"])
+    plain, _ = load_pipeline(FULL)
+    stages, before = {s.name: s for s in spec.stages}, {s.name: s for s in plain.stages}
+    assert stages["2v2"].env.episode.start_cut_prob == pytest.approx(0.8)
+    assert stages["1v1"].ppo.entropy_coef == pytest.approx(0.01)
+    for name in ("solo", "1v1-noselfplay", "2v2-noselfplay"):
+        assert stages[name] == before[name], name
+    assert stages["2v2"].env.obs == before["2v2"].env.obs
 
 
 def test_a_wrong_override_is_refused_naming_the_file_and_the_override():
