@@ -180,12 +180,6 @@ class EnvCfg(StrictModel):
     action: ActionCfg = Field(default_factory=ActionCfg)
     reward: RewardCfg = Field(default_factory=RewardCfg)
     episode: EpisodeCfg = Field(default_factory=EpisodeCfg)
-    critic: Literal["policy", "race"] = Field(
-        default="policy",
-        description="Inputs of the value function: the policy's observation, or also every other drone of the world "
-        "(`race`: a centralised critic; relative position and velocity, still racing, lead in gates passed; "
-        "opponents first, then teammates). Training only: policies never see these inputs",
-    )
 
     def with_eval_starts(self, starts: Literal["box", "track", "file"]) -> EnvCfg:
         """These settings with evaluation races starting where ``starts`` says (``episode.eval_starts``)."""

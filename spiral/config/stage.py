@@ -182,8 +182,7 @@ class StageSpec(StrictModel):
             return self
         if "selfplay" in self.model_fields_set:
             raise ValueError("selfplay: a solo stage races no opponents")
-        nonsense = {"env.reward.win": self.env.reward.win > 0, "env.reward.proximity": self.env.reward.proximity > 0,
-                    "env.critic": self.env.critic == "race"}
+        nonsense = {"env.reward.win": self.env.reward.win > 0, "env.reward.proximity": self.env.reward.proximity > 0}
         bad = [name for name, set_ in nonsense.items() if set_]
         if bad:
             raise ValueError(f"{bad[0]}: a solo stage has no other drone for it to act on")
@@ -218,9 +217,6 @@ class StageSpec(StrictModel):
             raise ValueError(f"mix.{bad[0]}: a share must lie strictly between 0 and 1")
         if self.world_split()[self.scenario] < 1:
             raise ValueError(f"mix: the shares leave no world for the stage's own scenario ({self.scenario})")
-        if self.env.critic == "race":
-            raise ValueError("env.critic: a race critic sees every other drone of a world, as many inputs as the "
-                             "scenario has drones, so it cannot serve the scenarios of a mixed stage (mix)")
         return self
 
     def world_split(self) -> dict[str, int]:

@@ -45,7 +45,7 @@ REMOVED_ENV_OPTIONS: dict[tuple[str, ...], Any] = {
     ("reward", "closing_miss"): 0.0, ("reward", "closing_neighbours"): 1, ("reward", "forfeit"): False,
     ("reward", "contact"): 0.0, ("reward", "overtake"): 0.0, ("episode", "contact_margin"): 0.0,
     ("obs", "priority"): False, ("obs", "history_stride"): 1, ("episode", "file_start_prob"): 0.0,
-    ("episode", "passage_starts", "pack"): 0.0}
+    ("episode", "passage_starts", "pack"): 0.0, ("critic",): "policy"}
 """Env options of earlier versions, by their path in the env settings, with the value that left them off (tried, never
 in a shipped pipeline): a checkpoint saved with them off reads as today's. The observation's own (``obs.*``) leave its
 ``obs_layout`` too."""

@@ -32,7 +32,6 @@ __all__ = [
     "nearest_others",
     "neighbours",
     "other_drone_columns",
-    "race_state",
     "relative_to_others",
 ]
 
@@ -194,21 +193,6 @@ OBS_TERMS: dict[str, ObsTerm] = {
 """Observation terms by name, in the order they are concatenated (the order is part of every trained policy)."""
 
 
-def race_state(pos: torch.Tensor, vel: torch.Tensor, out: torch.Tensor, gates_passed: torch.Tensor,
-               other_slots: torch.Tensor) -> torch.Tensor:
-    """The race critic's inputs of every drone about every other drone of its world (``other_slots`` (D, D − 1)
-    order), shape (N, 8 (D − 1)): relative position and velocity (zero once the other left the race), whether it
-    still races, and how many more gates it has passed."""
-    d = other_slots.shape[0]
-    w = pos.shape[0] // d
-    pos, vel = pos.view(w, d, 3), vel.view(w, d, 3)
-    racing = (out == 0).view(w, d)[:, other_slots].float()[..., None]
-    gates = gates_passed.view(w, d).float()
-    features = [(pos[:, other_slots] - pos[:, :, None]) * racing, (vel[:, other_slots] - vel[:, :, None]) * racing,
-                racing, (gates[:, other_slots] - gates[:, :, None])[..., None]]
-    return torch.cat(features, dim=-1).reshape(w * d, 8 * (d - 1))
-
-
 class ObservationBuilder:
     """Keeps every drone's history buffer and concatenates its enabled observation terms."""
 
@@ -296,7 +280,6 @@ class ObsSource:
     out: torch.Tensor
     """Non-zero for drones out of the race (crashed, finished or absent)."""
     next_gate: torch.Tensor
-    gates_passed: torch.Tensor
     race_team: torch.Tensor
     """Race team of each slot (D,)."""
     gate_center: torch.Tensor
@@ -306,35 +289,26 @@ class ObsSource:
     """Gates of each drone's track (N,)."""
     gate_base: torch.Tensor
     """Row of each drone's track's first gate in ``gate_center`` (N,)."""
-    other_slots: torch.Tensor
-    """(D, D − 1): the other slots of each slot's world, as the race critic lists them."""
 
 
 class Observer:
-    """Records every drone's history and builds the observation rows (``policy``, and ``critic`` with the race
-    critic's extra inputs, :func:`race_state`) of a race env's drones."""
+    """Records every drone's history and builds the observation rows of a race env's drones (``policy``, and
+    ``critic``: the same rows)."""
 
     def __init__(self, cfg: EnvCfg, source: ObsSource, *, device: torch.device) -> None:
         self.source = source
         self.builder = ObservationBuilder(cfg.obs, source.pos.shape[0], device=device)
-        self.race_critic = cfg.critic == "race"
-        """Whether the critic also sees every other drone of the world."""
 
     def record(self, last_action: torch.Tensor, fresh: torch.Tensor) -> None:
         """Observe the current state: a new history entry (``fresh`` drones start a new history) and every drone's
         rows."""
         self._push(last_action, fresh)
         self._policy_rows = self._build()
-        if self.race_critic:
-            v = self.source
-            extra = race_state(v.pos, v.vel, v.out, v.gates_passed, v.other_slots)
-            self._critic_rows = torch.cat([self._policy_rows, extra], dim=-1)
 
     def rows(self, idx: torch.Tensor) -> TensorDict:
         """Observation rows of drones ``idx`` from the last :meth:`record`."""
         obs = self._policy_rows[idx]
-        critic = self._critic_rows[idx] if self.race_critic else obs
-        return TensorDict({"policy": obs, "critic": critic}, batch_size=[idx.numel()])
+        return TensorDict({"policy": obs, "critic": obs}, batch_size=[idx.numel()])
 
     def peek(self, last_action: torch.Tensor) -> torch.Tensor:
         """``policy`` rows of every drone (N, obs_dim) as :meth:`record` would make them now, leaving the history as

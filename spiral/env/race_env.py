@@ -51,9 +51,8 @@ def observed_tensors(env: RaceEnv) -> ObsSource:
     """The tensors of ``env`` that the observations are made of, named one by one."""
     t = env.world_tracks
     return ObsSource(pos=env.pos, vel=env.vel, rpy=env.rpy, omega=env.omega, integral=env.integral, out=env.out,
-                     next_gate=env.next_gate, gates_passed=env.gates_passed, race_team=env.race_team,
-                     gate_center=t.gate_center, gate_forward=t.gate_forward, gate_count=t.gate_count,
-                     gate_base=t.gate_base, other_slots=env.other_slots)
+                     next_gate=env.next_gate, race_team=env.race_team, gate_center=t.gate_center,
+                     gate_forward=t.gate_forward, gate_count=t.gate_count, gate_base=t.gate_base)
 
 
 def step_outcome(env: RaceEnv, ev: RaceEvents) -> StepOutcome:
@@ -274,7 +273,7 @@ class RaceEnv:
         """Who drives which slot; its fields are attributes of the env too (``learner_idx``, ``race_team``, ...)."""
         self.learner_slots, self.opponent_slots, self.learner_idx, self.opponent_idx = (
             s.learner_slots, s.opponent_slots, s.learner_idx, s.opponent_idx)
-        self.slot_team, self.race_team, self.other_slots = s.slot_team, s.race_team, s.other_slots
+        self.slot_team, self.race_team = s.slot_team, s.race_team
         self.num_envs, self.dt = self.learner_idx.numel(), self.world.time_step
         self.max_episode_length = self.world_tracks.max_steps(self.dt)
         self.passes_needed = self.world_tracks.passes_needed
@@ -342,7 +341,7 @@ class RaceEnv:
         self.opponent_policy = policy
         self.opponent_observer = None
         if obs is not None and obs != self.cfg.obs:  # observes the current state at once, each history afresh
-            cfg = self.cfg.model_copy(update={"obs": obs, "critic": "policy"})
+            cfg = self.cfg.model_copy(update={"obs": obs})
             self.opponent_observer = Observer(cfg, self._obs_source, device=self.device)
             self.opponent_observer.record(self.last_action, torch.ones_like(self.records.finished))
 
@@ -377,7 +376,7 @@ class RaceEnv:
 
     def get_observations(self) -> TensorDict:
         """Observe: record this step in the history and return the learner drones' ``policy`` and ``critic`` groups
-        (the same tensor unless the environment's ``critic`` is ``race``)."""
+        (the same tensor)."""
         self.observer.record(self.last_action, self.fresh)
         if self.opponent_observer is not None:
             self.opponent_observer.record(self.last_action, self.fresh)

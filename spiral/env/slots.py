@@ -28,8 +28,6 @@ class Slots:
     """Team of each slot by who drives it (D,): 0 learners, 1 opponents."""
     race_team: torch.Tensor
     """Team of each slot in the scenario, whoever drives it (D,): :func:`~spiral.core.scenario.race_teams`."""
-    other_slots: torch.Tensor
-    """(D, D − 1): the other slots of each slot's world as the race critic lists them, opponents first."""
 
 
 def slot_map(world_count: int, drones_per_world: int, learner_slots: Sequence[int], *, device: torch.device) -> Slots:
@@ -39,15 +37,11 @@ def slot_map(world_count: int, drones_per_world: int, learner_slots: Sequence[in
     opponent = [s for s in range(d) if s not in learner]
     base = torch.arange(world_count, device=device)[:, None] * d
     slot_team = torch.tensor([s in opponent for s in range(d)], dtype=torch.long, device=device)
-    team = slot_team.tolist()
-    other = torch.tensor([sorted((j for j in range(d) if j != s), key=lambda j: (team[j] == team[s], j))
-                          for s in range(d)], dtype=torch.long, device=device).view(d, -1)
     return Slots(
         learner_slots=learner, opponent_slots=opponent,
         learner_idx=(base + torch.tensor(learner, device=device)).flatten(),
         opponent_idx=(base + torch.tensor(opponent, device=device, dtype=torch.long)).flatten(),
         slot_team=slot_team, race_team=torch.tensor(race_teams(d), dtype=torch.long, device=device),
-        other_slots=other,
     )
 
 

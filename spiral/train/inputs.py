@@ -1,11 +1,9 @@
 """How a training stage takes up inputs its init policy never saw vary (see :mod:`spiral.core.inputs` for why
 such inputs exist and how a frozen policy silences them).
 
-* :func:`calibrate_inputs` gives unused inputs statistics measured in the new stage, so that a stage trains
-  their (zeroed) weights on unit-scale inputs from its first iteration.
-* :func:`widen_inputs` appends inputs a stored model did not have (a centralised critic's), as unused ones.
-
-:func:`take_up_new_inputs` does both for a stage that starts from an earlier stage's policy.
+:func:`calibrate_inputs` gives unused inputs statistics measured in the new stage, so that a stage trains their
+(zeroed) weights on unit-scale inputs from its first iteration; :func:`take_up_new_inputs` does it for a stage that
+starts from an earlier stage's policy.
 """
 
 from __future__ import annotations
@@ -18,39 +16,18 @@ from rsl_rl.models import MLPModel
 from rsl_rl.runners import OnPolicyRunner
 from tensordict import TensorDict
 
-from spiral.core.errors import UsageError
 from spiral.core.inputs import (
     UNUSED_STD,
-    first_linear,
-    first_linear_name,
     input_normalizer,
     silence_inputs,
     unused_inputs,
 )
 from spiral.env.vec_env import RaceVecEnv
 
-__all__ = ["WARMUP_S", "calibrate_inputs", "model_inputs", "take_up_new_inputs", "widen_inputs"]
+__all__ = ["WARMUP_S", "calibrate_inputs", "model_inputs", "take_up_new_inputs"]
 
 WARMUP_S = 2.0
 """Flight time of the rollout that measures the statistics of inputs new to a stage [s]."""
-
-
-def widen_inputs(state: dict[str, torch.Tensor], model: MLPModel) -> dict[str, torch.Tensor]:
-    """``state`` (a state dict of a model like ``model`` with fewer inputs) with inputs appended up to ``model``'s.
-
-    The new inputs get zero first-layer weights and zero statistics: the model computes what it computed before,
-    and :func:`~spiral.core.inputs.unused_inputs` reports them, so a stage calibrates them like any input its init
-    policy never saw vary (e.g. a centralised critic's inputs about the other drones, from a stage without them).
-    """
-    name = first_linear_name(model)
-    had, width = state[f"{name}.weight"].shape[1], first_linear(model).in_features
-    if had > width:
-        raise UsageError(f"the stored model has {had} inputs, this one {width}: inputs can be added, not removed")
-    out = dict(state)
-    for key in (f"{name}.weight", "obs_normalizer._mean", "obs_normalizer._var", "obs_normalizer._std"):
-        if key in state:
-            out[key] = torch.nn.functional.pad(state[key], (0, width - had))
-    return out
 
 
 def model_inputs(model: MLPModel, obs: TensorDict) -> torch.Tensor:

@@ -24,7 +24,6 @@ import torch
 from tensordict import TensorDict
 
 from spiral.config.stage import StageSpec
-from spiral.core.checkpoint import CheckpointError
 from spiral.core.policy import MirrorOpponent, OpponentPolicy
 from spiral.core.seeds import stream_seed
 from spiral.env.mixed import MixedRaceEnv, training_env
@@ -32,7 +31,7 @@ from spiral.env.race_env import RaceEnv
 from spiral.env.setting import RaceSetting
 from spiral.env.vec_env import RaceVecEnv
 from spiral.train import distributed
-from spiral.train.inputs import take_up_new_inputs, widen_inputs
+from spiral.train.inputs import take_up_new_inputs
 from spiral.train.progress import TrainLog
 from spiral.train.resume import AVERAGE_KEY, StageCheckpoints, stage_meta
 from spiral.train.selection import EvalScore, Selection
@@ -146,10 +145,6 @@ class StageTrainer:
             self.log(f"resuming stage '{self.stage.name}' from {path.name} (iteration {self.start_iteration})")
         elif init_checkpoint is not None:
             data = self.checkpoints.load(init_checkpoint)
-            try:  # a centralised critic sees more than the init stage's critic did
-                data["critic_state_dict"] = widen_inputs(data["critic_state_dict"], self.runner.alg.critic)
-            except ValueError as exc:
-                raise CheckpointError(f"{init_checkpoint}: critic: {exc}") from exc
             self.runner.alg.load(data, {"actor": True, "critic": True}, strict=True)
             self.log(f"stage '{self.stage.name}' starts from {init_checkpoint}")
             with torch.no_grad():  # the init policy's action noise, brought into this stage's range

@@ -44,7 +44,7 @@ def test_a_nested_field_set_on_the_command_line_reaches_only_the_stage_it_names(
 
 def test_an_override_of_a_stage_does_not_reach_the_stages_that_share_its_yaml_anchor():
     """`full.yaml`'s 2v2 stages of both branches name one `env` anchor, and its multi-drone stages merge one `<<:`
-    table: setting a field of one stage leaves the others' values, including those they share, as the file gives them."""
+    table: setting a field of one stage leaves the others' values, those they share too, as the file gives them."""
     spec, _ = load_pipeline(FULL, ["stages.2v2.env.episode.start_cut_prob=0.8", "stages.1v1.ppo.entropy_coef=0.01"])
     plain, _ = load_pipeline(FULL)
     stages, before = {s.name: s for s in spec.stages}, {s.name: s for s in plain.stages}

@@ -185,8 +185,7 @@ def test_the_shipped_pipeline_mixes_2v2_worlds_into_spirals_1v1_stage_but_not_th
     ({"selfplay": {"p_self": 0.5}}, "selfplay"),
     ({"env": {"reward": {"win": 3.0}}}, "env.reward.win"),
     ({"env": {"reward": {"proximity": 0.1}}}, "env.reward.proximity"),
-    ({"env": {"critic": "race"}}, "env.critic"),
-], ids=["selfplay", "outcome", "proximity", "race-critic"])
+], ids=["selfplay", "outcome", "proximity"])
 def test_a_solo_stage_refuses_options_that_act_on_other_drones(tmp_path, options, field):
     """Options that need other drones make no sense in a solo stage: the error names the stage and the field."""
     path = tmp_path / "p.yaml"
@@ -194,6 +193,13 @@ def test_a_solo_stage_refuses_options_that_act_on_other_drones(tmp_path, options
     path.write_text(json.dumps({"kind": "pipeline", "name": "p", "track": str(ROOT / "tracks" / "oval4.yaml"),
                                 "stages": [stage]}))
     with pytest.raises(SpecError, match=rf"stages\.0.*{field}"):
+        load_pipeline(path)
+
+
+def test_a_stage_setting_the_removed_critic_option_is_refused_as_an_unknown_field(tmp_path):
+    """``env.critic`` (a centralised critic, tried and not adopted) is gone; the critic sees the policy's inputs."""
+    path = oval_pipeline(tmp_path, "stages:\n  - {name: a, scenario: 1v1, iterations: 1, env: {critic: race}}\n")
+    with pytest.raises(SpecError, match=r"stages\.0\.env\.critic: Extra inputs are not permitted"):
         load_pipeline(path)
 
 

@@ -44,18 +44,23 @@ def test_a_format_1_layout_gains_the_options_it_left_out_when_they_were_off(tmp_
 
 
 def test_env_settings_of_removed_options_read_as_today_when_off_and_are_refused_when_on(tmp_path):
-    """A checkpoint saved with the training shield and its reward term off (as the shipped ones were) loads with env
-    settings that today's EnvCfg accepts; one trained with the shield on is refused naming the option and the file."""
+    """A checkpoint saved with the training shield and its reward term off and the policy's critic (as the shipped
+    ones were) loads with env settings that today's EnvCfg accepts; one trained with the shield on, or with the race
+    critic, is refused naming the option and the file."""
     from spiral.config.env import EnvCfg
 
     env = EnvCfg().model_dump()
-    old = {**env, "shield": None, "reward": {**env["reward"], "intervention": 0.0}}
+    old = {**env, "shield": None, "critic": "policy", "reward": {**env["reward"], "intervention": 0.0}}
     save_checkpoint(tmp_path / "off.pt", {"w": torch.zeros(1)}, {"obs_layout": _layout(ObsCfg()), "env": old})
     assert EnvCfg.model_validate(load_checkpoint(tmp_path / "off.pt")["spiral"]["env"]) == EnvCfg()
     on = {**old, "shield": {"fade_end": 0.5}}
     save_checkpoint(tmp_path / "on.pt", {"w": torch.zeros(1)}, {"obs_layout": _layout(ObsCfg()), "env": on})
     with pytest.raises(CheckpointError, match=r"on\.pt: env\.shield: this checkpoint was trained with an option"):
         load_checkpoint(tmp_path / "on.pt")
+    save_checkpoint(tmp_path / "race.pt", {"w": torch.zeros(1)}, {"obs_layout": _layout(ObsCfg()),
+                                                                  "env": {**old, "critic": "race"}})
+    with pytest.raises(CheckpointError, match=r"race\.pt: env\.critic: this checkpoint was trained with an option"):
+        load_checkpoint(tmp_path / "race.pt")
     layout = {**_layout(ObsCfg()), "priority": False}  # an observation option removed since, stored off
     save_checkpoint(tmp_path / "obs.pt", {"w": torch.zeros(1)}, {"obs_layout": layout})
     assert load_checkpoint(tmp_path / "obs.pt")["spiral"]["obs_layout"] == _layout(ObsCfg())

@@ -33,12 +33,6 @@ def test_mixes_that_make_no_sense_are_refused_naming_the_field(scenario, mix, fi
         StageSpec(name="s", scenario=scenario, worlds=8, iterations=1, mix=mix)
 
 
-def test_a_race_critic_is_refused_in_a_mixed_stage():
-    """Its inputs grow with the drones of a scenario, so one critic cannot take the scenarios of a mixed stage."""
-    with pytest.raises(ValidationError, match=r"env\.critic"):
-        StageSpec(name="s", scenario="2v2", worlds=8, iterations=1, mix={"1v1": 0.25}, env={"critic": "race"})
-
-
 def test_env_steps_budget_counts_the_learners_of_every_format():
     """24 steps per iteration over 4·2 + 2·1 + 2·1 learner drones: 288 env steps per iteration."""
     stage = StageSpec(name="2v2", scenario="2v2", worlds=8, env_steps=2880, mix={"solo": 0.25, "1v1": 0.25})

@@ -1,5 +1,5 @@
-"""Observations: the layout of named terms, masking and neighbour order, the optional inputs, history, opponents
-with a layout of their own, and the race critic's inputs."""
+"""Observations: the layout of named terms, masking and neighbour order, the optional inputs, history, and opponents
+with a layout of their own."""
 
 from __future__ import annotations
 
@@ -181,28 +181,3 @@ def test_hiding_the_other_drone_columns_shows_what_a_drone_alone_observes(oval2)
     assert int(hidden.sum()) == 2 + 6 + 2 + 8 + 2 * 6  # presence, velocities, mates, approach, history
     assert (with_others[hidden] != 0).sum() > 15 and not alone[hidden].any()
     torch.testing.assert_close(with_others.masked_fill(hidden, 0.0), alone)  # the same columns from the same state
-
-
-def test_race_critic_sees_every_other_drone_opponents_first(oval2):
-    """Give the critic, after the policy's inputs, each other drone of the world: relative position and velocity,
-    still racing, lead in gates passed; opponents before the teammate, nothing but the lead once a drone left."""
-    env = make_env(oval2, worlds=1, drones=4, learners=(0, 1), obs=ObsCfg(history_len=1), critic="race")
-    env.set_opponent_policy(lambda obs: torch.zeros(obs.batch_size[0], 4))  # hovering opponents in slots 2 and 3
-    env.reset()
-    place(env, [[-1.0, -1.0, 1.0], [-1.0, -0.5, 1.0], [-1.0, -1.0, 1.8], [-1.0, -2.5, 1.0]])
-    env.vel[2] = torch.tensor([1.0, 0.0, 0.0])
-    env.gates_passed[3] = 2
-    obs = env.get_observations()
-    assert obs["critic"].shape == (2, env.obs_dim + 3 * 8)
-    torch.testing.assert_close(obs["critic"][:, : env.obs_dim], obs["policy"])  # the critic's inputs copy the policy's
-    rows = obs["critic"][0, env.obs_dim :].view(3, 8)  # drone 0: opponents 2 and 3, then teammate 1
-    assert torch.allclose(rows[:, :3], torch.tensor([[0.0, 0.0, 0.8], [0.0, -1.5, 0.0], [0.0, 0.5, 0.0]]), atol=1e-6)
-    torch.testing.assert_close(rows[:, 3:6], torch.tensor(  # velocities set by the test
-        [[1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]))
-    assert rows[:, 6].tolist() == pytest.approx([1.0, 1.0, 1.0])  # 0/1 flags
-    assert rows[:, 7].tolist() == pytest.approx([0.0, 2.0, 0.0])  # gate counts
-    env.out[3] = 1  # drone 3 leaves the race
-    rows = env.get_observations()["critic"][1, env.obs_dim :].view(3, 8)  # drone 1: opponents 2 and 3, teammate 0
-    assert rows[1].tolist() == pytest.approx([0.0] * 6 + [0.0, 2.0])  # masked zeros and a gate count
-    assert torch.allclose(rows[2, :3], torch.tensor([0.0, -0.5, 0.0]), atol=1e-6)
-    assert float(rows[2, 6]) == pytest.approx(1.0)  # a flag

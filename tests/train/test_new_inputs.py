@@ -7,7 +7,6 @@ import torch
 from tensordict import TensorDict
 
 from spiral.config import AIRFRAMES, SimCfg, StageSpec
-from spiral.core.checkpoint import CheckpointError, load_checkpoint
 from spiral.core.inputs import UNUSED_STD, silence_inputs, unused_inputs
 from spiral.env import RaceSetting
 from spiral.selfplay import StageSources, run_stage
@@ -90,28 +89,3 @@ def test_1v1_stage_starts_as_the_solo_policy_with_calibrated_opponent_inputs(lin
         assert torch.allclose(actor(obs), solo(obs), atol=1e-6)
     for model in (actor, trainer.runner.alg.critic):  # both saw the same observations in solo
         assert (model.mlp[0].weight[:, unused] == 0).all()
-
-
-def test_race_critic_starts_from_the_init_critic_and_calibrates_its_new_inputs(line2, solo_best, tmp_path):
-    """A 1v1 stage with a centralised critic from a solo checkpoint values states as the solo critic did whatever the
-    new inputs hold, with statistics for them measured in the warm-up; the reverse direction is refused."""
-    solo = load_checkpoint(solo_best)["critic_state_dict"]
-    spec = {**COMMON, "env": {**COMMON["env"], "critic": "race"}}
-    stage = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 1, **spec})
-    trainer = StageTrainer(RaceSetting(line2, CF2X, SimCfg()), stage, tmp_path / "race",
-                           start=StageStart(solo_best, {stage.scenario: load_policy(solo_best)}), progress=False)
-    critic = trainer.runner.alg.critic
-    width = solo["mlp.0.weight"].shape[1]
-    assert critic.mlp[0].weight.shape[1] == width + 8
-    assert (critic.mlp[0].weight[:, width:] == 0).all()
-    assert (critic.obs_normalizer.std[width:] >= UNUSED_STD).any()  # e.g. the opponent's relative position
-    obs = trainer.vec_env.get_observations()
-    shuffled = obs.clone()
-    shuffled["critic"][:, width:] = 50.0 * torch.randn(obs.batch_size[0], 8)
-    with torch.no_grad():
-        torch.testing.assert_close(critic(obs), critic(shuffled))  # zero weights on the new inputs
-    trainer.checkpoints.save(tmp_path / "race.pt", 0, trainer.best)
-    plain = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 1, **COMMON})
-    with pytest.raises(CheckpointError, match="critic"):
-        StageTrainer(RaceSetting(line2, CF2X, SimCfg()), plain, tmp_path / "plain",
-                     start=StageStart(tmp_path / "race.pt", {plain.scenario: load_policy(solo_best)}), progress=False)
