@@ -139,12 +139,12 @@ def apply_actions(env: RaceEnv, actions: torch.Tensor, opponent_actions: torch.T
     """Apply action: the learner's ``actions`` (num_envs, 4) and the opponent policy's (on the last observations,
     unless ``opponent_actions`` gives them) become the PID targets of the drones still racing."""
     commanded = torch.zeros(env.drone_count, 4, device=env.device)
-    commanded[env.learner_idx] = actions.to(env.device)
+    commanded.index_copy_(0, env.learner_idx, actions.to(env.device, commanded.dtype))
     if opponent_actions is None and env.opponent_policy is not None and env.opponent_idx.numel():
         with torch.no_grad():
             opponent_actions = env.opponent_policy(env.opponent_observations())
     if opponent_actions is not None:
-        commanded[env.opponent_idx] = opponent_actions.to(env.device)
+        commanded.index_copy_(0, env.opponent_idx, opponent_actions.to(env.device, commanded.dtype))
     env.commanded = commanded
     all_actions = commanded.clamp(-1.0, 1.0)
     racing = ~(env.out.bool())
@@ -194,7 +194,7 @@ def step_rewards(env: RaceEnv, ev: RaceEvents) -> torch.Tensor:
 def episode_ends(env: RaceEnv, ev: RaceEvents) -> EpisodeEnds:
     """Dones: a learner drone's crash or finish terminates its episode; its world ends with it, at the time limit
     (or a start's cut) or on a non-finite state, and the world's other learner episodes time out."""
-    terminated = (ev.crashed_now | ev.finished_now)[env.learner_idx]
+    terminated = (ev.crashed_now | ev.finished_now).index_select(0, env.learner_idx)
     time_up = env.world_time() >= torch.minimum(env.cut_time, env.world_tracks.world_time_limit) - 1e-6
     worlds = terminated.view(env.world_count, -1).any(dim=1) | time_up | (env.world_nonfinite != 0)
     time_outs = per_row(worlds, len(env.learner_slots)) & ~terminated
@@ -208,9 +208,10 @@ def episode_ends(env: RaceEnv, ev: RaceEvents) -> EpisodeEnds:
 def reset_ended(env: RaceEnv, ends: EpisodeEnds) -> None:
     """Reset: tell the opponent policy who won the ended races, then (training) start new ones after
     :meth:`RaceEnv.before_auto_reset`."""
-    if isinstance(env.opponent_policy, RecordingOpponent):
+    ended = env.sync_free or bool(ends.worlds.any())  # on a CPU: a step in which no race ended has nothing to do
+    if ended and _implements(env, RecordingOpponent):
         env.opponent_policy.record(ends.worlds, learner_won(env))
-    if env.training and (env.sync_free or ends.worlds.any()):
+    if env.training and ended:
         env.stats.sums["nonfinite_resets"] += ((env.world_nonfinite != 0) & ends.worlds).sum()
         env.before_auto_reset(ends.worlds)
         restart_worlds(env, ends.worlds, every_world=env.sync_free)
@@ -228,11 +229,11 @@ def restart_worlds(env: RaceEnv, worlds: torch.Tensor, *, every_world: bool = Fa
     count = env.world_count if idx is None else idx.numel()
     tracks = draw_world_tracks(env, worlds, idx)
     starts = draw_env_starts(env, count, checked=idx is not None, world_tracks=tracks)
-    buf, t = env.start_buffers, wp.to_torch
-    t(buf["mask"]).copy_(worlds.int())
+    buf, views = env.start_buffers, env.start_views
+    views["mask"].copy_(worlds.int())
     for name in ("pos", "vel", "yaw", "gate"):
         value = getattr(starts, name)
-        put_rows(t(buf[name]).view(-1, d, *value.shape[2:]), value, worlds, idx)
+        put_rows(views[name].view(-1, d, *value.shape[2:]), value, worlds, idx)
     env.world.reset(buf["mask"], buf["pos"], buf["yaw"], init_vel=buf["vel"], init_next_gate=buf["gate"])
     env.reset_drone_buffers(per_row(worlds, d))
     put_rows(env.contested, starts.box & contests(env), worlds, idx)
@@ -240,8 +241,20 @@ def restart_worlds(env: RaceEnv, worlds: torch.Tensor, *, every_world: bool = Fa
     if env.training and episode.start_cut_prob > 0:
         cut = starts.box & (torch.rand(count, generator=generator, device=generator.device) < episode.start_cut_prob)
         put_rows(env.cut_time, torch.where(cut, episode.start_cut_s, math.inf), worlds, idx)
-    if isinstance(env.opponent_policy, ResettingOpponent):
+    if _implements(env, ResettingOpponent):
         env.opponent_policy.reset(worlds)
+
+
+def _implements(env: RaceEnv, protocol: type) -> bool:
+    """``isinstance(env.opponent_policy, protocol)``, found once per policy (a runtime-checkable protocol's
+    ``isinstance`` looks every member up at each call)."""
+    policy, (known, found) = env.opponent_policy, env.opponent_hooks
+    if known is not policy:
+        found = {}
+        env.opponent_hooks = (policy, found)
+    if protocol not in found:
+        found[protocol] = isinstance(policy, protocol)
+    return found[protocol]
 
 
 class RaceEnv:
@@ -279,6 +292,8 @@ class RaceEnv:
         self.passes_needed = self.world_tracks.passes_needed
         self.generator = torch.Generator(device=draw_device(self.device, training=training)).manual_seed(seed)
         self.opponent_policy: OpponentPolicy | None = None
+        self.opponent_hooks: tuple[object, dict[type, bool]] = (None, {})
+        """The opponent policy whose hooks were looked up, and which protocols it implements (:func:`_implements`)."""
         self.sync_free = self.device.type != "cpu"
         """Steps without a host synchronisation (the default off a CPU): every auto-reset draws starts for every
         world and keeps those of the ended ones (:func:`restart_worlds`), and no shortcut reads a flag back; on a CPU,
@@ -331,6 +346,8 @@ class RaceEnv:
             ("mask", w, wp.int32), ("pos", n, wp.vec3), ("vel", n, wp.vec3), ("yaw", n, wp.float32),
             ("gate", n, wp.int32))}
         """Warp buffers of the start states a reset hands the simulator."""
+        self.start_views = {name: wp.to_torch(buf) for name, buf in self.start_buffers.items()}
+        """Torch views of :attr:`start_buffers`, where a reset writes the start states."""
         self.stats = EpisodeStats(dev)
         """Sums over the learner episodes that ended since training last read them."""
         self.world_tracks.follow()
@@ -368,7 +385,7 @@ class RaceEnv:
         ends = episode_ends(self, events)
         reset_ended(self, ends)
         obs = self.get_observations()
-        return obs, rewards[self.learner_idx], ends.dones, {"time_outs": ends.time_outs}
+        return obs, rewards.index_select(0, self.learner_idx), ends.dones, {"time_outs": ends.time_outs}
 
     def before_auto_reset(self, worlds: torch.Tensor) -> None:
         """Hook: called in :meth:`step` just before the worlds in the bool mask ``worlds`` reset, with the step's end

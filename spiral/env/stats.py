@@ -25,9 +25,10 @@ class EpisodeStats:
     def add(self, ended: torch.Tensor, records: RaceRecords, rows: torch.Tensor) -> None:
         """Add the episodes of the drones ``rows`` of ``records`` that end where ``ended`` (a bool mask over
         ``rows``)."""
-        add_ended_episodes(self.sums, ended, finished=records.finished[rows], lap_time=records.lap_time[rows],
-                           crash_kind=records.crash_kind[rows],
-                           term_sums={k: v[rows] for k, v in records.term_sums.items()})
+        add_ended_episodes(self.sums, ended, finished=records.finished.index_select(0, rows),
+                           lap_time=records.lap_time.index_select(0, rows),
+                           crash_kind=records.crash_kind.index_select(0, rows),
+                           term_sums={k: v.index_select(0, rows) for k, v in records.term_sums.items()})
 
     def take(self) -> dict[str, float]:
         """The sums since the last call, read from the device; counting restarts."""

@@ -108,7 +108,7 @@ class WorldTracks:
         """Progress distance of drones at ``pos`` (N, 3) to their ``gate`` (N,)
         (:func:`~spiral.env.events.gate_distance`, funnel factor ``kappa``)."""
         row = gate + self.gate_base
-        return gate_distance(pos, self.gate_center[row], self.gate_forward[row], kappa)
+        return gate_distance(pos, self.gate_center.index_select(0, row), self.gate_forward.index_select(0, row), kappa)
 
     def gate_rows(self, gate: torch.Tensor) -> torch.Tensor:
         """Rows in :attr:`gate_center` of each drone's ``gate`` (N,), an index taken modulo its track's gates."""
@@ -116,4 +116,4 @@ class WorldTracks:
 
     def to_gate(self, pos: torch.Tensor, gate: torch.Tensor) -> torch.Tensor:
         """Vectors from drones at ``pos`` (N, 3) to the centres of their ``gate`` (N,) [m] (N, 3)."""
-        return self.gate_center[gate.long() + self.gate_base] - pos
+        return self.gate_center.index_select(0, gate.long() + self.gate_base) - pos

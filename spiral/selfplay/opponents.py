@@ -67,6 +67,10 @@ class PoolOpponents:
         """Route rows to members without a host synchronisation (the default off a CPU): every member's network runs
         on every row and each row keeps its member's actions, and resets draw for every world; on a CPU, cheaper to
         find each member's rows and the reset worlds on the host."""
+        self._route: _Routing | None = None
+        """The rows of each member and of the live policy for the current draws (:meth:`_routing`)."""
+        self._blind: tuple[tuple, torch.Tensor] | None = None
+        """The blind worlds' zeroed entries for the current draws (:meth:`_blind_mask`)."""
         self.reset(torch.ones(world_count, dtype=torch.bool, device=matchmaker.races.device))
 
     @torch.no_grad()
@@ -74,9 +78,10 @@ class PoolOpponents:
         """Actions of every opponent drone."""
         if self.sync_free:
             return PoolOpponents.act_together([self], [obs])[0]
+        rows = obs["policy"]
         if self.draws.blind > 0:
-            obs = self._blinded(obs)
-        return self._finish(self._by_member(obs))
+            rows = torch.where(self._blind_mask(), 0.0, rows)
+        return self._finish(self._by_member(obs, rows))
 
     @staticmethod
     @torch.no_grad()
@@ -105,24 +110,36 @@ class PoolOpponents:
             actions[:, :3] += self.action_offset.view(-1, 3)
         return actions
 
-    def _by_member(self, obs: TensorDict) -> torch.Tensor:
-        """Actions with each network run on its own worlds' rows only (rows found on the host)."""
-        member_of_row = self.assignment.repeat_interleave(self.per_world)
-        mirror_row = self.mirror.repeat_interleave(self.per_world)
-        actions = torch.zeros(obs.batch_size[0], 4, device=member_of_row.device)
-        if mirror_row.any():
-            actions[mirror_row] = self._live()(obs[mirror_row])
-        # each member's rows in ascending order (a stable sort by member), so that each network sees the same
-        # batch as it would through a mask of its rows
-        pooled = torch.nonzero(~mirror_row).squeeze(1)
-        members = member_of_row[pooled]
-        policy_obs = obs["policy"]
-        counts = torch.bincount(members, minlength=len(self.policies)).tolist()
-        order = pooled[torch.argsort(members, stable=True)]
-        acted = [self.policies[m].actions(policy_obs[rows]) for m, rows in enumerate(order.split(counts)) if len(rows)]
+    def _by_member(self, obs: TensorDict, rows: torch.Tensor) -> torch.Tensor:
+        """Actions with each network run on its own worlds' ``rows`` (``obs``' policy rows, blinded where the world's
+        opponents fly blind) only, found on the host (:meth:`_routing`)."""
+        route = self._routing()
+        actions = torch.zeros(rows.shape[0], 4, device=rows.device)
+        if route.mirror.numel():
+            mirrored = self._live()(_select_rows(obs, rows, route.mirror))
+            actions.index_copy_(0, route.mirror, mirrored.to(actions.dtype))
+        acted = [self.policies[m].actions(rows.index_select(0, member_rows)) for m, member_rows in route.members]
         if acted:
-            actions[order] = torch.cat(acted)
+            actions.index_copy_(0, route.order, torch.cat(acted))
         return actions
+
+    def _routing(self) -> _Routing:
+        """Which rows each member drives and which the live policy does, found again only when the draws
+        (:attr:`assignment`, :attr:`mirror`: replaced or written in place) or the members changed since the last
+        call."""
+        key = (self.assignment, _version(self.assignment), self.mirror, _version(self.mirror), len(self.policies))
+        if self._route is None or not _same_key(self._route.key, key):
+            self._route = _Routing.of(self.assignment, self.mirror, self.per_world, len(self.policies), key)
+        return self._route
+
+    def _blind_mask(self) -> torch.Tensor:
+        """The entries of the opponent rows zeroed in blind worlds (rows, obs_dim), found again only when
+        :attr:`blind_world` changed since the last call."""
+        key = (self.blind_world, _version(self.blind_world))
+        if self._blind is None or not _same_key(self._blind[0], key):
+            rows = self.blind_world[:, None].expand(-1, self.per_world).reshape(-1)
+            self._blind = (key, rows[:, None] & self.unseen[None])
+        return self._blind[1]
 
     def _live(self) -> Callable[[TensorDict], torch.Tensor]:
         """The learner's current policy, for mirror worlds."""
@@ -176,3 +193,51 @@ class StageOpponents:
         """Race ``path``'s policy too (a promoted learner), as the latest best."""
         self.members.append(load_policy(path, device=self.device))
         self.matchmaker.add_member()
+
+
+def _version(t: torch.Tensor) -> object:
+    """``t``'s version counter, which every in-place write bumps; for an inference tensor, which keeps none, a new
+    object, equal to no other (so that nothing cached on it is reused)."""
+    try:
+        return t._version
+    except RuntimeError:
+        return object()
+
+
+def _same_key(old: tuple, new: tuple) -> bool:
+    """Whether two cache keys of tensors (by identity) and numbers (by value) are the same."""
+    return all(a is b if isinstance(a, torch.Tensor) else a == b for a, b in zip(old, new, strict=True))
+
+
+def _select_rows(obs: TensorDict, rows: torch.Tensor, index: torch.Tensor) -> TensorDict:
+    """``obs`` at the rows ``index`` (a copy of each group's rows, in order), its ``policy`` group taken from
+    ``rows``."""
+    policy = rows.index_select(0, index)
+    groups = {k: policy if k == "policy" else v.index_select(0, index) for k, v in obs.items()}
+    return TensorDict(groups, batch_size=[index.numel()], device=obs.device)
+
+
+@dataclass(frozen=True)
+class _Routing:
+    """The opponent rows (world-major) of the live policy (mirror worlds) and of each pool member, for one set of
+    draws."""
+
+    key: tuple
+    mirror: torch.Tensor
+    """Rows of mirror worlds, ascending."""
+    order: torch.Tensor
+    """The pooled rows, member by member, each member's ascending (a stable sort by member)."""
+    members: list[tuple[int, torch.Tensor]]
+    """Each member that drives rows, with its rows (a slice of :attr:`order`)."""
+
+    @staticmethod
+    def of(assignment: torch.Tensor, mirror: torch.Tensor, per_world: int, member_count: int, key: tuple
+           ) -> _Routing:
+        member_of_row = assignment.repeat_interleave(per_world)
+        mirror_row = mirror.repeat_interleave(per_world)
+        pooled = torch.nonzero(~mirror_row).squeeze(1)
+        members = member_of_row[pooled]
+        counts = torch.bincount(members, minlength=member_count).tolist()
+        order = pooled[torch.argsort(members, stable=True)]
+        driven = [(m, rows) for m, rows in enumerate(order.split(counts)) if len(rows)]
+        return _Routing(key, torch.nonzero(mirror_row).squeeze(1), order, driven)
