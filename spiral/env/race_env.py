@@ -94,16 +94,20 @@ def draw_env_starts(env: RaceEnv, world_count: int, *, checked: bool = True,
 
 def draw_world_tracks(env: RaceEnv, worlds: torch.Tensor, idx: torch.Tensor | None) -> torch.Tensor | None:
     """The tracks of the worlds of ``env`` that the bool mask ``worlds`` selects (``idx``: its indices; None: every
-    world's), drawn anew for those worlds in training (:meth:`~spiral.env.world_tracks.WorldTracks.draw`, with the
-    env's generator; with ``idx`` None drawn for every world and kept where the mask is set); None for an env of one
-    track (nothing is drawn)."""
+    world's), drawn anew for those worlds with the env's generator (with ``idx`` None drawn for every world and kept
+    where the mask is set): in training each world's (:meth:`~spiral.env.world_tracks.WorldTracks.draw`), in
+    evaluation where the tracks begin (:meth:`~spiral.env.world_tracks.WorldTracks.rotate`: world ``w`` races track
+    ``(w + k) mod T``, so that races of fewer worlds than tracks do not race the first tracks only). None for an env of
+    one track (nothing is drawn)."""
     if len(env.tracks) == 1:
         return None
     tracks = env.world_tracks
     if env.training:
         count = env.world_count if idx is None else idx.numel()
         put_rows(tracks.world_track, tracks.draw(count, env.generator).to(env.device), worlds, idx)
-        tracks.follow()
+    else:
+        put_rows(tracks.world_track, tracks.rotate(env.generator).to(env.device), worlds, None)
+    tracks.follow()
     return tracks.world_track if idx is None else tracks.world_track[idx]
 
 

@@ -20,7 +20,8 @@ __all__ = ["WorldTracks"]
 
 class WorldTracks:
     """The tracks of ``world_count`` worlds of ``drones_per_world`` drones: one track, or a track per world drawn anew
-    at each reset in training (in evaluation world ``w`` races track ``w mod T``)."""
+    at each reset in training (in evaluation world ``w`` races track ``(w + k) mod T``, ``k`` drawn at each race,
+    :meth:`rotate`)."""
 
     def __init__(self, tracks: Sequence[TrackSpec], episode: EpisodeCfg, *, world_count: int, drones_per_world: int,
                  device: torch.device, simulator_tracks: torch.Tensor) -> None:
@@ -89,6 +90,12 @@ class WorldTracks:
         fail = 1.0 - (self.finished + 1.0) / (self.ended + 2.0)
         weights = (1.0 - self.hard.share) / tracks + self.hard.share * fail / fail.sum()
         return torch.multinomial(weights.to(generator.device), count, replacement=True, generator=generator)
+
+    def rotate(self, generator: torch.Generator) -> torch.Tensor:
+        """Every world's track for an evaluation race, ``(w + k) mod T`` for world ``w`` with ``k`` drawn uniformly
+        with ``generator``: every track races as often as any other, ± 1, whichever tracks the worlds begin at."""
+        k = torch.randint(0, len(self.tracks), (1,), generator=generator, device=generator.device)
+        return (torch.arange(len(self.world_track), device=generator.device) + k) % len(self.tracks)
 
     def count_ended(self, drones: torch.Tensor, dones: torch.Tensor, finished: torch.Tensor) -> None:
         """Count the episodes of ``drones`` (indices) ending where ``dones``, and those of them ``finished`` (a mask

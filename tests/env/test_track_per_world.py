@@ -44,8 +44,8 @@ def test_worlds_on_different_tracks_step_as_each_would_alone(tracks):
     """Two evaluation worlds, one on circuit6 and one on oval4, from the same states as two one-track envs and with
     the same actions, give the same states, gate passes, rewards and observations, step for step."""
     both = _env(tracks[:2], worlds=2, training=False)
-    alone = [_env(tracks[i:i + 1], worlds=1, training=False) for i in range(2)]
-    assert both.world_tracks.world_track.tolist() == [0, 1]
+    assert sorted(both.world_tracks.world_track.tolist()) == [0, 1]
+    alone = [_env(tracks[i:i + 1], worlds=1, training=False) for i in both.world_tracks.world_track.tolist()]
     for w, env in enumerate(alone):  # the same start: the two-track env's draw on the world's track
         env.pos.copy_(both.pos[w:w + 1])
         env.get_observations()
@@ -124,14 +124,14 @@ def test_a_training_env_of_several_tracks_draws_passage_starts_on_each_worlds_tr
 
 
 def test_evaluation_races_each_world_on_its_track_when_the_tracks_share_a_lap_count(tracks):
-    """An evaluation env of two tracks races world w on track w mod 2: the drones fly their own track's gates; tracks
-    of different lap counts are refused by the races, and the SE-IBR planner and absolute action targets, which
-    need one arena, refuse an env of several tracks."""
+    """An evaluation env of two tracks races world w on track (w + k) mod 2: the drones fly their own track's gates;
+    tracks of different lap counts are refused by the races, and the SE-IBR planner and absolute action targets,
+    which need one arena, refuse an env of several tracks."""
     from spiral.baselines.se_ibr import SEIBRPlanner
 
     env = _env(tracks[:2], worlds=4, training=False)
     results = run_races(env, lambda obs: _towards_next_gate(env))
-    assert env.world_tracks.world_track.tolist() == [0, 1, 0, 1]
+    assert env.world_tracks.world_track.tolist() in ([0, 1, 0, 1], [1, 0, 1, 0])
     assert (results.gates_passed > 0).all()
     mixed = RaceEnv(RaceSetting(tracks[0], CF2X, SimCfg(), more_tracks=(tracks[1].with_laps(2),)), EnvCfg(),
                     world_count=2, drones_per_world=1, training=False)
@@ -142,6 +142,26 @@ def test_evaluation_races_each_world_on_its_track_when_the_tracks_share_a_lap_co
     with pytest.raises(UsageError, match=r"action\.mode absolute"):
         RaceEnv(RaceSetting(tracks[0], CF2X, SimCfg(), more_tracks=(tracks[1],)), EnvCfg(action={"mode": "absolute"}),
                 world_count=2, drones_per_world=1, training=False)
+
+
+def test_evaluation_races_of_fewer_worlds_than_tracks_race_every_track_in_turn_and_replay_with_the_generator(tracks):
+    """Two worlds, three tracks: each race puts the worlds on consecutive tracks from a drawn one, so that over races
+    every track is raced (not the first two only); a race from the same generator state races the same tracks (a
+    paired comparison of two policies races both on the same tracks)."""
+    env = _env(tracks, worlds=2, training=False)
+    raced, firsts = set(), set()
+    for _ in range(8):
+        state = env.generator.get_state()
+        env.reset()  # what each race (run_races) starts with
+        drawn = env.world_tracks.world_track.tolist()
+        assert drawn[1] == (drawn[0] + 1) % 3
+        assert env.world_tracks.gate_count.tolist() == [len(tracks[t].gates) for t in drawn]
+        raced.update(drawn)
+        firsts.add(drawn[0])
+        env.generator.set_state(state)
+        env.reset()
+        assert env.world_tracks.world_track.tolist() == drawn
+    assert raced == {0, 1, 2} and len(firsts) > 1
 
 
 def test_hard_tracks_draw_a_track_the_learner_fails_more_often_in_proportion_to_its_failure_rate(tracks):
