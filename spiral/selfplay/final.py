@@ -14,15 +14,18 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import torch
+
 from spiral.config.stage import FinalPickCfg, StageSpec
 from spiral.core.checkpoint import copy_checkpoint, load_policy
 from spiral.core.files import atomic_write_bytes
+from spiral.core.policy import Policy
 from spiral.env.race_env import RaceEnv
 from spiral.env.racing import run_races
 from spiral.env.setting import RaceSetting
 from spiral.selfplay.promotion import PROMOTED_DIR, self_match_env
 
-__all__ = ["FINAL_PICK_FILE", "Candidate", "pick_final", "rank_candidates"]
+__all__ = ["FINAL_PICK_FILE", "Candidate", "pick_final", "rank_candidates", "validation_success"]
 
 FINAL_PICK_FILE = "final_pick.json"
 """What the final pick raced and chose, beside the stage's ``best.pt``."""
@@ -56,6 +59,17 @@ def _validation_envs(stage: StageSpec, setting: RaceSetting, cfg: FinalPickCfg, 
             for scenario in [stage.scenario, *sorted(stage.mix)] for starts in cfg.starts}
 
 
+def validation_success(envs: dict[str, RaceEnv], placements: dict[str, torch.Tensor], policy: Policy
+                       ) -> dict[str, float]:
+    """Share of drones home in each self-match of ``envs`` (key → env) raced by ``policy``, every env's generator set
+    to its state in ``placements`` first: every candidate races the same placements, a paired comparison."""
+    success = {}
+    for key, env in envs.items():
+        env.generator.set_state(placements[key])
+        success[key] = float(run_races(env, policy).finished.float().mean())
+    return success
+
+
 def _candidates(run_dir: Path) -> list[tuple[Path, int]]:
     """The policies the stage promoted (``promoted/best-<iteration>.pt``), oldest first."""
     paths = sorted((run_dir / PROMOTED_DIR).glob("best-*.pt"))
@@ -72,11 +86,9 @@ def pick_final(stage: StageSpec, setting: RaceSetting, run_dir: Path, *, device:
         return None
     found = found[-cfg.candidates:]
     envs = _validation_envs(stage, setting, cfg, device=device)
-    raced = []
-    for path, iteration in found:
-        policy = load_policy(path, device=device)
-        success = {key: float(run_races(env, policy).finished.float().mean()) for key, env in envs.items()}
-        raced.append(Candidate(path, iteration, success))
+    placements = {key: env.generator.get_state() for key, env in envs.items()}
+    raced = [Candidate(path, iteration, validation_success(envs, placements, load_policy(path, device=device)))
+             for path, iteration in found]
     chosen = rank_candidates(raced)
     copy_checkpoint(chosen.path, Path(run_dir) / "best.pt")
     record = {"laps": cfg.laps, "races": cfg.races, "seed": cfg.seed, "chosen": chosen.iteration,

@@ -7,11 +7,12 @@ import json
 from pathlib import Path
 
 import pytest
+import torch
 
 from spiral.config import PipelineSpec, SimCfg, StageSpec
 from spiral.env.setting import RaceSetting
 from spiral.selfplay import StageSources, run_stage
-from spiral.selfplay.final import FINAL_PICK_FILE, Candidate, rank_candidates
+from spiral.selfplay.final import FINAL_PICK_FILE, Candidate, _validation_envs, rank_candidates, validation_success
 from tests.selfplay.helpers import CF2X, COMMON, PERMISSIVE, SOLO
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -24,6 +25,30 @@ def test_the_candidate_with_the_highest_mean_success_wins_and_a_tie_goes_to_the_
     assert late.score == pytest.approx(0.75)
     assert rank_candidates([early, late]) is late  # equal means: the later
     assert rank_candidates([early, best, late]) is best
+
+
+@pytest.mark.bitwise
+def test_every_candidate_races_the_same_validation_placements(line2):
+    """Two candidates race each validation self-match from the same start states (a paired comparison), not from
+    the next placements of the env's generator."""
+    stage = StageSpec.model_validate({"name": "1v1", "scenario": "1v1", "iterations": 1, "mix": {"solo": 0.25},
+                                      **COMMON, "selection": {"final": {"laps": 1, "races": 3, "seed": 5}}})
+    envs = _validation_envs(stage, RaceSetting(line2, CF2X, SimCfg()), stage.selection.final, device="cpu")
+    placements = {key: env.generator.get_state() for key, env in envs.items()}
+    seen: list[dict[str, torch.Tensor]] = []
+    for _ in range(2):
+        first: dict[str, torch.Tensor] = {}
+        for key, env in envs.items():
+            def hover(obs, key=key, env=env, first=first):
+                first.setdefault(key, env.pos.clone())
+                return torch.zeros(obs["policy"].shape[0], 4)
+            validation_success({key: env}, placements, hover)
+        seen.append(first)
+    assert set(seen[0]) == {"box-1v1", "track-1v1", "box-solo", "track-solo"}
+    for key in seen[0]:
+        torch.testing.assert_close(seen[1][key], seen[0][key], rtol=0, atol=0)  # exact: the same draws
+    envs["box-1v1"].reset()  # the env's own next draw would have started elsewhere
+    assert (envs["box-1v1"].pos - seen[0]["box-1v1"]).abs().max() > 0.01
 
 
 def test_a_stage_with_a_final_pick_keeps_every_promoted_policy_and_publishes_the_one_that_races_best(line2, tmp_path):
