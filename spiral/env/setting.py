@@ -25,7 +25,8 @@ class RaceSetting:
     are (worlds never interact, so the result is the same for any count; :class:`~spiral.sim.World`)."""
     more_tracks: tuple[TrackSpec, ...] = ()
     """Further tracks the worlds race, a track per world: in training a world draws one of :attr:`tracks` uniformly
-    at every reset, in evaluation world w races track w mod T; none: every world races ``track``."""
+    at every reset, in evaluation world w races track (w + k) mod T, k drawn per race; none: every world races
+    ``track``."""
 
     def with_laps(self, laps: int) -> RaceSetting:
         """This setting with races of ``laps`` laps on every track."""
