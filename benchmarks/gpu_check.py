@@ -318,19 +318,20 @@ def rates(device: str, *, sizes: tuple[int, ...] = RATE_WORLDS, iterations: int 
     return {"status": "info", "summary": summary, "rows": rows}
 
 
-def smoke(device: str) -> dict[str, Any]:
-    """``spiral run pipelines/smoke.yaml`` on ``device`` into temporary folders, and what it left there."""
+def smoke(device: str, pipeline: Path = SMOKE) -> dict[str, Any]:
+    """``spiral run pipelines/smoke.yaml`` (or ``pipeline``) on ``device`` into temporary folders, and what it left
+    there: every step ran on ``device``, both final policies were published and the report was written."""
     with tempfile.TemporaryDirectory() as tmp:
         runs, ckpt = Path(tmp) / "runs", Path(tmp) / "checkpoints"
         t0 = time.perf_counter()
-        proc = subprocess.run([sys.executable, "-m", "spiral.cli", "run", str(SMOKE), "--device", device,
+        proc = subprocess.run([sys.executable, "-m", "spiral.cli", "run", str(pipeline), "--device", device,
                                "--runs-dir", str(runs), "--checkpoints-dir", str(ckpt)],
                               capture_output=True, text=True, cwd=ROOT)
         wall = time.perf_counter() - t0
-        manifests = {p.parent.name: json.loads(p.read_text()) for p in (runs / "smoke").glob("*/manifest.json")}
+        manifests = {p.parent.name: json.loads(p.read_text()) for p in runs.glob("*/*/manifest.json")}
         devices = {name: m.get("info", {}).get("device") for name, m in manifests.items() if name.startswith("train-")}
-        published = [name for name in ("spiral.pt", "ppo-noselfplay.pt") if (ckpt / "smoke" / name).exists()]
-        report = (runs / "smoke" / "report" / "results.csv").exists()
+        published = [name for name in ("spiral.pt", "ppo-noselfplay.pt") if any(ckpt.glob(f"*/{name}"))]
+        report = any(runs.glob("*/report/results.csv"))
     last = (proc.stdout.strip().splitlines() or [""])[-1]
     if proc.returncode:
         sys.stderr.write(proc.stderr[-4000:])
