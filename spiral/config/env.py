@@ -15,22 +15,22 @@ __all__ = ["ActionCfg", "EnvCfg", "EpisodeCfg", "HardTracksCfg", "ObsCfg", "Pass
 class ObsCfg(StrictModel):
     """Observation layout: 12-D ego state plus a history of [2 nearest drones, next 2 gates, own action].
 
-    The paper's layout is ``history_len: 50`` (12 + 2 presence flags + 50·16 = 814 inputs). A short history with
-    gate normals and the controller's integral state is far cheaper for PPO on a CPU and learns faster; both are
-    reported.
+    The defaults are the shipped recipe's compact layout: the current step only and every extra (55 inputs). The
+    paper's layout is ``history_len: 50`` with every extra off (12 + 2 presence flags + 50·16 = 814 inputs); it is
+    far costlier for PPO on a CPU and learns slower (pipelines/paper.yaml spells it).
     """
 
-    history_len: PosInt = Field(default=50, description="Control steps K kept in the history buffer")
-    gate_normals: bool = Field(default=False, description="Add the passing direction of the next 2 gates")
-    pid_integral: bool = Field(default=False, description="Add the position controller's integral state")
-    opponent_velocity: bool = Field(default=False, description="Add the relative velocity of the 2 nearest drones")
+    history_len: PosInt = Field(default=1, description="Control steps K kept in the history buffer (the paper: 50)")
+    gate_normals: bool = Field(default=True, description="Add the passing direction of the next 2 gates")
+    pid_integral: bool = Field(default=True, description="Add the position controller's integral state")
+    opponent_velocity: bool = Field(default=True, description="Add the relative velocity of the 2 nearest drones")
     teammates: bool = Field(
-        default=False,
+        default=True,
         description="Add whether each of the 2 nearest drones is a team mate (2v2: slots 0, 1 against 2, 3), so a "
         "policy shared by a team can treat its team mate otherwise than an opponent (not in the paper)",
     )
     closest_approach: bool = Field(
-        default=False,
+        default=True,
         description="Add, for each of the 2 nearest drones, where it will be relative to the drone at their closest "
         "approach within approach_horizon_s if both keep their velocities (3) and when, as a fraction of the horizon "
         "(1): a time-to-collision sensor (not in the paper)",
@@ -78,8 +78,9 @@ class ActionCfg(StrictModel):
 
 
 class RewardCfg(StrictModel):
-    """Weights of the paper's reward terms (and an optional proximity penalty); each term is logged as
-    ``Episode_Reward/<term>``."""
+    """Weights of the reward terms: the paper's (progress, gate, collision, alignment, lap) and three of the shipped
+    recipe's that act only between drones (proximity, closing, win: zero in a solo race; 0 turns one off, and with
+    all three at 0 the reward is the paper's). Each term is logged as ``Episode_Reward/<term>``."""
 
     progress: NonNegFloat = Field(default=1.0, description="Per metre of progress towards the next gate")
     progress_lateral: float = Field(
@@ -95,24 +96,24 @@ class RewardCfg(StrictModel):
     alignment_threshold_deg: float = Field(default=60.0, gt=0, le=180, description="θ_th [deg]")
     lap: NonNegFloat = Field(default=1.0, description="Weight of 100 / lap_time at a completed lap")
     proximity: NonNegFloat = Field(
-        default=0.0,
+        default=0.1,
         description="Weight of the per-step penalty max(0, 1 − d/proximity_distance), d the distance to the nearest "
-        "other drone (not in the paper; 0 leaves the paper's reward)",
+        "other drone (not in the paper; 0: off)",
     )
     proximity_distance: PosFloat = Field(default=0.5, description="Distance where the proximity penalty starts [m]")
     closing: NonNegFloat = Field(
-        default=0.0,
+        default=0.5,
         description="Weight of a per-step penalty for closing in on the nearest other racing drone: the rate r at "
         "which the two close in [m/s] times the drone's share of it (the share of the closing speed it flies into "
         "the other) times max(0, 1 − d/closing_distance); the drone that runs up on a slower one ahead pays, the "
-        "one ahead does not, whether or not it makes room (not in the paper; 0 leaves the paper's reward)",
+        "one ahead does not, whether or not it makes room (not in the paper; 0: off)",
     )
     closing_distance: PosFloat = Field(default=1.0, description="Distance where the closing penalty starts [m]")
     win: NonNegFloat = Field(
-        default=0.0,
+        default=3.0,
         description="Weight of the race outcome, at the step a drone first completes the lap: +1 to its team's "
         "drones, -1 to the other team's drones still racing (start-box races against opponents only; not in the "
-        "paper; 0 leaves the paper's reward)",
+        "paper; 0: off)",
     )
 
 
@@ -124,7 +125,7 @@ class PassageStartsCfg(StrictModel):
 
     share_start: float = Field(default=0.5, ge=0, le=1, description="Share of episodes started from passage states "
                                "at the stage's first iteration")
-    share_end: float = Field(default=0.5, ge=0, le=1, description="The same share at its last iteration")
+    share_end: float = Field(default=0.2, ge=0, le=1, description="The same share at its last iteration")
     capacity: PosInt = Field(default=512, description="Passage states kept per gate (the newest)")
     pos_noise: NonNegFloat = Field(default=0.05, description="Standard deviation of a start's position noise per "
                                    "axis [m]")
@@ -147,11 +148,12 @@ class EpisodeCfg(StrictModel):
     """Episode starts and limits in training (evaluation starts in the start box unless ``eval_starts`` says)."""
 
     track_start_prob: float = Field(
-        default=0.5, ge=0, le=1, description="Share of episodes started at a random point along the track"
+        default=0.3, ge=0, le=1, description="Share of episodes started at a random point along the track"
     )
     track_start_speed: NonNegFloat = Field(default=1.0, description="Largest initial speed of a track start [m/s]")
     passage_starts: PassageStartsCfg | None = Field(
-        default=None, description="Starts from recorded gate-passage states (not in the paper); null: none"
+        default_factory=PassageStartsCfg,
+        description="Starts from recorded gate-passage states (not in the paper); null: none (the paper's)",
     )
     laps: PosInt | None = Field(
         default=None, description="Laps of a training race; the track's when absent (its time limit scaled to them)"

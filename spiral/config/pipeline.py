@@ -216,7 +216,7 @@ class PipelineSpec(StrictModel):
         reported = {ev.seed, *([ev.holdout_seed] if ev.holdout_runs else [])}
         for i, stage in enumerate(self.stages):
             final = stage.selection.final
-            if final is not None and final.seed in reported:
+            if final is not None and stage.scenario != "solo" and final.seed in reported:  # solo stages pick none
                 raise ValueError(f"stages.{i}.selection.final.seed: {final.seed} is a seed the pipeline reports on "
                                  f"(evaluation: {sorted(reported)}); the final pick needs placements of its own")
 

@@ -12,7 +12,7 @@ __all__ = ["PPOCfg"]
 
 
 class PPOCfg(StrictModel):
-    """rsl-rl PPO settings, actor-critic sizes and checkpointing."""
+    """rsl-rl PPO settings, actor-critic sizes and checkpointing; the defaults are the shipped recipe's."""
 
     num_steps_per_env: PosInt = Field(default=24, description="Rollout length per iteration")
     num_learning_epochs: PosInt = Field(default=5)
@@ -21,7 +21,8 @@ class PPOCfg(StrictModel):
     gamma: float = Field(default=0.99, gt=0, le=1)
     lam: float = Field(default=0.95, gt=0, le=1)
     value_loss_coef: NonNegFloat = Field(default=1.0)
-    entropy_coef: NonNegFloat = Field(default=0.005)
+    entropy_coef: NonNegFloat = Field(default=0.0, description="Weight of the entropy bonus (pipelines/paper.yaml: "
+                                      "0.005)")
     learning_rate: PosFloat = Field(default=1.0e-3)
     max_grad_norm: PosFloat = Field(default=1.0)
     schedule: Literal["adaptive", "fixed"] = Field(default="adaptive")
@@ -35,7 +36,7 @@ class PPOCfg(StrictModel):
         default=10.0, description="Upper clamp of the action noise, also of the noise a stage takes over from its init"
     )
     bound_loss_coef: NonNegFloat = Field(
-        default=0.0,
+        default=0.5,
         description="Weight of a loss on the actor's mean actions beyond the action range (mean over samples of the "
         "summed squared excess over ±1): keeps the exploration noise on both sides of the mean where the env "
         "would clamp every sample alike (e.g. always full tilt forward, never a sample that brakes); 0: off",

@@ -47,15 +47,16 @@ class SelectionCfg(StrictModel):
     races: PosInt = Field(default=64, description="Seeded races from the start box per evaluation (solo stages; a "
                           "multi-drone stage races promotion.races)")
     average: float = Field(
-        default=0.0, ge=0, lt=1,
+        default=0.98, ge=0, lt=1,
         description="Decay d of the moving average of the policy's weights (θ̄ ← d·θ̄ + (1 − d)·θ after every PPO "
         "update) that selection and promotion race and best.pt keeps; 0: the current policy",
     )
     final: FinalPickCfg | None = Field(
-        default=None,
+        default_factory=FinalPickCfg,
         description="Multi-drone stages: after training, the policy the stage promoted that races best in "
         "self-matches of its scenario and each of its mix's, from `starts`, over `laps` laps, on validation "
-        "placements, becomes the stage's best (highest mean success; ties: the later); null: the last promoted",
+        "placements, becomes the stage's best (highest mean success; ties: the later); null: the last promoted "
+        "(solo stages: unused)",
     )
 
 
@@ -66,7 +67,7 @@ class PromotionCfg(StrictModel):
     races: PosInt = Field(default=64, description="Seeded races per evaluation (M): the head to head's, the "
                           "self-match's and each of `scenarios` and `track_starts`")
     min_win_rate: float = Field(default=0.55, ge=0, le=1, description="Win rate needed over the current best")
-    max_success_drop: float = Field(default=0.02, ge=0, le=1, description="Largest success-ratio drop allowed")
+    max_success_drop: float = Field(default=0.05, ge=0, le=1, description="Largest success-ratio drop allowed")
     self_match: bool = Field(
         default=True,
         description="Also race the learner in a self-match (every drone runs it): its success may not be more than "
@@ -85,7 +86,7 @@ class PromotionCfg(StrictModel):
         "trains",
     )
     track_starts: bool = Field(
-        default=False,
+        default=True,
         description="Also race the learner and the best in self-matches from track starts (every drone at a random "
         "point between two gates; the stage's scenario and, with `scenarios`, each other scenario of its `mix`; "
         "`races` races each, the same placements for both): a learner more than max_success_drop below the best's in "
@@ -109,33 +110,40 @@ class SelfPlayCfg(StrictModel):
         "stage); the stage's initial policy when absent",
     )
     p_self: float = Field(
-        default=0.0, ge=0, le=1,
+        default=0.6, ge=0, le=1,
         description="Probability that a world's opponents are the learner's current policy (mirror self-play, "
-        "pool mode only); the rest are drawn from the pool",
+        "pool mode only: frozen mode ignores the default and refuses a value above 0); the rest are drawn from the "
+        "pool",
     )
     opponent_offset: float = Field(
-        default=0.0, ge=0, le=1,
+        default=0.1, ge=0, le=1,
         description="Largest constant offset added to an opponent's actions for a whole episode, drawn per world "
         "uniformly in [-x, x] per axis of the position target (action units): opponents fly other lines than "
         "their policy's own (robustness to strangers); 0: off",
     )
     opponent_blind: float = Field(
-        default=0.0, ge=0, le=1,
+        default=0.3, ge=0, le=1,
         description="Probability that a world's opponents fly blind for an episode: their observation shows no other "
         "drone, so they race their own line and never make room (mirror copies and pool members alike), and the "
         "learner has to follow or pass drones that ignore it; 0: off",
     )
-    p_latest: float = Field(default=0.5, ge=0, le=1, description="Probability of racing the latest best")
-    sampling: Literal["uniform", "prioritized"] = Field(default="prioritized", description="Other draws")
+    p_latest: float = Field(default=0.0, ge=0, le=1, description="Probability of racing the latest best (the "
+                            "paper: 1)")
+    sampling: Literal["uniform", "prioritized"] = Field(default="uniform", description="Other draws")
     promotion: PromotionCfg = Field(default_factory=PromotionCfg)
 
     @model_validator(mode="after")
     def _mirror_needs_pool(self) -> SelfPlayCfg:
-        if self.mode == "frozen" and self.p_self > 0:
+        if self.mode == "frozen" and "p_self" in self.model_fields_set and self.p_self > 0:
             raise ValueError("p_self: frozen opponents (PPO without self-play) cannot race the learner itself")
         if self.mode == "pool" and self.opponent_from is not None:
             raise ValueError("opponent_from: only frozen opponents come from one stage; pool opponents are the pool")
         return self
+
+    @property
+    def mirror_share(self) -> float:
+        """Share of worlds whose opponents are the learner itself: ``p_self`` in pool mode, none in frozen mode."""
+        return self.p_self if self.mode == "pool" else 0.0
 
 
 class StageSpec(StrictModel):
@@ -182,10 +190,10 @@ class StageSpec(StrictModel):
             return self
         if "selfplay" in self.model_fields_set:
             raise ValueError("selfplay: a solo stage races no opponents")
-        nonsense = {"env.reward.win": self.env.reward.win > 0, "env.reward.proximity": self.env.reward.proximity > 0}
-        bad = [name for name, set_ in nonsense.items() if set_]
+        reward = self.env.reward  # the defaults add nothing in a solo race; a weight given for one is a mistake
+        bad = [name for name in ("win", "proximity") if name in reward.model_fields_set and getattr(reward, name) > 0]
         if bad:
-            raise ValueError(f"{bad[0]}: a solo stage has no other drone for it to act on")
+            raise ValueError(f"env.reward.{bad[0]}: a solo stage has no other drone for it to act on")
         return self
 
     @model_validator(mode="after")

@@ -22,6 +22,7 @@ from spiral.core.inputs import silence_inputs, unused_inputs
 
 __all__ = [
     "FORMAT",
+    "LEGACY_DEFAULTS",
     "CheckpointError",
     "FrozenPolicy",
     "copy_checkpoint",
@@ -31,6 +32,7 @@ __all__ = [
     "newest_valid_checkpoint",
     "save_checkpoint",
     "upgrade_meta",
+    "with_legacy_defaults",
 ]
 
 FORMAT = "spiral-checkpoint-2"
@@ -49,6 +51,21 @@ REMOVED_ENV_OPTIONS: dict[tuple[str, ...], Any] = {
 """Env options of earlier versions, by their path in the env settings, with the value that left them off (tried, never
 in a shipped pipeline): a checkpoint saved with them off reads as today's. The observation's own (``obs.*``) leave its
 ``obs_layout`` too."""
+LEGACY_DEFAULTS: dict[tuple[str, ...], Any] = {
+    ("env", "obs", "history_len"): 50, ("env", "obs", "gate_normals"): False, ("env", "obs", "pid_integral"): False,
+    ("env", "obs", "opponent_velocity"): False, ("env", "obs", "teammates"): False,
+    ("env", "obs", "closest_approach"): False,
+    ("env", "reward", "proximity"): 0.0, ("env", "reward", "closing"): 0.0, ("env", "reward", "win"): 0.0,
+    ("env", "episode", "track_start_prob"): 0.5, ("env", "episode", "passage_starts"): None,
+    ("env", "episode", "passage_starts", "share_end"): 0.5,
+    ("ppo", "entropy_coef"): 0.005, ("ppo", "bound_loss_coef"): 0.0,
+    ("selection", "average"): 0.0, ("selection", "final"): None,
+    ("selfplay", "p_self"): 0.0, ("selfplay", "p_latest"): 0.5, ("selfplay", "sampling"): "prioritized",
+    ("selfplay", "opponent_offset"): 0.0, ("selfplay", "opponent_blind"): 0.0,
+    ("selfplay", "promotion", "max_success_drop"): 0.02, ("selfplay", "promotion", "track_starts"): False}
+"""The defaults these fields of a stage had before the schema's defaults became the shipped recipe's (the paper's
+values, mostly), by their path in a stage spec: settings stored without a field (saved before it existed) were
+trained with its old default, which :func:`with_legacy_defaults` fills in."""
 
 
 class CheckpointError(Exception):
@@ -116,17 +133,45 @@ def load_checkpoint(path: Path, *, map_location: str = "cpu") -> dict[str, Any]:
 
 
 def upgrade_meta(meta: dict[str, Any]) -> dict[str, Any]:
-    """A checkpoint's spiral metadata in this version's format: a format-1 layout gains the options it left out, and
-    the env settings lose the :data:`REMOVED_ENV_OPTIONS` (``ValueError`` if one was on)."""
+    """A checkpoint's spiral metadata in this version's format: a format-1 layout gains the options it left out, the
+    env settings lose the :data:`REMOVED_ENV_OPTIONS` (``ValueError`` if one was on), and the layout, env and PPO
+    settings gain the fields they were saved without, at their :data:`LEGACY_DEFAULTS`."""
     if meta.get("format") == _FORMAT_1:
         layout = meta["obs_layout"]
         meta = {**meta, "format": FORMAT, "obs_layout": {**layout, **{k: v for k, v in _FORMAT_1_LAYOUT.items()
                                                                        if k not in layout}}}
     if "obs_layout" in meta:
-        meta = {**meta, "obs_layout": _without_removed({"obs": meta["obs_layout"]})["obs"]}
+        layout = _without_removed({"obs": meta["obs_layout"]})["obs"]
+        meta = {**meta, "obs_layout": with_legacy_defaults(layout, ("env", "obs"))}
     if "env" in meta:
-        meta = {**meta, "env": _without_removed(meta["env"])}
+        meta = {**meta, "env": with_legacy_defaults(_without_removed(meta["env"]), ("env",))}
+    if "ppo" in meta:
+        meta = {**meta, "ppo": with_legacy_defaults(meta["ppo"], ("ppo",))}
     return meta
+
+
+def with_legacy_defaults(block: dict[str, Any], at: tuple[str, ...]) -> dict[str, Any]:
+    """A copy of ``block``, the settings at path ``at`` of a stage spec (``("env",)``, ``("ppo",)``,
+    ``("env", "obs")``...) as stored, with each :data:`LEGACY_DEFAULTS` field under ``at`` that it lacks set to its
+    old default."""
+    block = copy.deepcopy(block)
+    for path, old in LEGACY_DEFAULTS.items():
+        if len(path) > len(at) and path[:len(at)] == at:
+            _fill(block, path, len(at), old)
+    return block
+
+
+def _fill(block: dict[str, Any], path: tuple[str, ...], start: int, value: Any) -> None:
+    """Set the field at ``path`` (of which ``block`` holds what follows its first ``start`` keys) to ``value`` unless
+    present. A missing sub-block is added, unless it has an old default of its own; a block stored as null stays so."""
+    *parents, name = path[start:]
+    for depth, key in enumerate(parents, start=start + 1):
+        if key not in block and path[:depth] not in LEGACY_DEFAULTS:
+            block[key] = {}
+        block = block.get(key)
+        if not isinstance(block, dict):
+            return
+    block.setdefault(name, value)
 
 
 def _without_removed(env: dict[str, Any]) -> dict[str, Any]:

@@ -59,8 +59,10 @@ def fingerprint(name: str, section: Any, inputs: list[Fingerprint], *, source: s
     also of the package source (:func:`source_hash` when None), so that a code change reruns it.
 
     Pydantic models in ``section`` are hashed by the fields that differ from their defaults: a new option with a
-    default leaves the fingerprint of a step that does not set it unchanged, while a changed default is a change
-    of the source, which the ``full`` fingerprint sees (``--accept-code-changes`` keeps such steps knowingly).
+    default leaves the fingerprint of a step that does not set it unchanged. A changed default is a change of the
+    source, which the ``full`` fingerprint sees: ``--accept-code-changes`` keeps, knowingly, a step that left the
+    field unset (and ran with the old default), while a step whose value is the old default or the new one hashes
+    differently, and reruns, even where its value is the one it ran with.
     """
     base = {"step": name, "spec": section, "version": spiral.__version__}
     full = {**base, "inputs": [i.full for i in inputs], "source": source or source_hash()}

@@ -115,7 +115,7 @@ def _world_opponents(stage: StageSpec, members: list[FrozenPolicy], matchmaker: 
     """The opponents of each part of the stage's training worlds that has opponent slots, drawing from ``members``
     through one matchmaker and one generator."""
     sp = stage.selfplay
-    draws = OpponentDraws(p_self=sp.p_self, offset=sp.opponent_offset, blind=sp.opponent_blind,
+    draws = OpponentDraws(p_self=sp.mirror_share, offset=sp.opponent_offset, blind=sp.opponent_blind,
                           unseen=other_drone_columns(stage.env.obs))
     return {
         part.scenario: PoolOpponents(members, matchmaker, world_count=part.worlds,

@@ -20,7 +20,7 @@ from spiral.config.airframe import AIRFRAMES
 from spiral.config.load import load_track
 from spiral.config.sim import SimCfg
 from spiral.config.stage import StageSpec
-from spiral.core.checkpoint import load_checkpoint
+from spiral.core.checkpoint import load_checkpoint, with_legacy_defaults
 from spiral.core.device import torch_threads
 from spiral.core.numerics import TORCH_AVX2_ENV, cpu_target, portable_build
 from spiral.env.setting import RaceSetting
@@ -56,12 +56,15 @@ def sim_digest(*, world_count: int = 64, drones: int = 4, steps: int = 200, seed
 
 
 def training_digest(*, worlds: int = 64, iterations: int = 3, seed: int = 0) -> str:
-    """SHA-256 of the actor's weights after ``iterations`` PPO iterations of a solo stage on circuit6 (the shipped
-    pipeline's compact observation, one torch thread, on the CPU)."""
+    """SHA-256 of the actor's weights after ``iterations`` PPO iterations of a solo stage on circuit6 (the compact
+    observation without the inputs about other drones, one torch thread, on the CPU). The stage keeps the settings
+    it had before the schema's defaults became the shipped recipe's (:data:`~spiral.core.checkpoint.LEGACY_DEFAULTS`),
+    so that its digests compare with those measured before."""
     stage = StageSpec.model_validate({
         "name": "digest", "worlds": worlds, "iterations": iterations,
-        "env": {"obs": {"history_len": 1, "gate_normals": True, "pid_integral": True}},
-        "ppo": {"save_interval": iterations}, "selection": {"interval": 10_000}})
+        "env": with_legacy_defaults({"obs": {"history_len": 1, "gate_normals": True, "pid_integral": True}}, ("env",)),
+        "ppo": with_legacy_defaults({"save_interval": iterations}, ("ppo",)),
+        "selection": with_legacy_defaults({"interval": 10_000}, ("selection",))})
     with torch_threads(1), tempfile.TemporaryDirectory() as tmp:
         StageTrainer(RaceSetting(load_track(DEFAULT_TRACK), AIRFRAMES["cf2x"], SimCfg()), stage, Path(tmp),
                      seed=seed, progress=False).train(lambda trainer, it: {})

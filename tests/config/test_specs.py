@@ -273,7 +273,9 @@ def test_the_paper_pipeline_observes_the_papers_814_inputs_and_rewards_its_four_
     """paper.yaml: every stage observes the 12-D ego state and K = 50 steps of the 2 nearest opponents', the 2 next
     gates' and its own actions (814 inputs) and commands target positions; its reward has the paper's terms
     only (progress with the gate bonus, collision, alignment, the lap's 100 / T_lap); the self-play stages race the
-    newest best, promoted on its head to head alone; every episode starts from the start box."""
+    newest best, promoted on its head to head alone; no opponent is a mirror copy, offset or blind; every episode
+    starts from the start box; PPO has an entropy bonus and no bound loss; no weight average or final pick. The file
+    spells each of these: the schema's defaults are the shipped recipe's."""
     import torch
 
     from spiral.env.observations import ObservationBuilder
@@ -289,7 +291,32 @@ def test_the_paper_pipeline_observes_the_papers_814_inputs_and_rewards_its_four_
         assert stage.env.episode.track_start_prob == 0 and stage.env.episode.passage_starts is None, stage.name
         assert stage.env.action.separation is None, stage.name
         assert not stage.mix, stage.name
-    for stage in (s for s in stages if s.selfplay.mode == "pool" and s.scenario != "solo"):
-        assert stage.selfplay.p_latest == 1 and stage.selfplay.p_self == 0, stage.name
+        assert (stage.ppo.entropy_coef, stage.ppo.bound_loss_coef) == pytest.approx((0.005, 0.0)), stage.name
+        assert stage.selection.average == pytest.approx(0.0) and stage.selection.final is None, stage.name
+    for stage in (s for s in stages if s.scenario != "solo"):
+        draws = stage.selfplay
+        assert (draws.mirror_share, draws.opponent_offset, draws.opponent_blind) == pytest.approx((0, 0, 0)), stage.name
         promotion = stage.selfplay.promotion
         assert not promotion.self_match and not promotion.scenarios and not promotion.track_starts, stage.name
+    for stage in (s for s in stages if s.selfplay.mode == "pool" and s.scenario != "solo"):
+        assert stage.selfplay.p_latest == 1 and stage.selfplay.p_self == 0, stage.name
+
+
+def test_a_stage_that_spells_nothing_gets_the_shipped_recipes_multi_drone_settings(tmp_path):
+    """The schema's defaults are full.yaml's multi-drone settings: a 1v1 stage given only its name, scenario and
+    budget observes the compact 55 inputs, pays proximity, closing and the race's outcome, starts episodes from gate
+    passages and the track, and trains, selects and races opponents as SPIRAL's 1v1 stage of full.yaml does."""
+    import torch
+
+    from spiral.env.observations import ObservationBuilder
+
+    spec = load_pipeline(oval_pipeline(tmp_path, "stages:\n  - {name: solo, iterations: 1}\n"
+                                                  "  - {name: 1v1, scenario: 1v1, iterations: 1}\n"))[0]
+    bare = spec.stages[1]
+    assert ObservationBuilder(bare.env.obs, 2, device=torch.device("cpu")).obs_dim == 55
+    reward = bare.env.reward
+    assert (reward.proximity, reward.closing, reward.win) == pytest.approx((0.1, 0.5, 3.0))
+    assert bare.env.episode.passage_starts is not None and bare.env.episode.track_start_prob == pytest.approx(0.3)
+    shipped = {s.name: s for s in load_pipeline(ROOT / "pipelines" / "full.yaml")[0].stages}["1v1"]
+    assert (bare.env, bare.ppo, bare.selection, bare.selfplay) == (
+        shipped.env, shipped.ppo, shipped.selection, shipped.selfplay)

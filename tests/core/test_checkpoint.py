@@ -1,4 +1,5 @@
-"""The checkpoint file: checksummed round trips, refused damage, format-1 files and removed options read as today's."""
+"""The checkpoint file: checksummed round trips, refused damage, format-1 files, removed options read as today's
+and settings saved before a field existed read with its old default."""
 
 from __future__ import annotations
 
@@ -6,7 +7,15 @@ import pytest
 import torch
 
 from spiral.config.env import ObsCfg
-from spiral.core.checkpoint import FORMAT, CheckpointError, load_checkpoint, save_checkpoint
+from spiral.config.stage import StageSpec
+from spiral.core.checkpoint import (
+    FORMAT,
+    LEGACY_DEFAULTS,
+    CheckpointError,
+    load_checkpoint,
+    save_checkpoint,
+    with_legacy_defaults,
+)
 
 
 def _layout(cfg: ObsCfg) -> dict:
@@ -67,8 +76,8 @@ def test_env_settings_of_removed_options_read_as_today_when_off_and_are_refused_
 
 
 def test_a_removed_option_nested_in_a_block_reads_as_today_whether_the_block_was_set_or_null(tmp_path):
-    """``episode.passage_starts.pack`` stored off inside a passage-starts block leaves it; a null block (the
-    default) loads untouched; a pack that was on is refused naming its whole path."""
+    """``episode.passage_starts.pack`` stored off inside a passage-starts block leaves it; a null block loads
+    untouched; a pack that was on is refused naming its whole path."""
     from spiral.config.env import EnvCfg
 
     env = EnvCfg().model_dump()
@@ -82,3 +91,41 @@ def test_a_removed_option_nested_in_a_block_reads_as_today_whether_the_block_was
     save_checkpoint(tmp_path / "on.pt", {"w": torch.zeros(1)}, {"obs_layout": _layout(ObsCfg()), "env": on})
     with pytest.raises(CheckpointError, match=r"env\.episode\.passage_starts\.pack: this checkpoint was trained"):
         load_checkpoint(tmp_path / "on.pt")
+
+
+def test_settings_saved_before_a_field_existed_load_with_the_old_default_they_were_trained_with(tmp_path):
+    """A checkpoint whose env, PPO and layout lack fields whose default has changed since (the closest-approach
+    inputs, the proximity, closing and win weights, passage and track starts, the entropy bonus and bound loss)
+    reads them at their old defaults, the paper's values; the fields it stored keep their values."""
+    from spiral.config.env import EnvCfg
+    from spiral.config.ppo import PPOCfg
+
+    env = EnvCfg().model_dump()
+    old_env = {"obs": {k: v for k, v in env["obs"].items() if k != "closest_approach"},
+               "action": env["action"], "reward": {"progress": 1.0},
+               "episode": {"track_start_speed": 1.0, "start_cut_prob": 0.5}}
+    layout = {k: v for k, v in _layout(ObsCfg()).items() if k != "closest_approach"}
+    meta = {"obs_layout": layout, "env": old_env, "ppo": {"learning_rate": 3e-4}}
+    save_checkpoint(tmp_path / "old.pt", {"w": torch.zeros(1)}, meta)
+    loaded = load_checkpoint(tmp_path / "old.pt")["spiral"]
+    cfg, ppo = EnvCfg.model_validate(loaded["env"]), PPOCfg.model_validate(loaded["ppo"])
+    assert not cfg.obs.closest_approach and not loaded["obs_layout"]["closest_approach"]
+    assert cfg.obs.history_len == 1 and cfg.obs.teammates  # stored: kept
+    assert (cfg.reward.proximity, cfg.reward.closing, cfg.reward.win) == pytest.approx((0.0, 0.0, 0.0))
+    assert cfg.episode.passage_starts is None and cfg.episode.track_start_prob == pytest.approx(0.5)
+    assert cfg.episode.start_cut_prob == pytest.approx(0.5)
+    assert (ppo.entropy_coef, ppo.bound_loss_coef, ppo.learning_rate) == pytest.approx((0.005, 0.0, 3e-4))
+    passages = {"episode": {"passage_starts": {"share_start": 0.4}}}
+    assert with_legacy_defaults(passages, ("env",))["episode"]["passage_starts"]["share_end"] == pytest.approx(0.5)
+
+
+def test_every_legacy_default_names_a_field_of_the_schema_whose_default_has_changed():
+    """Each path of LEGACY_DEFAULTS is a field of a stage spec (a misspelt one would never be filled) whose default
+    today differs from the old one."""
+    today = StageSpec(name="s", scenario="1v1", iterations=1).model_dump()
+    for path, old in LEGACY_DEFAULTS.items():
+        block = today
+        for key in path[:-1]:
+            block = block[key]
+        assert path[-1] in block, path
+        assert block[path[-1]] != old, path

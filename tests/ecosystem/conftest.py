@@ -13,8 +13,10 @@ from spiral.config import AIRFRAMES, EnvCfg, PPOCfg, SimCfg
 from spiral.core.checkpoint import save_checkpoint
 from spiral.env import ObservationBuilder
 
-SMALL_ENV = EnvCfg.model_validate({"obs": {"history_len": 2, "gate_normals": True}})
-"""Observation layout of the ecosystem tests (short history: small inputs, fast steps)."""
+SMALL_ENV = EnvCfg.model_validate({"obs": {"history_len": 2, "gate_normals": True, "pid_integral": False,
+                                           "opponent_velocity": False, "teammates": False, "closest_approach": False}})
+"""Observation layout of the ecosystem tests (short history, gate normals the only extra: small inputs, fast
+steps)."""
 
 
 def write_policy_checkpoint(path: Path, env_cfg: EnvCfg = SMALL_ENV, *, seed: int = 0) -> Path:
@@ -44,4 +46,5 @@ def policy_checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="session")
 def small_env() -> EnvCfg:
     """The env settings of :func:`policy_checkpoint`, with start-box starts only (repeatable resets)."""
-    return SMALL_ENV.model_copy(update={"episode": SMALL_ENV.episode.model_copy(update={"track_start_prob": 0.0})})
+    box = {"track_start_prob": 0.0, "passage_starts": None}
+    return SMALL_ENV.model_copy(update={"episode": SMALL_ENV.episode.model_copy(update=box)})

@@ -38,7 +38,8 @@ def test_gym_loop_steps_the_vector_and_the_single_env(script_env, capsys):
     """Step 8 drones for 200 steps and fly one single-env episode to its end."""
     runpy.run_path(str(EXAMPLES / "gym_loop.py"), run_name="__main__")
     out = capsys.readouterr().out
-    assert "vector env: 8 drones, observation (78,)" in out and "autoreset SameStep" in out
+    # 12 ego + 2 presence + 25 extras (the default layout's) + 4 history entries of 16
+    assert "vector env: 8 drones, observation (103,)" in out and "autoreset SameStep" in out
     assert re.search(r"200 steps: \d+ episodes ended", out)
     assert re.search(r"single env: episode of \d+ steps", out)
 

@@ -10,10 +10,25 @@ from spiral.env import RaceEnv, RaceSetting
 CF2X = AIRFRAMES["cf2x"]
 
 
+def obs_with(history_len: int, **extras: bool | float) -> ObsCfg:
+    """An observation layout of ``history_len`` history entries with only the ``extras`` given on (the schema's
+    defaults turn every extra on)."""
+    off = {"gate_normals": False, "pid_integral": False, "opponent_velocity": False, "teammates": False,
+           "closest_approach": False}
+    return ObsCfg(**{**off, "history_len": history_len, **extras})
+
+
+def paper_obs() -> ObsCfg:
+    """The paper's observation layout: K = 50 history entries and no extra (814 inputs)."""
+    return obs_with(50)
+
+
 def make_env(track: TrackSpec, *, worlds: int = 2, drones: int = 1, learners=(0,), training: bool = True,
              obs: ObsCfg | None = None, **env_kw) -> RaceEnv:
-    env_kw.setdefault("episode", {"track_start_prob": 0.0})
-    cfg = EnvCfg(obs=obs or ObsCfg(history_len=3), **env_kw)
+    """A RaceEnv of ``worlds`` worlds whose training episodes start in the start box (no track or passage starts),
+    observing a 3-step history without extras unless ``obs`` says."""
+    env_kw.setdefault("episode", {"track_start_prob": 0.0, "passage_starts": None})
+    cfg = EnvCfg(obs=obs or obs_with(3), **env_kw)
     return RaceEnv(RaceSetting(track, CF2X, SimCfg()), cfg, world_count=worlds, drones_per_world=drones,
                    learner_slots=learners, seed=3, training=training)
 

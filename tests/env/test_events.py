@@ -65,7 +65,8 @@ def test_lap_splits_close_a_lap_every_gates_passages_after_the_start_line():
 def test_race_outcome_pays_the_first_finishers_team_and_charges_the_other_once(oval2, winner):
     """One drone flies the lap while the other holds its position far from the line: at the step the flyer
     completes the lap it gets +w and the other team's racing drone −w, and nothing more afterwards."""
-    reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, lap=0.0, collision=0.0, win=5.0)
+    reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, lap=0.0, collision=0.0, proximity=0.0, closing=0.0,
+                       win=5.0)
     env = make_env(oval2, worlds=1, drones=2, learners=(0,), training=False, reward=reward)
     flyer = 0 if winner == "learner" else 1
     fly = waypoint_policy(env, torch.tensor([flyer]))
@@ -93,7 +94,8 @@ def test_race_outcome_pays_the_first_finishers_team_and_charges_the_other_once(o
 def test_race_outcome_between_two_learner_drones_pays_by_race_team(oval2):
     """A mirror world whose two drones are both learners (no opponent policy): the race is contested, and when slot
     1 finishes first it gets +w and slot 0, still racing, −w."""
-    reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, lap=0.0, collision=0.0, win=5.0)
+    reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, lap=0.0, collision=0.0, proximity=0.0, closing=0.0,
+                       win=5.0)
     env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), training=False, reward=reward)
     fly = waypoint_policy(env, torch.tensor([1]))
     obs = env.reset()

@@ -53,7 +53,8 @@ def test_a_term_at_weight_zero_leaves_every_total_bit_for_bit(drones):
 def test_proximity_penalty_grows_linearly_inside_the_safe_distance(oval2):
     """Pay −w·(1 − d/d_safe) for the nearest racing drone: 0.2 m apart with d_safe 0.5 m costs 0.6·w per step,
     1 m apart costs nothing, and a lone drone pays nothing."""
-    reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, proximity=0.1, proximity_distance=0.5)
+    reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, proximity=0.1, proximity_distance=0.5, closing=0.0,
+                       win=0.0)
     env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), training=False, reward=reward)
     env.reset()
     for gap, expected in ((0.2, -0.06), (1.0, 0.0)):
@@ -69,7 +70,7 @@ def test_proximity_penalty_grows_linearly_inside_the_safe_distance(oval2):
 def test_closing_penalty_is_weighted_into_the_reward(oval2):
     """Two drones 0.5 m apart on one line, the one behind 1 m/s faster: with weight 2 and a 1 m window it pays
     2 · 1 · 1 · (1 − 0.5) = 1 after the step (the gap shrinks a little), the one ahead nothing."""
-    reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, closing=2.0, closing_distance=1.0)
+    reward = RewardCfg(progress=0.0, gate=0.0, alignment=0.0, proximity=0.0, win=0.0, closing=2.0, closing_distance=1.0)
     env = make_env(oval2, worlds=1, drones=2, learners=(0, 1), training=False, reward=reward)
     env.reset()
     place(env, [[-1.70, -1.0, 1.0], [-1.20, -1.0, 1.0]])

@@ -10,6 +10,7 @@ import yaml
 from spiral.config import AIRFRAMES, SimCfg, StageSpec, TrackSpec
 from spiral.env import RaceSetting
 from spiral.train import StageTrainer
+from tests.env.helpers import obs_with
 
 SPRINT = {
     "kind": "track",
@@ -26,10 +27,12 @@ SPRINT = {
 
 
 def tiny_stage(scenario: str = "solo", *, name: str = "tiny", mode: str = "pool", obs: dict | None = None) -> StageSpec:
-    """A one-iteration stage with a compact observation (or ``obs``) and a small network."""
+    """A one-iteration stage with a compact observation, gate normals and the PID integral its only extras (or
+    ``obs``, extras off unless named), and a small network."""
+    obs_cfg = obs_with(**(obs or {"history_len": 1, "gate_normals": True, "pid_integral": True}))
     return StageSpec.model_validate({
         "name": name, "scenario": scenario, "worlds": 4, "iterations": 1,
-        "env": {"obs": obs or {"history_len": 1, "gate_normals": True, "pid_integral": True}},
+        "env": {"obs": obs_cfg.model_dump()},
         "ppo": {"num_steps_per_env": 8, "actor_hidden_dims": [16, 16], "critic_hidden_dims": [16, 16]},
         **({"selfplay": {"mode": mode, "promotion": {"interval": 1, "races": 2}}} if scenario != "solo" else
            {"selection": {"interval": 1, "races": 2}})})

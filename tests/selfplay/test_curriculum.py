@@ -18,11 +18,15 @@ from spiral.train import load_policy
 from tests.selfplay.helpers import CF2X, COMMON, PERMISSIVE, SOLO
 
 
-def test_frozen_opponents_refuse_mirror_self_play():
-    """PPO without self-play never races the learner itself: p_self > 0 with frozen opponents is an error."""
+def test_frozen_opponents_refuse_mirror_self_play_and_ignore_its_default():
+    """PPO without self-play never races the learner itself: p_self > 0 given with frozen opponents is an error, and
+    the default (the shipped recipe's 0.6, for pool mode) leaves every frozen world to the frozen policy."""
     with pytest.raises(ValidationError, match="p_self"):
         SelfPlayCfg(mode="frozen", p_self=0.5)
-    assert SelfPlayCfg(mode="pool", p_self=0.5).p_self == pytest.approx(0.5)
+    assert SelfPlayCfg(mode="pool", p_self=0.5).mirror_share == pytest.approx(0.5)
+    assert SelfPlayCfg().mirror_share == pytest.approx(0.6)
+    assert SelfPlayCfg(mode="frozen").mirror_share == pytest.approx(0.0)
+    assert SelfPlayCfg(mode="frozen", p_self=0).mirror_share == pytest.approx(0.0)
 
 
 def test_only_frozen_opponents_name_the_stage_they_come_from():
@@ -125,3 +129,17 @@ def test_a_stage_with_blind_opponents_hides_what_its_layout_shows_of_other_drone
     assert len(built) == 2 and {o.per_world for o in built} == {1, 2}
     assert all(o.draws.blind == pytest.approx(0.4) for o in built)
     assert all(torch.equal(o.unseen, hidden) for o in built)  # exact: boolean masks
+
+
+def test_frozen_worlds_race_no_mirror_copies_whatever_p_self_says_for_pool_mode(monkeypatch):
+    """The opponents a stage trains against draw mirror copies of the learner with its `p_self` in pool mode, and
+    never in frozen mode, where the default p_self (the shipped recipe's, for pool mode) is ignored."""
+    from spiral.selfplay import Matchmaker, curriculum
+
+    monkeypatch.setattr(curriculum, "PoolOpponents", lambda members, matchmaker, **kwargs: kwargs["draws"])
+    matchmaker = Matchmaker(1, latest=0, p_latest=0.0)
+    for mode, mirror in (("pool", 0.6), ("frozen", 0.0)):
+        stage = StageSpec.model_validate({"name": "d", "scenario": "1v1", "iterations": 1, **COMMON,
+                                          "selfplay": {**PERMISSIVE, "mode": mode}})
+        draws = curriculum._world_opponents(stage, [], matchmaker, torch.Generator())
+        assert draws["1v1"].p_self == pytest.approx(mirror), mode

@@ -19,17 +19,20 @@ from tests.selfplay.helpers import CF2X, COMMON, SOLO
 
 
 def test_opponent_offsets_apply_to_both_branches_and_must_lie_in_the_action_range():
-    """Offsets apply to pool and frozen opponents alike; a negative or beyond-action offset names the field."""
-    assert SelfPlayCfg(mode="frozen", opponent_offset=0.1).opponent_offset == pytest.approx(0.1)
-    assert SelfPlayCfg().opponent_offset == pytest.approx(0.0)
+    """Offsets apply to pool and frozen opponents alike (0.1 by default, the shipped recipe's; 0: off); a negative or
+    beyond-action offset names the field."""
+    assert SelfPlayCfg(mode="frozen", opponent_offset=0.2).opponent_offset == pytest.approx(0.2)
+    assert SelfPlayCfg().opponent_offset == pytest.approx(0.1)
+    assert SelfPlayCfg(opponent_offset=0).opponent_offset == pytest.approx(0.0)
     for bad in (-0.1, 1.5):
         with pytest.raises(ValidationError, match="opponent_offset"):
             SelfPlayCfg(opponent_offset=bad)
 
 
-def test_opponent_blind_is_a_probability_and_off_by_default():
-    assert SelfPlayCfg().opponent_blind == pytest.approx(0.0)
-    assert SelfPlayCfg(opponent_blind=0.3).opponent_blind == pytest.approx(0.3)
+def test_opponent_blind_is_a_probability_and_the_shipped_recipes_by_default():
+    """Blind opponents in 30% of the episodes by default (the shipped recipe's SPIRAL stages); 0: off."""
+    assert SelfPlayCfg().opponent_blind == pytest.approx(0.3)
+    assert SelfPlayCfg(opponent_blind=0).opponent_blind == pytest.approx(0.0)
     for bad in (-0.1, 1.5):
         with pytest.raises(ValidationError, match="opponent_blind"):
             SelfPlayCfg(opponent_blind=bad)

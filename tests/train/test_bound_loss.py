@@ -68,7 +68,8 @@ def saturated_means_after_updates(trainer: StageTrainer, updates: int) -> float:
 
 
 def test_a_stage_with_a_bound_loss_pulls_saturated_mean_actions_back_into_range(oval2, tmp_path):
-    assert PPOCfg().to_rsl_rl()["actor"]["distribution_cfg"]["class_name"].endswith(".GaussianDistribution")
+    off = PPOCfg(bound_loss_coef=0).to_rsl_rl()["actor"]["distribution_cfg"]
+    assert off["class_name"].endswith(".GaussianDistribution")
     bounded = StageTrainer(RaceSetting(oval2, AIRFRAMES["cf2x"], SimCfg()), stage(5.0), tmp_path / "on", progress=False)
     plain = StageTrainer(RaceSetting(oval2, AIRFRAMES["cf2x"], SimCfg()), stage(0.0), tmp_path / "off", progress=False)
     assert isinstance(bounded.runner.alg.actor.distribution, BoundedGaussianDistribution)

@@ -19,7 +19,8 @@ CF2X = AIRFRAMES["cf2x"]
 def tiny_stage(iterations: int, *, worlds: int = 64) -> StageSpec:
     return StageSpec.model_validate({
         "name": "tiny", "worlds": worlds, "iterations": iterations,
-        "env": {"obs": {"history_len": 1, "gate_normals": True, "pid_integral": True}},
+        "env": {"obs": {"history_len": 1, "gate_normals": True, "pid_integral": True, "opponent_velocity": False,
+                        "teammates": False, "closest_approach": False}},
         "ppo": {"num_steps_per_env": 16, "save_interval": 2, "actor_hidden_dims": [32, 32],
                 "critic_hidden_dims": [32, 32]},
         "selection": {"interval": 4, "races": 4}})
