@@ -14,6 +14,7 @@ import torch
 from spiral.baselines.centreline import Centreline
 from spiral.baselines.se_ibr import PlannerPolicy, opponent_policy, se_ibr_policy
 from spiral.config import AIRFRAMES, EnvCfg, SimCfg, TrackSpec
+from spiral.config.env import EVAL_REWARD
 from spiral.core.outcome import race_winner
 from spiral.env import RaceEnv, RaceResults, RaceSetting, run_races
 
@@ -21,8 +22,8 @@ __all__ = ["duel_statistics", "head_to_head", "paired_duel", "race_progress", "s
 
 
 def _env(track: TrackSpec, drones: int, runs: int, seed: int, learners: list[int]) -> RaceEnv:
-    return RaceEnv(RaceSetting(track, AIRFRAMES["cf2x"], SimCfg()), EnvCfg(), world_count=runs, drones_per_world=drones,
-                   learner_slots=learners, seed=seed, training=False)
+    return RaceEnv(RaceSetting(track, AIRFRAMES["cf2x"], SimCfg()), EnvCfg(reward=EVAL_REWARD), world_count=runs,
+                   drones_per_world=drones, learner_slots=learners, seed=seed, training=False)
 
 
 def self_match(track: TrackSpec, drones: int, *, runs: int = 50, seed: int = 0, **kw: Any

@@ -8,8 +8,8 @@ from pydantic import Field, model_validator
 
 from spiral.config.base import NonNegFloat, PosFloat, PosInt, StrictModel
 
-__all__ = ["ActionCfg", "EnvCfg", "EpisodeCfg", "HardTracksCfg", "ObsCfg", "PassageStartsCfg", "RewardCfg",
-           "SeparationCfg"]
+__all__ = ["EVAL_REWARD", "ActionCfg", "EnvCfg", "EpisodeCfg", "HardTracksCfg", "ObsCfg", "PassageStartsCfg",
+           "RewardCfg", "SeparationCfg"]
 
 
 class ObsCfg(StrictModel):
@@ -115,6 +115,11 @@ class RewardCfg(StrictModel):
         "drones, -1 to the other team's drones still racing (start-box races against opponents only; not in the "
         "paper; 0: off)",
     )
+
+
+EVAL_REWARD = RewardCfg(proximity=0.0, closing=0.0, win=0.0)
+"""The reward of evaluation envs: races are scored by their outcome, not by a reward, so the terms between drones (a
+pass over every pair of drones at each step) are left out."""
 
 
 class PassageStartsCfg(StrictModel):

@@ -19,7 +19,7 @@ from tensordict import TensorDict
 
 from spiral.baselines import PlannerPolicy, opponent_policy, planning_cost, se_ibr_policy
 from spiral.config.airframe import AIRFRAMES, AirframeCfg
-from spiral.config.env import ActionCfg, EnvCfg, ObsCfg, SeparationCfg
+from spiral.config.env import EVAL_REWARD, ActionCfg, EnvCfg, ObsCfg, SeparationCfg
 from spiral.config.sim import SimCfg
 from spiral.config.track import TrackSpec
 from spiral.core.checkpoint import FrozenPolicy, load_policy
@@ -102,13 +102,13 @@ class EvalLayout:
     def of_policy(cls, policy: FrozenPolicy, *, source: str = "policy") -> EvalLayout:
         """The layout ``policy`` was trained with."""
         meta = policy.meta
-        env = EnvCfg(obs=policy_obs(policy), action=ActionCfg(**meta["env"]["action"]))
+        env = EnvCfg(obs=policy_obs(policy), action=ActionCfg(**meta["env"]["action"]), reward=EVAL_REWARD)
         return cls(AirframeCfg(**meta["airframe"]), SimCfg(**meta["sim"]), env, source)
 
     @classmethod
     def default(cls, *, airframe: AirframeCfg | None = None, sim: SimCfg | None = None) -> EvalLayout:
         """Default env settings (for planner-only races)."""
-        return cls(airframe or AIRFRAMES["cf2x"], sim or SimCfg(), EnvCfg(), "defaults")
+        return cls(airframe or AIRFRAMES["cf2x"], sim or SimCfg(), EnvCfg(reward=EVAL_REWARD), "defaults")
 
 
 KEEP = "keep"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
@@ -9,7 +10,8 @@ import torch
 from typer.testing import CliRunner
 
 from spiral.cli import app
-from spiral.env import run_races
+from spiral.config.env import EVAL_REWARD, RewardCfg
+from spiral.env import RaceEnv, RaceSetting, run_races
 from spiral.eval.evaluate import (
     SE_IBR,
     EvalLayout,
@@ -40,6 +42,25 @@ def test_every_method_races_from_the_same_start_placements(sprint, tiny_checkpoi
     assert not torch.equal(env.pos, starts[0])
     separation = torch.cdist(starts[0].view(3, 4, 3), starts[0].view(3, 4, 3))
     assert float((separation + 9 * torch.eye(4)).min()) >= sprint.start.min_separation - 1e-6
+
+
+@pytest.mark.bitwise
+def test_evaluation_races_end_alike_without_the_reward_terms_they_leave_out(sprint, tiny_checkpoint):
+    """Evaluation envs leave the terms between drones out of their reward (``EVAL_REWARD``); with the training
+    reward's terms on, the same 2v2 races end the same way, drone for drone: an outcome never reads the reward."""
+    policy = load_method(tiny_checkpoint)
+    env, _ = setup_race(RaceSet(sprint, "2v2", 4, 3), policy)
+    assert env.cfg.reward == EVAL_REWARD and RewardCfg().proximity > 0 and RewardCfg().closing > 0
+    ends = []
+    for reward in (EVAL_REWARD, RewardCfg()):
+        layout = EvalLayout.of_policy(policy)
+        layout = dataclasses.replace(layout, env=layout.env.model_copy(update={"reward": reward}))
+        env = RaceEnv(RaceSetting(sprint, layout.airframe, layout.sim), layout.env, world_count=4, drones_per_world=4,
+                      learner_slots=[0, 1, 2, 3], seed=3, training=False)
+        res = run_races(env, policy)
+        ends.append((res.finished.clone(), res.lap_time.clone(), res.crashed.clone()))
+    for first, second in zip(*ends, strict=True):
+        assert torch.equal(first, second)  # exact: the same races on the same host
 
 
 def test_planner_racing_a_policy_uses_the_policy_layout(sprint, tiny_checkpoint):
